@@ -1,0 +1,65 @@
+"""Small video helpers over OpenCV (needs opencv-python-headless)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+class VideoError(ValueError):
+    """A video cannot be opened or a frame cannot be decoded."""
+
+
+def _open(path):
+    import cv2
+
+    path = Path(path)
+    if not path.exists():
+        raise VideoError(f"{path}: file not found")
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise VideoError(f"{path}: OpenCV cannot open this video")
+    return cap
+
+
+def count_frames(path) -> int:
+    """Number of frames that actually decode (not the container's claim)."""
+    cap = _open(path)
+    n = 0
+    try:
+        while cap.grab():
+            n += 1
+    finally:
+        cap.release()
+    return n
+
+
+def read_frame(path, index: int) -> np.ndarray:
+    """Decode frame `index` (BGR)."""
+    cap = _open(path)
+    try:
+        for _ in range(index):
+            if not cap.grab():
+                raise VideoError(f"{path}: has fewer than {index + 1} frames")
+        ok, img = cap.read()
+        if not ok:
+            raise VideoError(f"{path}: frame {index} does not decode (video has {index} frames or is truncated)")
+        return img
+    finally:
+        cap.release()
+
+
+def iter_frames(path):
+    """Yield (index, BGR frame) for every decodable frame."""
+    cap = _open(path)
+    i = 0
+    try:
+        while True:
+            ok, img = cap.read()
+            if not ok:
+                return
+            yield i, img
+            i += 1
+    finally:
+        cap.release()

@@ -1,0 +1,265 @@
+"""Simulator configuration: dataclasses with defaults, loaded from TOML.
+
+Every key of a config file must name a field here; a misspelt key, a wrong type or an
+out-of-range value raises :class:`ConfigError` naming the file and the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, get_args, get_origin, get_type_hints
+
+from pomar.geo import VACARIA
+
+
+class ConfigError(ValueError):
+    """A simulator config file has an unknown key, a value of the wrong type, or one out of range."""
+
+
+@dataclass
+class Origin:
+    lat: float = VACARIA.lat
+    lon: float = VACARIA.lon
+    alt: float = VACARIA.alt
+
+
+@dataclass
+class Orchard:
+    rows: int = 10
+    row_spacing_m: float = 4.0
+    tree_spacing_m: float = 1.0
+    row_length_m: float = 40.0
+    #: Direction of the rows, degrees clockwise from north.
+    row_azimuth_deg: float = 0.0
+    #: Rows at each end with no interest (the paper's plot has one border row each side).
+    border_rows: int = 1
+    canopy_height_m: float = 3.0
+    canopy_base_m: float = 0.8
+    canopy_width_m: float = 1.4
+    leaves_per_tree: int = 2600
+    leaf_radius_m: float = 0.04
+    #: Variety of each row, cycled across the rows.
+    varieties: list[str] = field(default_factory=lambda: ["Gala", "Fuji"])
+
+
+@dataclass
+class Apples:
+    per_tree: float = 8.0
+    diameter_min_m: float = 0.06
+    diameter_max_m: float = 0.09
+    #: Depth of an apple inside the canopy, as a fraction of the canopy radius (1 = surface);
+    #: apples deeper than about 0.9 are mostly hidden by leaves.
+    depth_min: float = 0.78
+    depth_max: float = 1.04
+
+
+@dataclass
+class Pass:
+    #: Across-row position of the flight line (m, orchard frame; rows sit at multiples of row_spacing_m
+    #: around 0). The camera looks across the rows towards +x (look = 1) or -x (look = -1).
+    across_m: float = -8.0
+    look: int = 1
+
+
+@dataclass
+class Flight:
+    altitude_m: float = 12.0
+    speed_mps: float = 2.0
+    #: Camera tilt off nadir, degrees (0 = straight down).
+    tilt_deg: float = 30.0
+    #: Along-row start and end of each pass (m, orchard frame, rows centred on 0).
+    start_m: float = -15.0
+    end_m: float = 15.0
+    passes: list[Pass] = field(default_factory=lambda: [Pass()])
+    fps: float = 10.0
+    #: UTC start of the video (ISO 8601), by the autopilot's (true) clock.
+    start_utc: str = "2018-12-13T14:00:00Z"
+    #: Seconds the autopilot had been up when the video starts.
+    boot_s_before_start: float = 180.0
+    # Wobble (standard deviations of smooth random processes).
+    speed_wobble: float = 0.08
+    lateral_wobble_m: float = 0.25
+    altitude_wobble_m: float = 0.25
+    attitude_wobble_deg: float = 1.5
+    vehicle_tilt_wobble_deg: float = 3.0
+
+
+@dataclass
+class CameraCfg:
+    width: int = 1280
+    height: int = 720
+    hfov_deg: float = 50.0
+    #: Misalignment of the camera on the gimbal (small rotation, degrees), unknown to telemetry.
+    mount_error_deg: float = 0.0
+
+
+@dataclass
+class Telemetry:
+    gps_rate_hz: float = 5.0
+    gps_noise_m: float = 0.5
+    gps_alt_noise_m: float = 0.8
+    position_rate_hz: float = 5.0
+    attitude_rate_hz: float = 20.0
+    attitude_noise_deg: float = 0.3
+    gimbal_rate_hz: float = 10.0
+    gimbal_noise_deg: float = 0.3
+    #: Camera clock minus autopilot clock (s): flight.json's video start is off by this much.
+    clock_offset_s: float = 0.0
+    #: Delay between the autopilot sending a message and the ground station logging it (s).
+    link_latency_s: float = 0.02
+    #: "CAMERA_FEEDBACK" (ArduPilot) or "CAMERA_TRIGGER" (PX4), one per video frame.
+    capture_message: str = "CAMERA_FEEDBACK"
+    system_id: int = 1
+
+
+@dataclass
+class Render:
+    #: Motion-blur exposure time (s); 0 disables blur.
+    exposure_s: float = 0.004
+    #: Standard deviation of the slow exposure drift (fraction of brightness).
+    exposure_wobble: float = 0.06
+    #: Sun elevation and azimuth (degrees, azimuth clockwise from north).
+    sun_elevation_deg: float = 55.0
+    sun_azimuth_deg: float = 40.0
+    ambient: float = 0.45
+    sensor_noise: float = 2.0
+    ground_resolution_m: float = 0.02
+    #: x264 constant rate factor of the video (lower is better quality, larger file).
+    video_crf: int = 20
+
+
+@dataclass
+class SimConfig:
+    seed: int = 0
+    flight_id: str = "sim-flight"
+    drone_id: str = "drone-1"
+    origin: Origin = field(default_factory=Origin)
+    orchard: Orchard = field(default_factory=Orchard)
+    apples: Apples = field(default_factory=Apples)
+    flight: Flight = field(default_factory=Flight)
+    camera: CameraCfg = field(default_factory=CameraCfg)
+    telemetry: Telemetry = field(default_factory=Telemetry)
+    render: Render = field(default_factory=Render)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+# Ranges checked after loading: (section.key, predicate, message)
+_CHECKS = [
+    ("orchard.rows", lambda v: v >= 1, "must be >= 1"),
+    ("orchard.row_spacing_m", lambda v: v > 0, "must be > 0"),
+    ("orchard.tree_spacing_m", lambda v: v > 0, "must be > 0"),
+    ("orchard.row_length_m", lambda v: v > 0, "must be > 0"),
+    ("orchard.leaves_per_tree", lambda v: v >= 0, "must be >= 0"),
+    ("orchard.varieties", lambda v: len(v) > 0, "must name at least one variety"),
+    ("apples.per_tree", lambda v: v >= 0, "must be >= 0"),
+    ("apples.diameter_min_m", lambda v: v > 0, "must be > 0"),
+    ("flight.altitude_m", lambda v: v > 0, "must be > 0"),
+    ("flight.speed_mps", lambda v: v > 0, "must be > 0"),
+    ("flight.fps", lambda v: v > 0, "must be > 0"),
+    ("flight.tilt_deg", lambda v: 0 <= v < 80, "must be in [0, 80)"),
+    ("flight.passes", lambda v: len(v) > 0, "must hold at least one pass"),
+    ("camera.width", lambda v: 16 <= v <= 3840 and v % 2 == 0, "must be even, in [16, 3840]"),
+    ("camera.height", lambda v: 16 <= v <= 2160 and v % 2 == 0, "must be even, in [16, 2160]"),
+    ("camera.hfov_deg", lambda v: 5 < v < 150, "must be in (5, 150)"),
+    ("telemetry.gps_rate_hz", lambda v: v > 0, "must be > 0"),
+    ("telemetry.position_rate_hz", lambda v: v > 0, "must be > 0"),
+    ("telemetry.attitude_rate_hz", lambda v: v > 0, "must be > 0"),
+    ("telemetry.gimbal_rate_hz", lambda v: v > 0, "must be > 0"),
+    ("telemetry.capture_message", lambda v: v in ("CAMERA_FEEDBACK", "CAMERA_TRIGGER"),
+     "must be 'CAMERA_FEEDBACK' (ArduPilot) or 'CAMERA_TRIGGER' (PX4)"),
+    ("render.video_crf", lambda v: 0 <= v <= 51, "must be in [0, 51]"),
+]
+
+
+def _coerce(value: Any, typ: Any, key: str, source: str) -> Any:
+    if dataclasses.is_dataclass(typ):
+        if not isinstance(value, dict):
+            raise ConfigError(f"{source}: [{key}] must be a table, got {type(value).__name__}")
+        return _build(typ, value, key, source)
+    origin = get_origin(typ)
+    if origin is list:
+        (item,) = get_args(typ)
+        if not isinstance(value, list):
+            raise ConfigError(f"{source}: {key} must be a list, got {value!r}")
+        return [_coerce(v, item, f"{key}[{i}]", source) for i, v in enumerate(value)]
+    if typ is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{source}: {key} must be true or false, got {value!r}")
+        return value
+    if typ is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{source}: {key} must be an integer, got {value!r}")
+        return value
+    if typ is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{source}: {key} must be a number, got {value!r}")
+        return float(value)
+    if typ is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{source}: {key} must be a string, got {value!r}")
+        return value
+    raise TypeError(f"unsupported config type {typ!r} for {key}")
+
+
+def _build(cls, data: dict, prefix: str, source: str):
+    hints = get_type_hints(cls)
+    names = [f.name for f in dataclasses.fields(cls)]
+    kwargs = {}
+    for key, value in data.items():
+        full = f"{prefix}.{key}" if prefix else key
+        if key not in names:
+            raise ConfigError(f"{source}: unknown key {full!r} (known keys here: {', '.join(names)})")
+        kwargs[key] = _coerce(value, hints[key], full, source)
+    return cls(**kwargs)
+
+
+def _get(cfg: SimConfig, dotted: str):
+    obj = cfg
+    for part in dotted.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def from_dict(data: dict, source: str = "<config>") -> SimConfig:
+    cfg = _build(SimConfig, data, "", source)
+    for key, ok, msg in _CHECKS:
+        value = _get(cfg, key)
+        if not ok(value):
+            raise ConfigError(f"{source}: {key} {msg}, got {value!r}")
+    for i, p in enumerate(cfg.flight.passes):
+        if p.look not in (-1, 1):
+            raise ConfigError(f"{source}: flight.passes[{i}].look must be 1 or -1, got {p.look!r}")
+    if cfg.apples.diameter_max_m < cfg.apples.diameter_min_m:
+        raise ConfigError(f"{source}: apples.diameter_max_m must be >= apples.diameter_min_m")
+    if cfg.flight.end_m == cfg.flight.start_m:
+        raise ConfigError(f"{source}: flight.end_m must differ from flight.start_m")
+    try:
+        parse_utc(cfg.flight.start_utc)
+    except ValueError:
+        raise ConfigError(f"{source}: flight.start_utc must be an ISO 8601 time, got {cfg.flight.start_utc!r}") from None
+    return cfg
+
+
+def parse_utc(text: str) -> float:
+    from datetime import datetime, timezone
+
+    dt = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    if dt.tzinfo is None:
+        dt = dt.replace(tzinfo=timezone.utc)
+    return dt.timestamp()
+
+
+def load(path: str | Path) -> SimConfig:
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    return from_dict(data, str(path))
