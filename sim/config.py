@@ -52,8 +52,8 @@ class Apples:
     diameter_max_m: float = 0.09
     #: Depth of an apple inside the canopy, as a fraction of the canopy radius (1 = surface);
     #: apples deeper than about 0.9 are mostly hidden by leaves.
-    depth_min: float = 0.78
-    depth_max: float = 1.04
+    depth_min: float = 0.80
+    depth_max: float = 1.05
 
 
 @dataclass

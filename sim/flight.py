@@ -129,15 +129,15 @@ def simulate_flight(cfg: SimConfig, out_dir: str | Path, jobs: int | None = None
         "apple_id": a["apple_id"], "row": a["row"], "variety": a["variety"],
         "x": a["xyz"][:, 0], "y": a["xyz"][:, 1], "z": a["xyz"][:, 2],
         "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2], "radius_m": a["radius_m"],
-    }, {"x": ".4f", "y": ".4f", "z": ".4f", "lat": ".9f", "lon": ".9f", "alt": ".4f", "radius_m": ".4f"})
+    }, {"x": ".6f", "y": ".6f", "z": ".6f", "lat": ".10f", "lon": ".10f", "alt": ".6f", "radius_m": ".6f"})
     q = rotation_to_quat_wxyz(Rotation.from_matrix(R))
     cgeo = origin.to_geodetic(sample["centre"])
     ff.write_csv(out / ff.TRUTH / "frames.csv", ff.FRAMES_COLUMNS, {
         "frame": np.arange(n_frames), "t_unix": start_unix + tf,
         "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3], "tx": t[:, 0], "ty": t[:, 1], "tz": t[:, 2],
         "lat": cgeo[:, 0], "lon": cgeo[:, 1], "alt": cgeo[:, 2],
-    }, {"t_unix": ".6f", **{k: ".9f" for k in ("qw", "qx", "qy", "qz")}, **{k: ".5f" for k in ("tx", "ty", "tz")},
-        "lat": ".9f", "lon": ".9f", "alt": ".4f"})
+    }, {"t_unix": ".6f", **{k: ".12f" for k in ("qw", "qx", "qy", "qz")}, **{k: ".7f" for k in ("tx", "ty", "tz")},
+        "lat": ".10f", "lon": ".10f", "alt": ".6f"})
     cols = {c: np.concatenate(v) if v else np.array([]) for c, v in det.items()}
     ff.write_csv(out / ff.TRUTH / "detections.csv", ff.DETECTIONS_COLUMNS, cols,
                  {"u": ".3f", "v": ".3f", "r_px": ".3f", "visible_fraction": ".3f"})

@@ -26,8 +26,8 @@ def smooth_noise(rng: np.random.Generator, n: int, corr_s: float, sigma: float, 
     if sigma == 0 or n == 0:
         return np.zeros(n)
     white = rng.normal(size=n + int(8 * corr_s * rate_hz))
-    x = gaussian_filter1d(white, corr_s * rate_hz, mode="wrap")[:n]
-    return sigma * x / max(x.std(), 1e-12)
+    x = gaussian_filter1d(white, corr_s * rate_hz, mode="wrap")
+    return sigma * x[:n] / max(x.std(), 1e-12)  # normalised over the whole process, not the slice
 
 
 @dataclass

@@ -1,0 +1,76 @@
+"""Two- and multi-view geometry for the association (Hartley & Zisserman), vectorised with numpy.
+
+Projection matrices map world points to pixels in the project's detection convention (OpenCV:
+top-left pixel centre at (0, 0)); build them with :meth:`pomar.camera.Camera.projection_matrix`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """[v]x, the cross-product matrix of a 3-vector."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def camera_centre(P: np.ndarray) -> np.ndarray:
+    """Homogeneous centre C (4,) with P C = 0 (the right null vector of P)."""
+    _, _, vt = np.linalg.svd(P)
+    c = vt[-1]
+    return c / c[3] if abs(c[3]) > 1e-12 else c
+
+
+def fundamental_from_projections(P_i: np.ndarray, P_j: np.ndarray) -> np.ndarray:
+    """F_ij = [e_j]x P_j P_i^+ with e_j = P_j C_i: maps a point of frame i to its epipolar line in frame j."""
+    e_j = P_j @ camera_centre(P_i)
+    F = skew(e_j) @ P_j @ np.linalg.pinv(P_i)
+    return F / np.linalg.norm(F)
+
+
+def homogeneous(x: np.ndarray) -> np.ndarray:
+    x = np.asarray(x, float)
+    return np.concatenate([x, np.ones(x.shape[:-1] + (1,))], axis=-1)
+
+
+def epipolar_distances(F: np.ndarray, x_i: np.ndarray, x_j: np.ndarray) -> np.ndarray:
+    """(N, M) pixel distances of the M points x_j to the epipolar lines F x_i of the N points x_i."""
+    lines = homogeneous(x_i) @ F.T  # (N, 3): l = F x
+    norm = np.hypot(lines[:, 0], lines[:, 1])
+    num = lines @ homogeneous(x_j).T  # (N, M)
+    return np.abs(num) / np.maximum(norm, 1e-300)[:, None]
+
+
+def triangulate(Ps: np.ndarray, xs: np.ndarray) -> np.ndarray:
+    """Linear least-squares triangulation from n >= 2 views, batched.
+
+    Ps: (..., n, 3, 4) projection matrices; xs: (..., n, 2) pixels. Returns (..., 3) points.
+    Each view gives the rows x P3 - P1 and y P3 - P2 (Hartley & Sturm's linear method), normalised
+    to unit length; the solution is the singular vector of the smallest singular value.
+    """
+    Ps, xs = np.asarray(Ps, float), np.asarray(xs, float)
+    r1 = xs[..., 0:1] * Ps[..., 2, :] - Ps[..., 0, :]
+    r2 = xs[..., 1:2] * Ps[..., 2, :] - Ps[..., 1, :]
+    A = np.concatenate([r1, r2], axis=-2)  # (..., 2n, 4)
+    A = A / np.linalg.norm(A, axis=-1, keepdims=True)
+    _, _, vt = np.linalg.svd(A)
+    X = vt[..., -1, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return X[..., :3] / X[..., 3:4]
+
+
+def project(Ps: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Project points X (..., 3) with Ps (..., 3, 4): pixels (..., 2) and depths (...,)."""
+    xh = np.einsum("...ij,...j->...i", Ps, homogeneous(X))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return xh[..., :2] / xh[..., 2:3], xh[..., 2]
+
+
+def reprojection_errors(Ps: np.ndarray, xs: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Pixel distance between xs (..., n, 2) and the projections of X (..., 3) by Ps (..., n, 3, 4).
+
+    Points behind a camera get an infinite error.
+    """
+    uv, depth = project(Ps, np.asarray(X)[..., None, :])
+    err = np.linalg.norm(uv - xs, axis=-1)
+    return np.where(depth > 0, err, np.inf)

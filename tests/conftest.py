@@ -1,0 +1,26 @@
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BUNDLED = ROOT / "replay_data" / "demo-flight"
+SMALL_CONFIG = ROOT / "sim" / "configs" / "small.toml"
+
+
+@pytest.fixture(scope="session")
+def bundled_flight():
+    from pomar.flight import FlightDir
+
+    return FlightDir(BUNDLED)
+
+
+@pytest.fixture(scope="session")
+def small_flight(tmp_path_factory):
+    """A tiny simulated flight rendered once per test session (about 5 s)."""
+    from pomar.flight import FlightDir
+    from sim import config
+    from sim.flight import simulate_flight
+
+    out = tmp_path_factory.mktemp("small") / "flight"
+    simulate_flight(config.load(SMALL_CONFIG), out, jobs=2, progress=False)
+    return FlightDir(out)

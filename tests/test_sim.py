@@ -1,0 +1,110 @@
+"""The simulator: config errors name the key; flights are deterministic from the seed; PX4 variant."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from sim import config
+from sim.config import ConfigError
+
+
+@pytest.mark.parametrize("text, key", [
+    ("[flight]\naltitud_m = 12\n", "flight.altitud_m"),
+    ("[flight]\naltitude_m = 'high'\n", "flight.altitude_m"),
+    ("[flight]\naltitude_m = -3\n", "flight.altitude_m"),
+    ("[camera]\nwidth = 1281\n", "camera.width"),
+    ("[telemetry]\ncapture_message = 'CAM'\n", "telemetry.capture_message"),
+    ("[flight]\npasses = [{ across_m = 1.0, look = 3 }]\n", "flight.passes[0].look"),
+    ("[flight]\npasses = [{ acros_m = 1.0 }]\n", "flight.passes[0].acros_m"),
+    ("orchard = 3\n", "orchard"),
+    ("[orchard\nrows = 3\n", "not valid TOML"),
+])
+def test_bad_config_names_the_key(tmp_path, text, key):
+    p = tmp_path / "bad.toml"
+    p.write_text(text)
+    with pytest.raises(ConfigError) as exc:
+        config.load(p)
+    assert key in str(exc.value) and str(p) in str(exc.value)
+
+
+def test_cli_reports_bad_config(tmp_path):
+    p = tmp_path / "bad.toml"
+    p.write_text("seed = 1\n[apples]\nper_tre = 3\n")
+    r = subprocess.run([sys.executable, "-m", "sim", "flight", "--config", str(p), "--out", str(tmp_path / "o")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2
+    assert "apples.per_tre" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_missing_config_file(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        config.load(tmp_path / "nope.toml")
+
+
+def test_default_config_is_valid():
+    cfg = config.from_dict({})
+    assert cfg.orchard.rows == 10 and cfg.camera.width == 1280 and cfg.flight.altitude_m == 12.0
+
+
+def _read(fd):
+    return fd.truth_apples(), fd.truth_frames(), fd.truth_detections()
+
+
+def test_small_flight_is_deterministic_and_consistent(small_flight, tmp_path):
+    from pomar.flight import FlightDir
+    from pomar.video import count_frames
+    from sim.flight import simulate_flight
+    from tests.conftest import SMALL_CONFIG
+
+    again = tmp_path / "again"
+    simulate_flight(config.load(SMALL_CONFIG), again, jobs=1, progress=False)  # other job count, same result
+    fd2 = FlightDir(again)
+    for x, y in zip(_read(small_flight), _read(fd2)):
+        for k in x:
+            assert np.array_equal(x[k], y[k]), k
+    assert small_flight.tlog.read_bytes() == fd2.tlog.read_bytes()
+    meta = small_flight.meta()
+    assert count_frames(small_flight.video) == meta.frame_count
+    # the clock offset of the config shows in flight.json, not in the truth
+    fr = small_flight.truth_frames()
+    assert meta.video_start_utc - fr["t_unix"][0] == pytest.approx(0.25, abs=1e-6)
+    d = small_flight.truth_detections()
+    assert len(np.unique(d["apple_id"])) > 10
+
+
+def test_seed_changes_the_orchard(tmp_path):
+    from sim.orchard import build_scene
+
+    a = build_scene(config.from_dict({"seed": 1, "orchard": {"rows": 2, "row_length_m": 4.0}}))
+    b = build_scene(config.from_dict({"seed": 2, "orchard": {"rows": 2, "row_length_m": 4.0}}))
+    assert not np.array_equal(a.apples["xyz"][:5], b.apples["xyz"][:5])
+
+
+def test_px4_capture_messages(tmp_path):
+    from sim.flight import simulate_flight
+    from sim.preview import tlog_message_counts
+
+    cfg = config.load(__import__("tests.conftest", fromlist=["x"]).SMALL_CONFIG)
+    cfg.telemetry.capture_message = "CAMERA_TRIGGER"
+    cfg.camera.width, cfg.camera.height = 160, 96
+    summary = simulate_flight(cfg, tmp_path / "px4", jobs=1, progress=False)
+    counts = tlog_message_counts(tmp_path / "px4" / "telemetry.tlog")
+    assert counts["CAMERA_TRIGGER"] == summary["frames"] and "CAMERA_FEEDBACK" not in counts
+
+
+def test_apples_sizes_rows_and_varieties(bundled_flight):
+    a = bundled_flight.truth_apples()
+    d = 2 * a["radius_m"]
+    assert d.min() >= 0.06 - 1e-4 and d.max() <= 0.09 + 1e-4
+    assert set(np.unique(a["row"]).tolist()) == set(range(1, 11))
+    assert set(np.unique(a["variety"]).tolist()) == {"Gala", "Fuji"}
+    # rows about 4 m apart, parallel
+    x_by_row = [np.median(a["x"][a["row"] == r]) for r in range(1, 11)]
+    assert np.allclose(np.diff(x_by_row), 4.0, atol=0.2)
+    # some apples are hidden: the flight sees some only partly
+    det = bundled_flight.truth_detections()
+    assert (det["visible_fraction"] < 0.5).mean() > 0.1
