@@ -1,0 +1,556 @@
+"""The paper's association (Santos & Gebler 2021, Section 2.1.3): detections + camera matrices -> apples in 3-D.
+
+Two implementations over the same geometry:
+
+* :class:`FruitAssociation` — faithful offline version of Algorithms 1 and 2: an epipolar graph over
+  all detections (edge i -> j when j is in the next k frames and lies within tau_epipolar of the
+  epipolar line), then for each node in frame order a DFS to all paths, RANSAC triangulation of
+  each path (3 random nodes per iteration, inliers within tau_geom), the path with the best inlier
+  ratio (longest first) becomes an apple, its edges are removed, its nodes kept. DFS is bounded by
+  ``max_paths`` per node (the number of paths grows exponentially with track length and k); how
+  often the bound binds is reported in :attr:`FruitAssociation.stats`.
+
+* :class:`WindowedAssociation` — streaming version fed one frame at a time. Each open track is a
+  path of the graph grown frame by frame: a young track extends along the epipolar line of its
+  last node (within tau_epipolar, branching into every candidate, at most ``max_branches`` per
+  root), a track with a 3-D estimate extends to the detection nearest its reprojection (within
+  tau_geom). Tracks not extended for k frames can no longer grow and are closed: their inliers
+  are re-estimated and, with at least ``min_inliers``, emitted as an apple. Time per frame and
+  memory depend on the open tracks only, not on the flight's length.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from ground.geometry import epipolar_distances, fundamental_from_projections, reprojection_errors, triangulate
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class AssociationParams:
+    k: int = 5  # frames ahead linked in the graph (tolerates k-1 missed detections)
+    tau_epipolar: float = 4.0  # px, point-to-epipolar-line gate
+    tau_geom: float = 3.0  # px, RANSAC inlier reprojection threshold
+    ransac_iterations: int = 50
+    min_inliers: int = 3
+    max_paths: int = 500  # offline DFS bound per node
+    max_branches: int = 8  # windowed: young hypotheses kept per root detection
+    #: One apple seen twice (hidden for more than k frames, then seen again) gives two estimates.
+    #: They are merged when their views triangulate together within tau_geom and the estimates are
+    #: within merge_search_m (short tracks are uncertain in depth); 0 = off (the paper as is).
+    merge_search_m: float = 1.0
+    #: Without views (apples from elsewhere), estimates closer than this are merged (two apples'
+    #: centres are at least the sum of their radii, >= 6 cm, apart).
+    merge_m: float = 0.04
+    #: Windowed: how long (frames) an emitted apple stays a candidate for such a merge.
+    merge_window: int = 600
+    seed: int = 0
+
+
+@dataclass
+class FrameDetections:
+    """One frame fed to the association: its index, 3x4 camera matrix, detection centres (N, 2)."""
+
+    frame: int
+    P: np.ndarray
+    xy: np.ndarray
+
+    def __post_init__(self):
+        self.P = np.asarray(self.P, float)
+        if self.P.shape != (3, 4) or not np.isfinite(self.P).all():
+            raise ValueError(f"frame {self.frame}: P must be a finite 3x4 matrix, got shape {self.P.shape}")
+        xy = np.asarray(self.xy, float)
+        if xy.size and (xy.ndim != 2 or xy.shape[1] != 2):
+            raise ValueError(f"frame {self.frame}: detections must be (N, 2) centres, got shape {xy.shape}")
+        self.xy = xy.reshape(-1, 2)
+
+
+@dataclass
+class Apple:
+    """One apple found: 3-D position (world frame of the P_i) and the detections it was seen as."""
+
+    id: int
+    X: np.ndarray
+    observations: list[tuple[int, int]]  # (frame, detection index), the inliers
+    reprojection_error: float  # mean over inliers, px
+    #: Views kept to test a merge: (V, 3, 4) camera matrices and (V, 2) pixels, a sample of the inliers.
+    views: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+    first_frame: int = field(init=False)
+    last_frame: int = field(init=False)
+
+    def __post_init__(self):
+        frames = [f for f, _ in self.observations]
+        self.first_frame, self.last_frame = min(frames), max(frames)
+
+    @property
+    def n_observations(self) -> int:
+        return len(self.observations)
+
+
+def _sample_triples(rng: np.random.Generator, lengths: np.ndarray, n: int) -> np.ndarray:
+    """(len(lengths), n, 3) distinct indices in [0, L) for each length L >= 3, vectorised."""
+    L = lengths[:, None].astype(np.int64)
+    r = rng.random((len(lengths), n, 3))
+    a = np.floor(r[..., 0] * L).astype(np.int64)
+    b = np.floor(r[..., 1] * (L - 1)).astype(np.int64)
+    b += b >= a
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    c = np.floor(r[..., 2] * (L - 2)).astype(np.int64)
+    c += c >= lo
+    c += c >= hi
+    return np.stack([a, b, c], axis=-1)
+
+
+def refine(Ps: np.ndarray, xs: np.ndarray, inliers: np.ndarray, tau_geom: float, min_inliers: int):
+    """Least-squares X from the inliers, then the inliers of that X; None if fewer than min_inliers."""
+    if inliers.sum() < max(2, min_inliers):
+        return None
+    X = triangulate(Ps[inliers], xs[inliers])
+    err = reprojection_errors(Ps, xs, X)
+    inl = err < tau_geom
+    if inl.sum() < max(2, min_inliers):
+        return None
+    X = triangulate(Ps[inl], xs[inl])
+    err = reprojection_errors(Ps, xs, X)
+    inl = err < tau_geom
+    if inl.sum() < max(2, min_inliers) or not np.isfinite(X).all():
+        return None
+    return X, inl, float(err[inl].mean())
+
+
+def ransac_paths(Ps: np.ndarray, xs: np.ndarray, paths: list[list[int]], params: AssociationParams,
+                 rng: np.random.Generator):
+    """TriangulationRANSAC on a batch of paths (lists of node ids). Returns per path (X, inlier mask, err) or None."""
+    lengths = np.array([len(p) for p in paths])
+    Lmax = lengths.max()
+    idx = np.zeros((len(paths), Lmax), np.int64)
+    valid = np.arange(Lmax)[None, :] < lengths[:, None]
+    for i, p in enumerate(paths):
+        idx[i, : len(p)] = p
+    tri = _sample_triples(rng, lengths, params.ransac_iterations)  # (B, n, 3) positions in path
+    nodes = np.take_along_axis(idx[:, None, :], tri, axis=2)  # (B, n, 3)
+    X = triangulate(Ps[nodes], xs[nodes])  # (B, n, 3)
+    err = reprojection_errors(Ps[idx][:, None], xs[idx][:, None], X)  # (B, n, Lmax)
+    inl = (err < params.tau_geom) & valid[:, None, :]
+    best = inl.sum(-1).argmax(-1)  # first best iteration
+    out = []
+    for i, p in enumerate(paths):
+        res = refine(Ps[p], xs[p], inl[i, best[i], : len(p)], params.tau_geom, params.min_inliers)
+        out.append(res)
+    return out
+
+
+def _stack_frames(frames: list[FrameDetections]):
+    counts = [len(f.xy) for f in frames]
+    node_frame = np.repeat(np.arange(len(frames)), counts)
+    node_det = np.concatenate([np.arange(c) for c in counts]) if counts else np.zeros(0, int)
+    xs = np.concatenate([f.xy for f in frames]) if counts else np.zeros((0, 2))
+    Ps = np.stack([f.P for f in frames])[node_frame] if len(node_frame) else np.zeros((0, 3, 4))
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    return node_frame, node_det, xs, Ps, offsets
+
+
+class FruitAssociation:
+    """Faithful offline association (Algorithms 1 and 2 of the paper)."""
+
+    def __init__(self, params: AssociationParams | None = None):
+        self.params = params or AssociationParams()
+        self.stats: dict = {}
+
+    def build_graph(self, frames: list[FrameDetections], offsets: np.ndarray) -> list[dict[int, float]]:
+        """Adjacency: for each node, its successors and their epipolar distances (px)."""
+        p = self.params
+        n = int(offsets[-1])
+        adj: list[dict[int, float]] = [{} for _ in range(n)]
+        edges = 0
+        for i, fi in enumerate(frames):
+            if len(fi.xy) == 0:
+                continue
+            for j in range(i + 1, min(i + p.k, len(frames) - 1) + 1):
+                fj = frames[j]
+                if len(fj.xy) == 0:
+                    continue
+                D = epipolar_distances(fundamental_from_projections(fi.P, fj.P), fi.xy, fj.xy)
+                a, b = np.nonzero(D <= p.tau_epipolar)
+                for u, w, d in zip((a + offsets[i]).tolist(), (b + offsets[j]).tolist(), D[a, b].tolist()):
+                    adj[u][w] = d
+                edges += len(a)
+        self.stats["edges"] = edges
+        return adj
+
+    def dfs_paths(self, adj: list[dict[int, float]], v: int, node_frame: np.ndarray) -> tuple[list[list[int]], bool]:
+        """All maximal paths from v, stopping at max_paths. Best first: successors in the nearest frame
+        first, then nearest their epipolar line, so that a bound keeps the most plausible paths.
+        Returns the paths and whether the bound was hit."""
+
+        def successors(u):
+            return iter(sorted(adj[u], key=lambda w: (node_frame[w], adj[u][w])))
+
+        paths: list[list[int]] = []
+        stack = [successors(v)]
+        path = [v]
+        while stack:
+            nxt = next(stack[-1], None)
+            if nxt is None:
+                stack.pop()
+                path.pop()
+                continue
+            path.append(nxt)
+            if adj[nxt]:
+                stack.append(successors(nxt))
+            else:
+                paths.append(list(path))
+                path.pop()
+                if len(paths) >= self.params.max_paths:
+                    return paths, True
+        return paths, False
+
+    def run(self, frames: list[FrameDetections]) -> list[Apple]:
+        p = self.params
+        rng = np.random.default_rng(p.seed)
+        node_frame, node_det, xs, Ps, offsets = _stack_frames(frames)
+        adj = self.build_graph(frames, offsets)
+        apples: list[Apple] = []
+        bound_hits = nodes_with_paths = 0
+        for v in range(len(xs)):  # nodes in frame order
+            if not adj[v]:
+                continue
+            paths, hit = self.dfs_paths(adj, v, node_frame)
+            paths = [q for q in paths if len(q) >= max(3, p.min_inliers)]
+            if not paths:
+                continue
+            nodes_with_paths += 1
+            bound_hits += hit
+            paths.sort(key=len, reverse=True)  # longest first; ties keep the earlier (longer) path
+            best, best_r = None, 0.0
+            for q, res in zip(paths, ransac_paths(Ps, xs, paths, p, rng)):
+                if res is None:
+                    continue
+                r = res[1].sum() / len(q)
+                if r > best_r:
+                    best, best_r = (q, res), r
+            if best is None:
+                continue
+            q, (X, inl, err) = best
+            inliers = [q[i] for i in np.nonzero(inl)[0]]
+            inset = set(inliers)
+            for u in inliers:
+                for w in inset.intersection(adj[u]):
+                    del adj[u][w]
+            obs = [(frames[node_frame[u]].frame, int(node_det[u])) for u in inliers]
+            apples.append(Apple(len(apples), X, obs, err, views=sample_views(Ps[inliers], xs[inliers])))
+        n_found = len(apples)
+        apples = merge_duplicates(apples, p)
+        self.stats.update(nodes=len(xs), nodes_with_paths=nodes_with_paths, dfs_bound_hits=bound_hits,
+                          dfs_bound_hit_rate=bound_hits / max(nodes_with_paths, 1), apples=len(apples),
+                          merged=n_found - len(apples))
+        return apples
+
+
+MERGE_VIEWS = 16  # views an apple keeps to test merges
+
+
+def sample_views(Ps: np.ndarray, xs: np.ndarray, n: int = MERGE_VIEWS) -> tuple[np.ndarray, np.ndarray]:
+    sel = np.unique(np.linspace(0, len(xs) - 1, min(len(xs), n)).round().astype(int))
+    return Ps[sel], xs[sel]
+
+
+def same_apple(a: Apple, b: Apple, tau_geom: float, min_inlier_ratio: float = 0.9) -> np.ndarray | None:
+    """The point both apples' views triangulate to, if it reprojects within tau_geom in at least
+    min_inlier_ratio of each apple's views (a few views of a long track fall outside by noise)."""
+    Ps = np.concatenate([a.views[0], b.views[0]])
+    xs = np.concatenate([a.views[1], b.views[1]])
+    X = triangulate(Ps, xs)
+    if not np.isfinite(X).all():
+        return None
+    inl = reprojection_errors(Ps, xs, X) < tau_geom
+    na = len(a.views[1])
+    if inl[:na].mean() >= min_inlier_ratio and inl[na:].mean() >= min_inlier_ratio:
+        return X
+    return None
+
+
+def merge_into(a: Apple, b: Apple, X: np.ndarray | None = None) -> None:
+    """Fold apple b into apple a (the same physical apple)."""
+    na, nb = a.n_observations, b.n_observations
+    a.X = X if X is not None else (a.X * na + b.X * nb) / (na + nb)
+    a.reprojection_error = (a.reprojection_error * na + b.reprojection_error * nb) / (na + nb)
+    a.observations = sorted(set(a.observations) | set(b.observations))
+    a.first_frame, a.last_frame = min(a.first_frame, b.first_frame), max(a.last_frame, b.last_frame)
+    if a.views is not None and b.views is not None:
+        a.views = sample_views(np.concatenate([a.views[0], b.views[0]]), np.concatenate([a.views[1], b.views[1]]))
+
+
+def find_duplicate(apple: Apple, candidates: list[Apple], params: "AssociationParams"):
+    """The candidate that apple duplicates, and their joint position: within merge_m, or within
+    merge_search_m and consistent (their views triangulate together within tau_geom)."""
+    if not candidates:
+        return None, None
+    C = np.array([c.X for c in candidates])
+    d = np.linalg.norm(C - apple.X, axis=1)
+    for i in np.argsort(d)[:4]:
+        if d[i] > params.merge_search_m:
+            break
+        c = candidates[i]
+        if apple.views is not None and c.views is not None:
+            X = same_apple(c, apple, params.tau_geom)
+            if X is not None:
+                return c, X
+        elif d[i] < params.merge_m:
+            return c, None
+    return None, None
+
+
+def merge_duplicates(apples: list[Apple], params: "AssociationParams") -> list[Apple]:
+    """Merge apples that are one apple seen twice (in order, each into an earlier kept apple)."""
+    if params.merge_search_m <= 0 or not apples:
+        return apples
+    from scipy.spatial import cKDTree
+
+    kept: list[Apple] = []
+    tree = cKDTree(np.array([a.X for a in apples]))
+    alive = np.ones(len(apples), bool)
+    for i, a in enumerate(apples):
+        near = [j for j in tree.query_ball_point(a.X, params.merge_search_m) if j < i and alive[j]]
+        target, X = find_duplicate(a, [apples[j] for j in near], params)
+        if target is None:
+            kept.append(a)
+        else:
+            merge_into(target, a, X)
+            alive[i] = False
+    for i, a in enumerate(kept):
+        a.id = i
+    return kept
+
+
+class _Track:
+    __slots__ = ("obs", "Ps", "xs", "M", "X", "root", "last", "mature", "alive")
+
+    def __init__(self, root: int):
+        self.obs: list[tuple[int, int]] = []
+        self.Ps: list[np.ndarray] = []
+        self.xs: list[np.ndarray] = []
+        self.M = np.zeros((4, 4))  # normal matrix of the linear triangulation, accumulated
+        self.X: np.ndarray | None = None
+        self.root = root
+        self.last = -1
+        self.mature = False
+        self.alive = True
+
+    def add(self, frame: int, det: int, P: np.ndarray, x: np.ndarray):
+        self.obs.append((frame, det))
+        self.Ps.append(P)
+        self.xs.append(x)
+        rows = np.stack([x[0] * P[2] - P[0], x[1] * P[2] - P[1]])
+        rows /= np.linalg.norm(rows, axis=1, keepdims=True)
+        self.M += rows.T @ rows
+        self.last = frame
+        if len(self.obs) >= 2:
+            w, v = np.linalg.eigh(self.M)
+            h = v[:, 0]
+            self.X = h[:3] / h[3] if abs(h[3]) > 1e-12 else None
+
+    def copy(self) -> "_Track":
+        t = _Track(self.root)
+        t.obs, t.Ps, t.xs = list(self.obs), list(self.Ps), list(self.xs)
+        t.M, t.X, t.last, t.mature = self.M.copy(), None if self.X is None else self.X.copy(), self.last, self.mature
+        return t
+
+
+class WindowedAssociation:
+    """Streaming association: feed frames in order with :meth:`add_frame`; apples come out as they close.
+
+    ``add_frame`` returns the apples whose tracks can no longer grow (no detection for k frames);
+    :meth:`finish` closes the rest at the end of the flight.
+    """
+
+    def __init__(self, params: AssociationParams | None = None):
+        self.params = params or AssociationParams()
+        self.tracks: list[_Track] = []
+        self._next_root = 0
+        self._next_id = 0
+        self._recent: list[Apple] = []  # emitted apples that a later track may turn out to duplicate
+        self.stats = {"frames": 0, "branch_bound_hits": 0, "roots": 0, "tracks_closed": 0, "apples": 0, "merged": 0}
+
+    # -- helpers
+    def _emit(self, t: _Track) -> Apple | None:
+        p = self.params
+        Ps, xs = np.stack(t.Ps), np.stack(t.xs)
+        res = refine(Ps, xs, np.ones(len(xs), bool), p.tau_geom, p.min_inliers)
+        if res is None:
+            return None
+        X, inl, err = res
+        obs = [o for o, keep in zip(t.obs, inl) if keep]
+        return Apple(-1, X, obs, err, views=sample_views(Ps[inl], xs[inl]))
+
+    def _close(self, frame: int, final: bool = False) -> list[Apple]:
+        p = self.params
+        out, keep = [], []
+        for t in self.tracks:
+            if t.alive and not final and frame - t.last < p.k:
+                keep.append(t)
+                continue
+            self.stats["tracks_closed"] += 1
+            if t.alive and t.mature:
+                a = self._emit(t)
+                if a is not None:
+                    out.append(self._merge_or_add(a))
+        self.tracks = keep
+        self._recent = [a for a in self._recent if frame - a.last_frame <= p.merge_window] if not final else self._recent
+        return out
+
+    def _merge_or_add(self, a: Apple) -> Apple:
+        """A new apple, or the earlier apple it duplicates (updated, same id)."""
+        p = self.params
+        if p.merge_search_m > 0:
+            target, X = find_duplicate(a, self._recent, p)
+            if target is not None:
+                merge_into(target, a, X)
+                self.stats["merged"] += 1
+                return target
+        a.id = self._next_id
+        self._next_id += 1
+        self.stats["apples"] += 1
+        self._recent.append(a)
+        return a
+
+    _VERIFY_VIEWS = 12  # views of a track checked when verifying an extension (first, last, evenly between)
+
+    def _candidates(self, P: np.ndarray, xy: np.ndarray):
+        """(track, detection) pairs within tau_epipolar of the epipolar line of the track's last node,
+        each verified: the track's views plus the candidate triangulate to a point that reprojects
+        within tau_geom in every checked view. Returns track idx, detection idx, cost (px)."""
+        p = self.params
+        by_last: dict[int, list[int]] = {}
+        for ti, t in enumerate(self.tracks):
+            by_last.setdefault(t.last, []).append(ti)
+        pt, pd = [], []
+        for _, tis in by_last.items():
+            F = fundamental_from_projections(self.tracks[tis[0]].Ps[-1], P)
+            last = np.stack([self.tracks[ti].xs[-1] for ti in tis])
+            a, b = np.nonzero(epipolar_distances(F, last, xy) <= p.tau_epipolar)
+            pt.append(np.asarray(tis)[a])
+            pd.append(b)
+        pt, pd = np.concatenate(pt), np.concatenate(pd)
+        if len(pt) == 0:
+            return pt, pd, np.zeros(0)
+        # verify every pair at once: X' from the track's normal matrix plus the candidate's rows
+        rows = np.stack([xy[pd, 0:1] * P[2] - P[0], xy[pd, 1:2] * P[2] - P[1]], axis=1)  # (n, 2, 4)
+        rows /= np.linalg.norm(rows, axis=2, keepdims=True)
+        M = np.stack([self.tracks[ti].M for ti in pt]) + np.einsum("nri,nrj->nij", rows, rows)
+        _, vec = np.linalg.eigh(M)
+        h = vec[..., 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            Xn = h[:, :3] / h[:, 3:4]
+        V = self._VERIFY_VIEWS
+        Pv = np.zeros((len(pt), V + 1, 3, 4))
+        xv = np.zeros((len(pt), V + 1, 2))
+        valid = np.zeros((len(pt), V + 1), bool)
+        for n, ti in enumerate(pt):
+            t = self.tracks[ti]
+            sel = np.unique(np.linspace(0, len(t.obs) - 1, min(len(t.obs), V)).round().astype(int))
+            Pv[n, : len(sel)] = [t.Ps[i] for i in sel]
+            xv[n, : len(sel)] = [t.xs[i] for i in sel]
+            valid[n, : len(sel)] = True
+        Pv[:, V], xv[:, V], valid[:, V] = P, xy[pd], True
+        err = np.where(valid, reprojection_errors(Pv, xv, Xn), 0.0)
+        ok = np.isfinite(Xn).all(1) & (err.max(1) < p.tau_geom)
+        return pt[ok], pd[ok], err[ok, V]
+
+    def add_frame(self, fd: FrameDetections) -> list[Apple]:
+        p = self.params
+        j, P, xy = fd.frame, fd.P, fd.xy
+        self.stats["frames"] += 1
+        emitted = self._close(j)
+        m = len(xy)
+        claimed = np.zeros(m, bool)
+        if m and self.tracks:
+            pt, pd, cost = self._candidates(P, xy)
+            mature = np.array([t.mature for t in self.tracks])
+            # mature tracks: one detection each, the cheapest overall (Hungarian)
+            sel = mature[pt]
+            if sel.any():
+                ut, inv_t = np.unique(pt[sel], return_inverse=True)
+                C = np.full((len(ut), m), 1e6)
+                C[inv_t, pd[sel]] = cost[sel]
+                r, c = linear_sum_assignment(C)
+                ok = C[r, c] < 1e6
+                for ti, di in zip(ut[r[ok]], c[ok]):
+                    self.tracks[ti].add(j, int(di), P, xy[di])
+                    claimed[di] = True
+                # a mature track left without a detection may share one (apples occluding each other cross)
+                for row, ti in enumerate(ut):
+                    t = self.tracks[ti]
+                    if t.last != j and C[row].min() < 1e6:
+                        di = int(np.argmin(C[row]))
+                        t.add(j, di, P, xy[di])
+            # young tracks: one branch per verified candidate not taken by a mature track; the track
+            # itself stays as it is too, since a path may skip a frame (edges reach k frames ahead)
+            new_tracks = []
+            for ti, di in zip(pt[~sel], pd[~sel]):
+                if claimed[di]:
+                    continue
+                b = self.tracks[ti].copy()
+                b.add(j, int(di), P, xy[di])
+                new_tracks.append(b)
+            self.tracks.extend(new_tracks)
+            for b in new_tracks:
+                claimed[b.obs[-1][1]] = True
+            self._check_young(j)
+        # unclaimed detections start new roots
+        for di in np.nonzero(~claimed)[0]:
+            t = _Track(self._next_root)
+            self._next_root += 1
+            self.stats["roots"] += 1
+            t.add(j, int(di), P, xy[di])
+            self.tracks.append(t)
+        return emitted
+
+    def _check_young(self, frame: int):
+        """Promote young tracks whose nodes agree on one 3-D point; bound the branches of each root."""
+        p = self.params
+        by_root: dict[int, list[_Track]] = {}
+        for t in self.tracks:
+            if not t.mature:
+                by_root.setdefault(t.root, []).append(t)
+        drop = set()
+        for root, ts in by_root.items():
+            promoted = None
+            for t in ts:  # every extension was verified, so a branch with enough views is a consistent path
+                if len(t.obs) >= max(3, p.min_inliers) and t.X is not None:
+                    promoted = t if promoted is None or len(t.obs) > len(promoted.obs) else promoted
+            if promoted is not None:
+                promoted.mature = True
+                drop.update(id(t) for t in ts if t is not promoted)
+                continue
+            if len(ts) > p.max_branches:
+                self.stats["branch_bound_hits"] += 1
+                # keep the branches with the most nodes, then the smallest reprojection spread
+                def score(t):
+                    if t.X is None or len(t.obs) < 2:
+                        return (len(t.obs), 0.0)
+                    return (len(t.obs), -float(reprojection_errors(np.stack(t.Ps), np.stack(t.xs), t.X).max()))
+                ts_sorted = sorted(ts, key=score, reverse=True)
+                drop.update(id(t) for t in ts_sorted[p.max_branches:])
+        if drop:
+            self.tracks = [t for t in self.tracks if id(t) not in drop]
+
+    def finish(self) -> list[Apple]:
+        """Close every open track (end of flight)."""
+        return self._close(0, final=True)
+
+    def run(self, frames: list[FrameDetections]) -> list[Apple]:
+        """All apples of a sequence (updates of a merged apple replace it, by id)."""
+        apples: dict[int, Apple] = {}
+        for f in frames:
+            for a in self.add_frame(f):
+                apples[a.id] = a
+        for a in self.finish():
+            apples[a.id] = a
+        return [apples[i] for i in sorted(apples)]

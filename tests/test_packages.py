@@ -1,0 +1,42 @@
+"""Package layout: every package runs with --help; onboard and ground never import torch."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+
+@pytest.mark.parametrize("package", ["sim", "onboard", "ground", "export"])
+def test_help(package):
+    r = subprocess.run([sys.executable, "-m", package, "--help"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert f"python -m {package}" in r.stdout
+
+
+def test_onboard_and_ground_do_not_import_torch():
+    code = ("import sys, pomar.flight, pomar.camera, pomar.geo, onboard, ground, ground.geometry; "
+            "assert 'torch' not in sys.modules and 'torchvision' not in sys.modules; print('ok')")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert r.returncode == 0 and "ok" in r.stdout, r.stderr
+
+
+def test_demo_commands_on_bundled_flight(tmp_path):
+    from tests.conftest import BUNDLED
+
+    r = subprocess.run([sys.executable, "-m", "sim", "info", str(BUNDLED)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "178 frames" in r.stdout and "CAMERA_FEEDBACK 178" in r.stdout
+    png = tmp_path / "f.png"
+    r = subprocess.run([sys.executable, "-m", "sim", "show", str(BUNDLED), "--frame", "80", "--out", str(png)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    import cv2
+
+    assert cv2.imread(str(png)).shape == (720, 1280, 3)
+
+
+def test_missing_flight_dir_is_a_clear_error(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "sim", "info", str(tmp_path / "nowhere")], capture_output=True, text=True)
+    assert r.returncode == 2 and "nowhere" in r.stderr and "Traceback" not in r.stderr
