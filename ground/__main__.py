@@ -28,10 +28,12 @@ def _cmd_evaluate(args) -> int:
 
 
 def main(argv=None) -> int:
+    from ground.evaluate import __doc__ as evaluate_doc
+
     p = argparse.ArgumentParser(prog="python -m ground", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
     e = sub.add_parser("evaluate", help="run the association on a simulated flight and score it against the truth",
-                       description=__import__("ground.evaluate", fromlist=["x"]).__doc__,
+                       description=evaluate_doc,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     e.add_argument("flight_dir")
     e.add_argument("--detections", default="truth", help="'truth' or a CSV frame,u,v")

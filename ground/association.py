@@ -27,7 +27,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from ground.geometry import epipolar_distances, fundamental_from_projections, reprojection_errors, triangulate
+from ground.geometry import (camera_centre, epipolar_distances, fundamental_from_projections, reprojection_errors, skew,
+                             triangulate)
 
 log = logging.getLogger(__name__)
 
@@ -329,37 +330,63 @@ def merge_duplicates(apples: list[Apple], params: "AssociationParams") -> list[A
     return kept
 
 
+_SAMPLE_CACHE: dict[tuple[int, int], np.ndarray] = {}
+
+
+def _sample_index(length: int, n: int) -> np.ndarray:
+    key = (length, n)
+    if key not in _SAMPLE_CACHE:
+        _SAMPLE_CACHE[key] = np.unique(np.linspace(0, length - 1, min(length, n)).round().astype(int))
+    return _SAMPLE_CACHE[key]
+
+
 class _Track:
-    __slots__ = ("obs", "Ps", "xs", "M", "X", "root", "last", "mature", "alive")
+    __slots__ = ("obs", "Ps", "xs", "M", "_X", "_views", "root", "last", "mature", "alive")
 
     def __init__(self, root: int):
         self.obs: list[tuple[int, int]] = []
         self.Ps: list[np.ndarray] = []
         self.xs: list[np.ndarray] = []
         self.M = np.zeros((4, 4))  # normal matrix of the linear triangulation, accumulated
-        self.X: np.ndarray | None = None
+        self._X: np.ndarray | None = None
+        self._views = None
         self.root = root
         self.last = -1
         self.mature = False
         self.alive = True
 
-    def add(self, frame: int, det: int, P: np.ndarray, x: np.ndarray):
+    def add(self, frame: int, det: int, P: np.ndarray, x: np.ndarray, rows: np.ndarray | None = None):
+        """Append an observation; rows = its two unit-normalised triangulation rows, if already computed."""
         self.obs.append((frame, det))
         self.Ps.append(P)
         self.xs.append(x)
-        rows = np.stack([x[0] * P[2] - P[0], x[1] * P[2] - P[1]])
-        rows /= np.linalg.norm(rows, axis=1, keepdims=True)
-        self.M += rows.T @ rows
+        if rows is None:
+            rows = np.stack([x[0] * P[2] - P[0], x[1] * P[2] - P[1]])
+            rows /= np.linalg.norm(rows, axis=1, keepdims=True)
+        self.M = self.M + rows.T @ rows
         self.last = frame
-        if len(self.obs) >= 2:
-            w, v = np.linalg.eigh(self.M)
-            h = v[:, 0]
-            self.X = h[:3] / h[3] if abs(h[3]) > 1e-12 else None
+        self._X = None
+        self._views = None
+
+    @property
+    def X(self) -> np.ndarray | None:
+        """Least-squares point of all observations (computed when asked)."""
+        if self._X is None and len(self.obs) >= 2:
+            h = np.linalg.eigh(self.M)[1][:, 0]
+            self._X = h[:3] / h[3] if abs(h[3]) > 1e-12 else None
+        return self._X
+
+    def views(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """At most n of the track's views (first, last, evenly between), cached until the next add."""
+        if self._views is None:
+            sel = _sample_index(len(self.obs), n)
+            self._views = (np.array([self.Ps[i] for i in sel]), np.array([self.xs[i] for i in sel]))
+        return self._views
 
     def copy(self) -> "_Track":
         t = _Track(self.root)
         t.obs, t.Ps, t.xs = list(self.obs), list(self.Ps), list(self.xs)
-        t.M, t.X, t.last, t.mature = self.M.copy(), None if self.X is None else self.X.copy(), self.last, self.mature
+        t.M, t._X, t._views, t.last, t.mature = self.M, self._X, self._views, self.last, self.mature
         return t
 
 
@@ -376,6 +403,7 @@ class WindowedAssociation:
         self._next_root = 0
         self._next_id = 0
         self._recent: list[Apple] = []  # emitted apples that a later track may turn out to duplicate
+        self._geom: dict[int, tuple] = {}  # recent frames' (P, centre, pseudo-inverse)
         self.stats = {"frames": 0, "branch_bound_hits": 0, "roots": 0, "tracks_closed": 0, "apples": 0, "merged": 0}
 
     # -- helpers
@@ -422,46 +450,54 @@ class WindowedAssociation:
 
     _VERIFY_VIEWS = 12  # views of a track checked when verifying an extension (first, last, evenly between)
 
-    def _candidates(self, P: np.ndarray, xy: np.ndarray):
+    def _frame_geometry(self, frame: int, P: np.ndarray):
+        """(P, centre, pseudo-inverse) of a recent frame, computed once."""
+        g = self._geom.get(frame)
+        if g is None:
+            g = self._geom[frame] = (P, camera_centre(P), np.linalg.pinv(P))
+            for f in [f for f in self._geom if f < frame - self.params.k - 1]:
+                del self._geom[f]
+        return g
+
+    def _candidates(self, frame: int, P: np.ndarray, xy: np.ndarray):
         """(track, detection) pairs within tau_epipolar of the epipolar line of the track's last node,
         each verified: the track's views plus the candidate triangulate to a point that reprojects
-        within tau_geom in every checked view. Returns track idx, detection idx, cost (px)."""
+        within tau_geom in every checked view. Returns track idx, detection idx, cost (px), and the
+        candidates' triangulation rows."""
         p = self.params
         by_last: dict[int, list[int]] = {}
         for ti, t in enumerate(self.tracks):
             by_last.setdefault(t.last, []).append(ti)
         pt, pd = [], []
-        for _, tis in by_last.items():
-            F = fundamental_from_projections(self.tracks[tis[0]].Ps[-1], P)
-            last = np.stack([self.tracks[ti].xs[-1] for ti in tis])
+        for last_frame, tis in by_last.items():
+            Pi, Ci, Pi_pinv = self._frame_geometry(last_frame, self.tracks[tis[0]].Ps[-1])
+            F = skew(P @ Ci) @ P @ Pi_pinv
+            last = np.array([self.tracks[ti].xs[-1] for ti in tis])
             a, b = np.nonzero(epipolar_distances(F, last, xy) <= p.tau_epipolar)
             pt.append(np.asarray(tis)[a])
             pd.append(b)
         pt, pd = np.concatenate(pt), np.concatenate(pd)
         if len(pt) == 0:
-            return pt, pd, np.zeros(0)
+            return pt, pd, np.zeros(0), np.zeros((0, 2, 4))
         # verify every pair at once: X' from the track's normal matrix plus the candidate's rows
         rows = np.stack([xy[pd, 0:1] * P[2] - P[0], xy[pd, 1:2] * P[2] - P[1]], axis=1)  # (n, 2, 4)
         rows /= np.linalg.norm(rows, axis=2, keepdims=True)
         M = np.stack([self.tracks[ti].M for ti in pt]) + np.einsum("nri,nrj->nij", rows, rows)
-        _, vec = np.linalg.eigh(M)
-        h = vec[..., 0]
+        h = np.linalg.eigh(M)[1][..., 0]
         with np.errstate(divide="ignore", invalid="ignore"):
             Xn = h[:, :3] / h[:, 3:4]
         V = self._VERIFY_VIEWS
         Pv = np.zeros((len(pt), V + 1, 3, 4))
         xv = np.zeros((len(pt), V + 1, 2))
         valid = np.zeros((len(pt), V + 1), bool)
-        for n, ti in enumerate(pt):
-            t = self.tracks[ti]
-            sel = np.unique(np.linspace(0, len(t.obs) - 1, min(len(t.obs), V)).round().astype(int))
-            Pv[n, : len(sel)] = [t.Ps[i] for i in sel]
-            xv[n, : len(sel)] = [t.xs[i] for i in sel]
-            valid[n, : len(sel)] = True
+        for n, ti in enumerate(pt.tolist()):
+            tp, tx = self.tracks[ti].views(V)
+            k = len(tx)
+            Pv[n, :k], xv[n, :k], valid[n, :k] = tp, tx, True
         Pv[:, V], xv[:, V], valid[:, V] = P, xy[pd], True
         err = np.where(valid, reprojection_errors(Pv, xv, Xn), 0.0)
         ok = np.isfinite(Xn).all(1) & (err.max(1) < p.tau_geom)
-        return pt[ok], pd[ok], err[ok, V]
+        return pt[ok], pd[ok], err[ok, V], rows[ok]
 
     def add_frame(self, fd: FrameDetections) -> list[Apple]:
         p = self.params
@@ -471,7 +507,7 @@ class WindowedAssociation:
         m = len(xy)
         claimed = np.zeros(m, bool)
         if m and self.tracks:
-            pt, pd, cost = self._candidates(P, xy)
+            pt, pd, cost, rows = self._candidates(j, P, xy)
             mature = np.array([t.mature for t in self.tracks])
             # mature tracks: one detection each, the cheapest overall (Hungarian)
             sel = mature[pt]
@@ -481,8 +517,9 @@ class WindowedAssociation:
                 C[inv_t, pd[sel]] = cost[sel]
                 r, c = linear_sum_assignment(C)
                 ok = C[r, c] < 1e6
+                pair = {(int(a), int(b)): n for n, (a, b) in enumerate(zip(pt, pd))}
                 for ti, di in zip(ut[r[ok]], c[ok]):
-                    self.tracks[ti].add(j, int(di), P, xy[di])
+                    self.tracks[ti].add(j, int(di), P, xy[di], rows[pair[int(ti), int(di)]])
                     claimed[di] = True
                 # a mature track left without a detection may share one (apples occluding each other cross)
                 for row, ti in enumerate(ut):
@@ -493,11 +530,12 @@ class WindowedAssociation:
             # young tracks: one branch per verified candidate not taken by a mature track; the track
             # itself stays as it is too, since a path may skip a frame (edges reach k frames ahead)
             new_tracks = []
-            for ti, di in zip(pt[~sel], pd[~sel]):
+            for n in np.nonzero(~sel)[0]:
+                di = pd[n]
                 if claimed[di]:
                     continue
-                b = self.tracks[ti].copy()
-                b.add(j, int(di), P, xy[di])
+                b = self.tracks[pt[n]].copy()
+                b.add(j, int(di), P, xy[di], rows[n])
                 new_tracks.append(b)
             self.tracks.extend(new_tracks)
             for b in new_tracks:

@@ -10,6 +10,7 @@ import pytest
 
 from sim import config
 from sim.config import ConfigError
+from tests.conftest import SMALL_CONFIG
 
 
 @pytest.mark.parametrize("text, key", [
@@ -58,7 +59,6 @@ def test_small_flight_is_deterministic_and_consistent(small_flight, tmp_path):
     from pomar.flight import FlightDir
     from pomar.video import count_frames
     from sim.flight import simulate_flight
-    from tests.conftest import SMALL_CONFIG
 
     again = tmp_path / "again"
     simulate_flight(config.load(SMALL_CONFIG), again, jobs=1, progress=False)  # other job count, same result
@@ -88,7 +88,7 @@ def test_px4_capture_messages(tmp_path):
     from sim.flight import simulate_flight
     from sim.preview import tlog_message_counts
 
-    cfg = config.load(__import__("tests.conftest", fromlist=["x"]).SMALL_CONFIG)
+    cfg = config.load(SMALL_CONFIG)
     cfg.telemetry.capture_message = "CAMERA_TRIGGER"
     cfg.camera.width, cfg.camera.height = 160, 96
     summary = simulate_flight(cfg, tmp_path / "px4", jobs=1, progress=False)

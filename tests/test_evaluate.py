@@ -1,0 +1,88 @@
+"""The evaluation harness and the row assignment."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+from ground.association import AssociationParams
+from ground.evaluate import Perturbation, evaluate, match, truth_detections
+from ground.rows import direction_rows, kmeans_rows, row_direction
+from tests.conftest import BUNDLED
+
+
+def test_rows_from_direction_and_gaps():
+    rng = np.random.default_rng(0)
+    az = np.radians(25.0)  # rows along this direction, 4 m apart, 30 m long
+    along = np.array([np.cos(az), np.sin(az)])
+    across = np.array([-np.sin(az), np.cos(az)])
+    pts, truth = [], []
+    for r in range(4):
+        n = 60 + 10 * r
+        s = rng.uniform(0, 30, n)
+        o = 4.0 * r + rng.normal(0, 0.3, n)
+        pts.append(s[:, None] * along + o[:, None] * across)
+        truth += [r] * n
+    xy, truth = np.concatenate(pts), np.array(truth)
+    assert abs(((np.degrees(row_direction(xy)) - 25.0) + 90) % 180 - 90) < 1.0
+    labels, _ = direction_rows(xy)
+    assert np.array_equal(labels, truth)
+    counts = np.bincount(kmeans_rows(xy, 4), minlength=4)
+    assert counts.sum() == len(xy)  # K-means, as the paper: a partition into K groups
+
+
+def test_match_is_one_to_one_within_radius():
+    truth = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0.0]])
+    pred = np.array([[0.01, 0, 0], [0.02, 0, 0], [1.5, 0, 0], [2.05, 0, 0]])
+    p, t, d = match(pred, truth, 0.1)
+    assert sorted(t.tolist()) == [0, 2] and len(set(p.tolist())) == 2 and (d <= 0.1).all()
+
+
+def test_perturbation_is_deterministic_and_does_what_it_says(bundled_flight):
+    meta = bundled_flight.meta()
+    clean, src = truth_detections(bundled_flight, Perturbation(), meta.frame_count, meta.width, meta.height)
+    p = Perturbation(noise_px=1.0, miss=0.2, fp_per_frame=2.0, dup=0.1, seed=3)
+    a, sa = truth_detections(bundled_flight, p, meta.frame_count, meta.width, meta.height)
+    b, _ = truth_detections(bundled_flight, p, meta.frame_count, meta.width, meta.height)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    n_clean = sum(len(x) for x in clean)
+    n_fp = sum((s == -1).sum() for s in sa)
+    assert abs(n_fp / meta.frame_count - 2.0) < 0.5
+    n_true = sum((s >= 0).sum() for s in sa)
+    assert 0.8 * 1.1 * n_clean * 0.9 < n_true < 0.8 * 1.1 * n_clean * 1.1  # misses, then duplicates
+
+
+def test_evaluate_cli_on_the_bundled_flight(tmp_path):
+    out = tmp_path / "eval.json"
+    r = subprocess.run([sys.executable, "-m", "ground", "evaluate", str(BUNDLED), "--noise-px", "0.5",
+                        "--miss", "0.05", "--fp", "0.2", "--json", str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "sort_2d_tracker" in r.stdout and "per_frame_sum" in r.stdout
+    res = json.loads(out.read_text())
+    for key in ("precision", "recall", "f1", "count", "truth_count", "count_error_pct", "median_error_m",
+                "p95_error_m", "frames", "seconds", "frames_per_s", "rows"):
+        assert key in res, key
+    # on near-clean input the method counts within 10 % and places apples within 3 cm (median)
+    assert abs(res["count_error_pct"]) < 10 and res["median_error_m"] < 0.03 and res["f1"] > 0.75
+    # and beats both baselines' count error
+    for b in res["baselines"].values():
+        assert abs(b["count_error_pct"]) > abs(res["count_error_pct"])
+    assert sum(r["count"] for r in res["rows"]) == res["count"]
+
+
+def test_evaluate_needs_truth(tmp_path):
+    import shutil
+
+    from pomar.flight import FlightFormatError
+
+    flight = tmp_path / "f"
+    shutil.copytree(BUNDLED, flight, ignore=shutil.ignore_patterns("video.mp4", "truth"))
+    try:
+        evaluate(flight, "windowed", AssociationParams())
+    except FlightFormatError as exc:
+        assert "truth" in str(exc)
+    else:
+        raise AssertionError("expected a FlightFormatError")
