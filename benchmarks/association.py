@@ -147,7 +147,7 @@ def evaluate_prefix(flight, n_frames, params, pert):
     d = fl.truth_detections()
     g = (d["visible_fraction"] >= pert.min_visible) & (d["frame"] < n_frames)
     ids, n = np.unique(d["apple_id"][g], return_counts=True)
-    vis = ids[n >= params.min_inliers]
+    vis = ids[n >= 3]  # same truth definition as ground.evaluate (truth_min_views=3)
     T = np.stack([a["x"], a["y"], a["z"]], 1)
     pi, ti, _ = match(np.array([x.X for x in apples]).reshape(-1, 3), T, 0.10)
     prec = len(pi) / max(len(apples), 1)

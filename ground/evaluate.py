@@ -10,8 +10,9 @@ from ``truth/frames.csv`` or a CSV with the same columns. Predicted apples are m
 apples one-to-one (Hungarian) within ``--match-m`` (0.10 m).
 
 Truth counts: an apple is *visible in the flight* when it appears, at least ``--min-visible``
-visible, in at least ``min_inliers`` frames (fewer cannot be triangulated by the method); recall is
-reported against those and against all apples of the rows the flight saw.
+visible, in at least ``--truth-min-views`` frames (3: fewer cannot be triangulated by the paper's
+RANSAC); it does not depend on the method's parameters. Recall is reported against those and
+against all apples of the rows the flight saw.
 """
 
 from __future__ import annotations
@@ -144,7 +145,7 @@ def match(pred: np.ndarray, truth: np.ndarray, max_dist: float) -> tuple[np.ndar
 
 def evaluate(flight_dir, mode: str = "windowed", params: AssociationParams | None = None,
              pert: Perturbation | None = None, detections: str = "truth", poses: str = "truth",
-             match_m: float = 0.10, baselines: bool = True) -> dict:
+             match_m: float = 0.10, baselines: bool = True, truth_min_views: int = 3) -> dict:
     flight = FlightDir(flight_dir)
     if not flight.has_truth:
         raise FlightFormatError(f"{flight.path}: no truth/ to evaluate against")
@@ -175,7 +176,7 @@ def evaluate(flight_dir, mode: str = "windowed", params: AssociationParams | Non
     d = flight.truth_detections()
     good = d["visible_fraction"] >= pert.min_visible
     ids, nviews = np.unique(d["apple_id"][good], return_counts=True)
-    visible_ids = ids[nviews >= params.min_inliers]
+    visible_ids = ids[nviews >= truth_min_views]
     is_visible = np.isin(a["apple_id"], visible_ids)
     rows_seen = np.unique(a["row"][np.isin(a["apple_id"], np.unique(d["apple_id"]))])
     in_rows = np.isin(a["row"], rows_seen)

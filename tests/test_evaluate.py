@@ -86,3 +86,31 @@ def test_evaluate_needs_truth(tmp_path):
         assert "truth" in str(exc)
     else:
         raise AssertionError("expected a FlightFormatError")
+
+
+def test_poses_and_detections_from_files(tmp_path, bundled_flight):
+    """--poses FILE and --detections FILE give the same result as the truth they were written from."""
+    import shutil
+
+    from pomar.flight import write_csv
+
+    shutil.copy(bundled_flight.truth_dir / "frames.csv", tmp_path / "poses.csv")
+    meta = bundled_flight.meta()
+    xy, _ = truth_detections(bundled_flight, Perturbation(), meta.frame_count, meta.width, meta.height)
+    frames = np.concatenate([np.full(len(x), i) for i, x in enumerate(xy)])
+    uv = np.concatenate(xy)
+    write_csv(tmp_path / "dets.csv", ["frame", "u", "v"], {"frame": frames, "u": uv[:, 0], "v": uv[:, 1]},
+              {"u": ".6f", "v": ".6f"})
+    a = evaluate(BUNDLED, "windowed", AssociationParams(), Perturbation(), baselines=False)
+    b = evaluate(BUNDLED, "windowed", AssociationParams(), Perturbation(), detections=str(tmp_path / "dets.csv"),
+                 poses=str(tmp_path / "poses.csv"), baselines=False)
+    assert a["count"] == b["count"] and abs(a["f1"] - b["f1"]) < 1e-9
+    # poses that are off move the apples: the score must drop
+    fr = (tmp_path / "poses.csv").read_text().splitlines()
+    header, rows = fr[0], [r.split(",") for r in fr[1:]]
+    tx = header.split(",").index("tx")
+    for r in rows:
+        r[tx] = str(float(r[tx]) + 0.5)
+    (tmp_path / "bad.csv").write_text("\n".join([header] + [",".join(r) for r in rows]) + "\n")
+    c = evaluate(BUNDLED, "windowed", AssociationParams(), Perturbation(), poses=str(tmp_path / "bad.csv"), baselines=False)
+    assert c["f1"] < 0.2
