@@ -341,7 +341,7 @@ def _sample_index(length: int, n: int) -> np.ndarray:
 
 
 class _Track:
-    __slots__ = ("obs", "Ps", "xs", "M", "_X", "_views", "root", "last", "mature", "alive")
+    __slots__ = ("obs", "Ps", "xs", "M", "_X", "_views", "root", "last", "mature")
 
     def __init__(self, root: int):
         self.obs: list[tuple[int, int]] = []
@@ -353,7 +353,6 @@ class _Track:
         self.root = root
         self.last = -1
         self.mature = False
-        self.alive = True
 
     def add(self, frame: int, det: int, P: np.ndarray, x: np.ndarray, rows: np.ndarray | None = None):
         """Append an observation; rows = its two unit-normalised triangulation rows, if already computed."""
@@ -421,11 +420,11 @@ class WindowedAssociation:
         p = self.params
         out, keep = [], []
         for t in self.tracks:
-            if t.alive and not final and frame - t.last < p.k:
+            if not final and frame - t.last < p.k:
                 keep.append(t)
                 continue
             self.stats["tracks_closed"] += 1
-            if t.alive and t.mature:
+            if t.mature:
                 a = self._emit(t)
                 if a is not None:
                     out.append(self._merge_or_add(a))

@@ -122,22 +122,13 @@ def match(pred: np.ndarray, truth: np.ndarray, max_dist: float) -> tuple[np.ndar
             dist.append(np.linalg.norm(pred[i] - truth[j]))
     if not rows:
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-    from scipy.sparse import csr_matrix
-    from scipy.sparse.csgraph import min_weight_full_bipartite_matching
-
-    # sparse Hungarian: maximise matches, then minimise distance (offset keeps every cost positive)
-    cost = csr_matrix((np.array(dist) + 1.0, (rows, cols)), shape=(len(pred), len(truth)))
-    try:
-        r, c = min_weight_full_bipartite_matching(cost, maximize=False)
-    except ValueError:
-        # no full matching: fall back to dense assignment over the matched rows/cols
-        ur, uc = np.unique(rows), np.unique(cols)
-        dense = np.full((len(ur), len(uc)), 1e6)
-        ri, ci = np.searchsorted(ur, rows), np.searchsorted(uc, cols)
-        dense[ri, ci] = dist
-        a, b = linear_sum_assignment(dense)
-        ok = dense[a, b] < 1e6
-        r, c = ur[a[ok]], uc[b[ok]]
+    # Hungarian on the predictions and truths that have a partner within reach
+    ur, uc = np.unique(rows), np.unique(cols)
+    dense = np.full((len(ur), len(uc)), 1e6)
+    dense[np.searchsorted(ur, rows), np.searchsorted(uc, cols)] = dist
+    a, b = linear_sum_assignment(dense)
+    ok = dense[a, b] < 1e6
+    r, c = ur[a[ok]], uc[b[ok]]
     d = np.linalg.norm(pred[r] - truth[c], axis=1)
     ok = d <= max_dist
     return r[ok], c[ok], d[ok]
