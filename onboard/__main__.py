@@ -1,6 +1,6 @@
 """python -m onboard SUBCOMMAND: the drone's companion-computer node.
 
-The node itself (video + MAVLink -> detector -> zenoh) lands with the Onboard issue; today:
+  run         replay a flight directory through the node: frames + telemetry -> detector -> zenoh
   telemetry   read a .tlog and report its streams, gaps and, with --flight, each frame's sample
 """
 
@@ -9,6 +9,8 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 
 def _cmd_telemetry(args) -> int:
@@ -36,10 +38,61 @@ def _cmd_telemetry(args) -> int:
     return 0
 
 
+def _cmd_run(args) -> int:
+    import json
+    import time
+
+    from onboard.node import NodeSettings, OnboardNode
+    from pomar import transport
+    from pomar.flight import FlightDir
+
+    if args.detector == "onnx":
+        print("error: the ONNX detector lands with the Detector issue and no model ships yet; "
+              "--detector truth-replay runs the stand-in that replays truth/detections.csv", file=sys.stderr)
+        return 2
+    from onboard.replay_detector import TruthReplayDetector
+
+    detector = TruthReplayDetector(args.flight_dir)
+    settings = NodeSettings(lockstep=not args.realtime, every=args.every, keyframe_every=args.keyframe_every,
+                            keyframe_width=args.keyframe_width, jpeg_quality=args.jpeg_quality)
+    listen = None if args.zenoh_config else (args.listen or [transport.DEFAULT_ENDPOINT])
+    session = transport.open_session(listen=listen, connect=args.connect, config_file=args.zenoh_config)
+    meta = FlightDir(args.flight_dir).meta()
+    pub = transport.FlightPublisher(session, meta.flight_id, meta.drone_id)
+    try:
+        summary = OnboardNode(args.flight_dir, pub, detector, settings).run()
+        print(json.dumps(summary, indent=2))
+        code = 0
+    except Exception as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        code = 1
+    # closing a session with data still queued loses it: keep serving the publisher's history a while
+    time.sleep(args.linger)
+    pub.close()
+    session.close()
+    return code
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m onboard", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
+    r = sub.add_parser("run", help="replay a flight directory through the node and publish it over zenoh")
+    r.add_argument("flight_dir")
+    r.add_argument("--detector", choices=["onnx", "truth-replay"], default="onnx",
+                   help="onnx (the shipped model; not yet) or truth-replay (stand-in from truth/detections.csv)")
+    r.add_argument("--realtime", action="store_true", help="play at the video's frame rate, newest frame first, count drops")
+    r.add_argument("--every", type=int, default=1, help="process every Nth frame (lock-step)")
+    r.add_argument("--keyframe-every", type=int, default=2,
+                   help="send every Nth processed frame as a JPEG keyframe (0 = none); the default keeps a "
+                        "10 fps 1280x720 flight under 1 MB/s")
+    r.add_argument("--keyframe-width", type=int, default=960, help="keyframe width in pixels (0 = native)")
+    r.add_argument("--jpeg-quality", type=int, default=85)
+    r.add_argument("--listen", action="append", help=f"zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})")
+    r.add_argument("--connect", action="append", help="zenoh endpoint to connect to")
+    r.add_argument("--zenoh-config", help="a zenoh JSON5 config file for real links")
+    r.add_argument("--linger", type=float, default=10.0, help="seconds to keep serving history after the end")
+    r.set_defaults(func=_cmd_run)
     t = sub.add_parser("telemetry", help="read a .tlog: streams, rates, gaps, and each frame's sample")
     t.add_argument("tlog")
     t.add_argument("--flight", help="flight directory: sample the telemetry at its frames")
