@@ -19,6 +19,7 @@ not silently interpolated across: see :class:`Flags`.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -183,6 +184,84 @@ def _gaps(name: str, t: np.ndarray, max_gap_s: float) -> list[Gap]:
     return [Gap(name, float(t[i]), float(t[i + 1])) for i in np.nonzero(d > max_gap_s)[0]]
 
 
+class _Accumulator:
+    """Collects the telemetry messages of a stream (file or live link) and builds a :class:`TelemetryLog`."""
+
+    def __init__(self):
+        self.counts: Counter = Counter()
+        self.bad = 0
+        self.sys_time, self.pos, self.gps, self.att, self.gim, self.mount, self.caps = [], [], [], [], [], [], []
+        self.cap_msg = None
+
+    def add(self, m) -> None:
+        kind = m.get_type()
+        if kind == "BAD_DATA":
+            self.bad += 1
+            return
+        self.counts[kind] += 1
+        ts = getattr(m, "_timestamp", np.nan)
+        if kind == "SYSTEM_TIME" and m.time_unix_usec > 0:
+            self.sys_time.append(m.time_unix_usec / 1e6 - m.time_boot_ms / 1e3)
+        elif kind == "GLOBAL_POSITION_INT":
+            self.pos.append((m.time_boot_ms, ts, m.lat / 1e7, m.lon / 1e7, m.alt / 1e3))
+        elif kind == "GPS_RAW_INT":
+            self.gps.append((np.nan, ts, m.fix_type, getattr(m, "h_acc", 0) / 1e3, getattr(m, "v_acc", 0) / 1e3,
+                             m.satellites_visible))
+        elif kind == "ATTITUDE":
+            self.att.append((m.time_boot_ms, ts, m.roll, m.pitch, m.yaw))
+        elif kind == "GIMBAL_DEVICE_ATTITUDE_STATUS":
+            self.gim.append((m.time_boot_ms, ts, *m.q, m.flags))
+        elif kind == "MOUNT_STATUS":
+            self.mount.append((np.nan, ts, m.pointing_b / 100.0, m.pointing_a / 100.0, m.pointing_c / 100.0))
+        elif kind in ("CAMERA_FEEDBACK", "CAMERA_TRIGGER", "CAMERA_IMAGE_CAPTURED"):
+            if self.cap_msg is None:
+                self.cap_msg = kind
+            if kind == self.cap_msg:
+                if kind == "CAMERA_FEEDBACK":
+                    self.caps.append((m.img_idx, m.time_usec / 1e6))
+                elif kind == "CAMERA_TRIGGER":
+                    self.caps.append((m.seq, m.time_usec / 1e6))
+                else:
+                    self.caps.append((m.image_index, m.time_utc / 1e6 if m.time_utc else np.nan))
+
+    def build(self, source: str, max_gap_s: float, truncated: int = 0, quiet: bool = False) -> TelemetryLog:
+        if self.sys_time:
+            boot, clock = float(np.median(self.sys_time)), "SYSTEM_TIME"
+        else:
+            boot, clock = None, "tlog"
+            if not quiet:
+                log.warning("%s: no SYSTEM_TIME: timing telemetry by the records' receive timestamps", source)
+
+        def times(rows):
+            a = np.array(rows, float).reshape(len(rows), -1)
+            if not len(a):
+                return np.zeros(0), a
+            if boot is not None and np.isfinite(a[:, 0]).all():
+                return boot + a[:, 0] / 1e3, a
+            return a[:, 1], a
+
+        t, a = times(self.pos)
+        position = Series(*_strictly_increasing(t, a[:, 2:5])) if len(a) else Series(np.zeros(0), np.zeros((0, 3)))
+        t, a = times(self.gps)
+        gps_s = Series(*_strictly_increasing(t, a[:, 2:6])) if len(a) else Series(np.zeros(0), np.zeros((0, 4)))
+        t, a = times(self.att)
+        if len(a):
+            q = rotation_to_quat_wxyz(ned_euler_to_rotation(a[:, 2], a[:, 3], a[:, 4], degrees=False))
+            attitude = Series(*_strictly_increasing(t, q))
+        else:
+            attitude = Series(np.zeros(0), np.zeros((0, 4)))
+        gimbal = _gimbal_series(self.gim, self.mount, times, attitude)
+        captures = {int(i): float(tc) for i, tc in self.caps if np.isfinite(tc)}
+        tl = TelemetryLog(source, position, gps_s, attitude, gimbal, captures, self.cap_msg, clock, boot,
+                          Counter(self.counts), self.bad, truncated, max_gap_s)
+        for name, s in (("position", position), ("attitude", attitude), ("gimbal", gimbal)):
+            tl.gaps += _gaps(name, s.t, max_gap_s)
+        if not quiet:
+            for g in tl.gaps:
+                log.warning("%s: %.1f s gap in %s telemetry (frames in it are flagged)", source, g.seconds, g.stream)
+        return tl
+
+
 def read_tlog(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
     """Read a .tlog (MAVLink 1 or 2). Bad packets are skipped and counted; a packet cut off at the end
     is reported; nothing read before either is lost."""
@@ -196,10 +275,7 @@ def read_tlog(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
         raise TelemetryError(f"{path}: file not found")
     t0 = time.perf_counter()
     conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega", robust_parsing=True)
-    counts: Counter = Counter()
-    bad = 0
-    sys_time, pos, gps, att, gim, mount, caps = [], [], [], [], [], [], []
-    cap_msg = None
+    acc = _Accumulator()
     try:
         while True:
             try:
@@ -209,42 +285,11 @@ def read_tlog(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
                 break
             if m is None:
                 break
-            kind = m.get_type()
-            if kind == "BAD_DATA":
-                bad += 1
-                continue
-            counts[kind] += 1
-            ts = getattr(m, "_timestamp", np.nan)
-            if kind == "SYSTEM_TIME" and m.time_unix_usec > 0:
-                sys_time.append(m.time_unix_usec / 1e6 - m.time_boot_ms / 1e3)
-            elif kind == "GLOBAL_POSITION_INT":
-                pos.append((m.time_boot_ms, ts, m.lat / 1e7, m.lon / 1e7, m.alt / 1e3))
-            elif kind == "GPS_RAW_INT":
-                gps.append((np.nan, ts, m.fix_type, getattr(m, "h_acc", 0) / 1e3, getattr(m, "v_acc", 0) / 1e3,
-                            m.satellites_visible))
-            elif kind == "ATTITUDE":
-                att.append((m.time_boot_ms, ts, m.roll, m.pitch, m.yaw))
-            elif kind == "GIMBAL_DEVICE_ATTITUDE_STATUS":
-                gim.append((m.time_boot_ms, ts, *m.q, m.flags))
-            elif kind == "MOUNT_STATUS":
-                mount.append((np.nan, ts, m.pointing_b / 100.0, m.pointing_a / 100.0, m.pointing_c / 100.0))
-            elif kind in ("CAMERA_FEEDBACK", "CAMERA_TRIGGER", "CAMERA_IMAGE_CAPTURED"):
-                if cap_msg is None:
-                    cap_msg = kind
-                if kind == cap_msg:
-                    if kind == "CAMERA_FEEDBACK":
-                        caps.append((m.img_idx, m.time_usec / 1e6))
-                    elif kind == "CAMERA_TRIGGER":
-                        caps.append((m.seq, m.time_usec / 1e6))
-                    else:
-                        caps.append((m.image_index, m.time_utc / 1e6 if m.time_utc else np.nan))
+            acc.add(m)
     finally:
         conn.close()
-    size = path.stat().st_size
-    truncated = 0
-    if sum(counts.values()) == 0:
+    if sum(acc.counts.values()) == 0:
         raise TelemetryError(f"{path}: no MAVLink messages could be read (not a .tlog?)")
-    # the last record may be cut off: pymavlink stops at it; measure the tail it could not use
     try:
         truncated = _unread_tail(path)
     except OSError:
@@ -252,43 +297,69 @@ def read_tlog(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
     if truncated:
         log.warning("%s: the last %d bytes are a cut-off packet (file truncated?); everything before is used",
                     path, truncated)
-    if bad:
-        log.warning("%s: skipped %d bad packets", path, bad)
-
-    if sys_time:
-        boot, clock = float(np.median(sys_time)), "SYSTEM_TIME"
-    else:
-        boot, clock = None, "tlog"
-        log.warning("%s: no SYSTEM_TIME: timing telemetry by the .tlog's record timestamps (ground station clock)", path)
-
-    def times(rows):
-        a = np.array(rows, float).reshape(len(rows), -1)
-        if not len(a):
-            return np.zeros(0), a
-        if boot is not None and np.isfinite(a[:, 0]).all():
-            return boot + a[:, 0] / 1e3, a
-        return a[:, 1], a
-
-    t, a = times(pos)
-    position = Series(*_strictly_increasing(t, a[:, 2:5])) if len(a) else Series(np.zeros(0), np.zeros((0, 3)))
-    t, a = times(gps)
-    gps_s = Series(*_strictly_increasing(t, a[:, 2:6])) if len(a) else Series(np.zeros(0), np.zeros((0, 4)))
-    t, a = times(att)
-    if len(a):
-        q = rotation_to_quat_wxyz(ned_euler_to_rotation(a[:, 2], a[:, 3], a[:, 4], degrees=False))
-        attitude = Series(*_strictly_increasing(t, q))
-    else:
-        attitude = Series(np.zeros(0), np.zeros((0, 4)))
-    gimbal = _gimbal_series(gim, mount, times, attitude)
-    captures = {int(i): float(tc) for i, tc in caps if np.isfinite(tc)}
-    tl = TelemetryLog(str(path), position, gps_s, attitude, gimbal, captures, cap_msg, clock, boot, counts, bad,
-                      truncated, max_gap_s)
-    for name, s in (("position", position), ("attitude", attitude), ("gimbal", gimbal)):
-        tl.gaps += _gaps(name, s.t, max_gap_s)
-    for g in tl.gaps:
-        log.warning("%s: %.1f s gap in %s telemetry (frames in it are flagged)", path, g.seconds, g.stream)
+    if acc.bad:
+        log.warning("%s: skipped %d bad packets", path, acc.bad)
+    tl = acc.build(str(path), max_gap_s, truncated)
     tl.parse_seconds = time.perf_counter() - t0
     return tl
+
+
+class LiveTelemetry:
+    """Telemetry from a live MAVLink link (``udpin:127.0.0.1:14550``, ``/dev/ttyUSB0,57600``, ...).
+
+    A thread reads the link; :meth:`snapshot` gives a :class:`TelemetryLog` of everything so far. The
+    node identifies itself as a companion computer (MAV_COMP_ID_ONBOARD_COMPUTER, 191) with a 1 Hz
+    HEARTBEAT.
+    """
+
+    COMPONENT_ID = 191
+
+    def __init__(self, url: str, system_id: int = 1, max_gap_s: float = 1.0, heartbeat_s: float = 1.0):
+        from pomar.mavlink import dialect
+
+        self._m = dialect()
+        from pymavlink import mavutil
+
+        self.url, self.max_gap_s = url, max_gap_s
+        self._conn = mavutil.mavlink_connection(url, dialect="ardupilotmega", source_system=system_id,
+                                                source_component=self.COMPONENT_ID, autoreconnect=True)
+        self._acc = _Accumulator()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._read, daemon=True),
+                         threading.Thread(target=self._beat, args=(heartbeat_s,), daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    def _read(self):
+        while not self._stop.is_set():
+            try:
+                m = self._conn.recv_match(blocking=True, timeout=0.2)
+            except Exception as exc:  # a broken link: keep what was received, say why
+                log.warning("%s: %s", self.url, exc)
+                time.sleep(0.2)
+                continue
+            if m is not None:
+                with self._lock:
+                    self._acc.add(m)
+
+    def _beat(self, period):
+        m = self._m
+        while not self._stop.wait(period):
+            try:
+                self._conn.mav.heartbeat_send(m.MAV_TYPE_ONBOARD_CONTROLLER, m.MAV_AUTOPILOT_INVALID, 0, 0, m.MAV_STATE_ACTIVE)
+            except Exception as exc:  # no peer yet (udpin before the first packet): try again
+                log.debug("heartbeat not sent: %s", exc)
+
+    def snapshot(self) -> TelemetryLog:
+        with self._lock:
+            return self._acc.build(self.url, self.max_gap_s, quiet=True)
+
+    def close(self):
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=2)
+        self._conn.close()
 
 
 def _gimbal_series(gim, mount, times, attitude: Series) -> Series:

@@ -115,3 +115,55 @@ def test_not_a_tlog(tmp_path):
     junk.write_bytes(bytes(range(256)) * 40)
     with pytest.raises(TelemetryError, match="no MAVLink"):
         read_tlog(junk)
+
+
+AUTOPILOT = """
+import sys, time
+from pomar.mavlink import dialect
+dialect()
+from pymavlink import mavutil
+src = mavutil.mavlink_connection(sys.argv[1], dialect="ardupilotmega")
+out = mavutil.mavlink_connection("udpout:127.0.0.1:" + sys.argv[2], dialect="ardupilotmega", source_system=1)
+msgs = []
+while (m := src.recv_match()) is not None:
+    msgs.append(m)
+for m in msgs:
+    out.write(m.get_msgbuf())
+    time.sleep(0.0005)
+comps, t0 = set(), time.time()
+while time.time() - t0 < 4 and 191 not in comps:
+    r = out.recv_match(type="HEARTBEAT", blocking=True, timeout=0.5)
+    if r is not None:
+        comps.add(r.get_srcComponent())
+print("heartbeat components", sorted(comps), flush=True)
+"""
+
+
+def test_live_udp_link_matches_the_file_and_identifies_as_companion(bundled_flight):
+    import subprocess
+    import sys
+    import time
+
+    from onboard.telemetry import LiveTelemetry
+    from tests.test_wire import free_port
+
+    port = free_port()
+    live = LiveTelemetry(f"udpin:127.0.0.1:{port}", heartbeat_s=0.2)
+    p = subprocess.Popen([sys.executable, "-c", AUTOPILOT, str(bundled_flight.tlog), str(port)],
+                         stdout=subprocess.PIPE, text=True)
+    try:
+        out, _ = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+        time.sleep(0.3)
+        snap = live.snapshot()
+        live.close()
+    assert "191" in out  # the autopilot side heard our HEARTBEAT as MAV_COMP_ID_ONBOARD_COMPUTER
+    ref = read_tlog(bundled_flight.tlog)
+    assert len(snap.position) >= 0.95 * len(ref.position) and len(snap.captures) >= 0.95 * len(ref.captures)
+    t = ref.position.t[5:50]
+    a, b = snap.at(t), ref.at(t)
+    ok = np.isfinite(a["lat"])
+    assert ok.mean() > 0.9
+    np.testing.assert_allclose(a["lat"][ok], b["lat"][ok], atol=1e-7)
