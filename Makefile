@@ -22,6 +22,9 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(PY) -m sim info $(FLIGHT)
 	$(PY) -m sim show $(FLIGHT) --frame 80 --out $(OUT)/frame-0080-truth.png
+	$(PY) -m onboard telemetry $(FLIGHT)/telemetry.tlog --flight $(FLIGHT)
+	$(PY) -m ground evaluate $(FLIGHT) --noise-px 1 --miss 0.1 --fp 0.5 --json $(OUT)/association.json
+	@echo "demo outputs in $(OUT)/: frame-0080-truth.png (a frame, truth apples circled), association.json (counts, rows, errors)"
 
 test: $(STAMP)
 	$(PY) -m pytest
