@@ -1,0 +1,89 @@
+"""Georeferencing a structure-from-motion model: the similarity from model coordinates to local ENU.
+
+GPS positions alone cannot fix the roll about a straight flight line (the camera centres are nearly
+collinear), so the fit also uses the camera orientation the telemetry gives (vehicle attitude x
+gimbal x mount): each frame contributes its GPS position, weighted by 1/sigma_pos^2, and its three
+camera axes in ENU, weighted by 1/sigma_att^2 (radians). The cost
+
+    sum_i w_i |s R c_i + t - g_i|^2  +  sum_i,k v_i |R a_ik - b_ik|^2
+
+is minimised exactly in t, and alternately in R (weighted Procrustes over positions and axes together)
+and s (closed form), from a start on positions alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pomar.align import Similarity
+
+
+def _procrustes(H: np.ndarray) -> np.ndarray:
+    """Rotation R maximising tr(R^T H)."""
+    U, _, Vt = np.linalg.svd(H)
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt)) or 1.0
+    return U @ D @ Vt
+
+
+@dataclass
+class GeoFit:
+    similarity: Similarity
+    position_rms_m: float  # weighted residual of the GPS term
+    axis_rms_deg: float  # residual of the orientation term
+    n: int
+
+
+def fit_similarity(c_model: np.ndarray, g_enu: np.ndarray, sigma_pos: np.ndarray | float,
+                   R_model: np.ndarray | None = None, R_tel: np.ndarray | None = None,
+                   sigma_att_rad: np.ndarray | float = np.radians(1.0), iterations: int = 20) -> GeoFit:
+    """Similarity taking model points to ENU.
+
+    c_model (N, 3) camera centres in the model; g_enu (N, 3) their GPS positions in ENU; sigma_pos (N,)
+    or scalar, metres. R_model (N, 3, 3) world(model)-to-camera rotations; R_tel (N, 3, 3) world(ENU)-to-
+    camera rotations from the telemetry; without them, positions only (Umeyama, weighted).
+    """
+    c = np.asarray(c_model, float)
+    g = np.asarray(g_enu, float)
+    n = len(c)
+    if n < 2 or g.shape != c.shape:
+        raise ValueError(f"need >= 2 matching (N, 3) point sets, got {c.shape} and {g.shape}")
+    w = np.broadcast_to(1.0 / np.asarray(sigma_pos, float) ** 2, (n,)).astype(float)
+    cm, gm = (w[:, None] * c).sum(0) / w.sum(), (w[:, None] * g).sum(0) / w.sum()
+    cc, gc = c - cm, g - gm
+    use_axes = R_model is not None and R_tel is not None
+    if use_axes:
+        v = np.broadcast_to(1.0 / np.asarray(sigma_att_rad, float) ** 2, (n,)).astype(float)
+        # camera axes in world coordinates are the rows of the world-to-camera rotations
+        A = np.asarray(R_model, float)  # a_ik = A[i, k, :]
+        B = np.asarray(R_tel, float)
+        Hax = np.einsum("i,ikp,ikq->pq", v, B, A)
+    else:
+        Hax = np.zeros((3, 3))
+    s = np.sqrt((w * (gc**2).sum(1)).sum() / max((w * (cc**2).sum(1)).sum(), 1e-300))
+    Hpos = np.einsum("i,ip,iq->pq", w, gc, cc)
+    R = _procrustes(Hpos) if not use_axes else _procrustes(Hax + s * Hpos)
+    for _ in range(iterations):
+        s = float((w * np.einsum("ip,ip->i", gc, cc @ R.T)).sum() / max((w * (cc**2).sum(1)).sum(), 1e-300))
+        R_new = _procrustes(s * Hpos + Hax)
+        if np.allclose(R_new, R, atol=1e-12):
+            R = R_new
+            break
+        R = R_new
+    t = gm - s * R @ cm
+    sim = Similarity(s, R, t)
+    pos_res = np.linalg.norm(sim.apply(c) - g, axis=1)
+    ax = 0.0
+    if use_axes:
+        cosang = np.clip(np.einsum("ikp,ikp->ik", A @ R.T, B), -1, 1)
+        ax = float(np.degrees(np.sqrt(np.mean(np.arccos(cosang) ** 2))))
+    return GeoFit(sim, float(np.sqrt(np.mean(pos_res**2))), ax, n)
+
+
+def georeference_poses(R_model: np.ndarray, t_model: np.ndarray, sim: Similarity) -> tuple[np.ndarray, np.ndarray]:
+    """World-to-camera poses in ENU from model poses: X_enu = s R X_model + t."""
+    R_enu = np.asarray(R_model) @ sim.R.T
+    t_enu = sim.scale * np.asarray(t_model) - np.einsum("nij,j->ni", R_enu, sim.t)
+    return R_enu, t_enu

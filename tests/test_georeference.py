@@ -1,0 +1,47 @@
+"""Georeferencing: GPS alone leaves the roll about a straight flight line free; the telemetry's camera
+axes fix it."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ground.georeference import fit_similarity, georeference_poses
+from ground.synthetic import camera_path
+from pomar.align import Similarity
+
+
+def rotation_error_deg(Ra, Rb):
+    return np.degrees(np.linalg.norm(Rotation.from_matrix(np.einsum("nij,nkj->nik", Ra, Rb)).as_rotvec(), axis=1))
+
+
+def test_axes_fix_the_roll_that_gps_leaves_free():
+    rng = np.random.default_rng(0)
+    R_true, t_true = camera_path(120, step_m=0.3)  # a straight line along y, ENU
+    C_true = -np.einsum("nji,nj->ni", R_true, t_true)
+    # the model: an unknown similarity away from ENU
+    S = Similarity(0.37, Rotation.from_euler("xyz", [40, -70, 120], degrees=True).as_matrix(), np.array([3.0, -1.0, 2.0]))
+    c_model = (C_true - S.t) @ S.R / S.scale  # S^-1(C) = R^T (C - t) / s, as rows
+    R_model = R_true @ S.R  # world(model)-to-camera
+    t_model = -np.einsum("nij,nj->ni", R_model, c_model)
+    gps = C_true + rng.normal(0, 1.0, C_true.shape)
+    R_tel = Rotation.from_rotvec(rng.normal(0, np.radians(0.5), (120, 3))).as_matrix() @ R_true
+    only_gps = fit_similarity(c_model, gps, 1.0)
+    both = fit_similarity(c_model, gps, 1.0, R_model, R_tel, np.radians(0.5))
+    for fit, bound in ((both, 0.3),):
+        R_enu, t_enu = georeference_poses(R_model, t_model, fit.similarity)
+        assert np.median(rotation_error_deg(R_enu, R_true)) < bound
+        C = -np.einsum("nji,nj->ni", R_enu, t_enu)
+        assert np.median(np.linalg.norm(C - C_true, axis=1)) < 0.5
+        assert abs(fit.similarity.scale - S.scale) / S.scale < 0.02
+    R_enu, _ = georeference_poses(R_model, t_model, only_gps.similarity)
+    assert np.median(rotation_error_deg(R_enu, R_true)) > 3 * np.median(
+        rotation_error_deg(georeference_poses(R_model, t_model, both.similarity)[0], R_true))
+
+
+def test_exact_input_is_recovered_exactly():
+    R_true, t_true = camera_path(30)
+    C = -np.einsum("nji,nj->ni", R_true, t_true)
+    C[:, 0] += np.sin(np.arange(30))  # not collinear: positions alone suffice
+    fit = fit_similarity(C, C * 1.0, 1.0)
+    assert abs(fit.similarity.scale - 1) < 1e-9 and np.allclose(fit.similarity.R, np.eye(3)) and fit.position_rms_m < 1e-9
