@@ -37,7 +37,7 @@ def main(argv=None) -> int:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     e.add_argument("flight_dir")
     e.add_argument("--detections", default="truth", help="'truth' or a CSV frame,u,v")
-    e.add_argument("--poses", default="truth", help="'truth' or a CSV with truth/frames.csv's columns")
+    e.add_argument("--poses", default="truth", help="'truth', 'telemetry' (GPS + gimbal only) or a CSV with truth/frames.csv's columns")
     e.add_argument("--noise-px", type=float, default=0.0)
     e.add_argument("--miss", type=float, default=0.0, help="probability a detection is missed")
     e.add_argument("--fp", type=float, default=0.0, help="false positives per frame (Poisson mean)")

@@ -6,7 +6,7 @@
 Detections come from ``truth/detections.csv`` (apples at least ``--min-visible`` visible), perturbed
 deterministically from ``--seed``: pixel jitter, misses, false positives per frame (Poisson) and
 duplicate detections; or from a CSV ``frame,u,v[,score]`` (OpenCV pixel convention). Poses come
-from ``truth/frames.csv`` or a CSV with the same columns. Predicted apples are matched to truth
+from ``truth/frames.csv``, from the telemetry alone (GPS + gimbal), or a CSV with the same columns. Predicted apples are matched to truth
 apples one-to-one (Hungarian) within ``--match-m`` (0.10 m).
 
 Truth counts: an apple is *visible in the flight* when it appears, at least ``--min-visible``
@@ -94,6 +94,10 @@ def projection_matrices(flight: FlightDir, poses: str) -> np.ndarray:
     cam = flight.camera()
     if poses == "truth":
         R, t = flight.truth_poses()
+    elif poses == "telemetry":
+        from ground.poses import telemetry_poses
+
+        R, t, _ = telemetry_poses(flight)
     else:
         from pomar.flight import FRAMES_COLUMNS
 

@@ -45,3 +45,20 @@ def test_exact_input_is_recovered_exactly():
     C[:, 0] += np.sin(np.arange(30))  # not collinear: positions alone suffice
     fit = fit_similarity(C, C * 1.0, 1.0)
     assert abs(fit.similarity.scale - 1) < 1e-9 and np.allclose(fit.similarity.R, np.eye(3)) and fit.position_rms_m < 1e-9
+
+
+def test_telemetry_poses_are_the_truth_within_telemetry_error(bundled_flight):
+    import json
+
+    from ground.poses import telemetry_poses
+
+    R, t, flags = telemetry_poses(bundled_flight)
+    R_true, t_true = bundled_flight.truth_poses()
+    assert (flags == 0).all() and R.shape == R_true.shape
+    C = -np.einsum("nji,nj->ni", R, t)
+    C_true = -np.einsum("nji,nj->ni", R_true, t_true)
+    tel = json.loads((bundled_flight.path / "sim_config.json").read_text())["telemetry"]
+    sigma = np.sqrt(2 * tel["gps_noise_m"] ** 2 + tel["gps_alt_noise_m"] ** 2)
+    err = np.linalg.norm(C - C_true, axis=1)
+    assert 0.01 < np.median(err) < 4 * sigma
+    assert np.median(rotation_error_deg(R, R_true)) < 1.0
