@@ -1,0 +1,221 @@
+"""Incremental registration of keyframes with pycolmap, one keyframe at a time, at a bounded cost.
+
+For each keyframe: SIFT features, matching against the previous ``match_window`` keyframes, then the
+incremental mapper registers it into the current sub-model (2D-3D pose), triangulates its new points
+and refines locally; a global refinement runs every ``global_ba_every`` keyframes. A sub-model holds
+at most ``submodel_size`` keyframes: then a new one is bootstrapped from the last ``overlap`` keyframes
+and chained to the previous one by a similarity over the cameras they share. The database cache is
+built over the current sub-model only, so the cost per keyframe does not grow with the flight.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+
+from pomar.align import Similarity, umeyama
+from pomar.camera import Camera
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RegistrationSettings:
+    match_window: int = 8
+    submodel_size: int = 60
+    overlap: int = 10
+    global_ba_every: int = 10
+    init_frames: int = 6
+    first_octave: int = 0
+    max_num_features: int = 4096
+    init_min_tri_angle: float = 2.0
+
+
+@dataclass
+class Submodel:
+    rec: pycolmap.Reconstruction
+    names: list[str] = field(default_factory=list)
+    to_first: Similarity | None = None  # maps this sub-model's coordinates into the first sub-model's
+
+
+class IncrementalRegistrar:
+    def __init__(self, camera: Camera, workdir: str | Path, settings: RegistrationSettings | None = None):
+        self.cam, self.s = camera, settings or RegistrationSettings()
+        self.work = Path(workdir)
+        if self.work.exists():
+            shutil.rmtree(self.work)
+        (self.work / "images").mkdir(parents=True)
+        self.db_path = self.work / "database.db"
+        self.names: list[str] = []  # every keyframe, in order
+        self.frame_of: dict[str, int] = {}
+        self.submodels: list[Submodel] = []
+        self.failed: list[int] = []
+        self.seconds: list[float] = []
+        self._mopts = pycolmap.IncrementalPipelineOptions()
+        self._mopts.ba_refine_focal_length = False
+        self._mopts.ba_refine_principal_point = False
+        self._mopts.ba_refine_extra_params = False
+        self._mopts.mapper.init_min_tri_angle = self.s.init_min_tri_angle
+        self._mopts.mapper.init_min_num_inliers = 50
+        self._camera_id = None
+
+    # -- features and matches
+    def _extract(self, name: str):
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = self.cam.model
+        reader.camera_params = ",".join(str(p) for p in self.cam.params())
+        if self._camera_id is not None:
+            reader.existing_camera_id = self._camera_id
+        ext = pycolmap.FeatureExtractionOptions()
+        ext.sift.first_octave = self.s.first_octave
+        ext.sift.max_num_features = self.s.max_num_features
+        pycolmap.extract_features(self.db_path, self.work / "images", image_names=[name],
+                                  camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                  extraction_options=ext, device=pycolmap.Device.cpu)
+        if self._camera_id is None:
+            with pycolmap.Database.open(self.db_path) as db:
+                self._camera_id = db.read_image_with_name(name).camera_id
+
+    def _match(self, name: str):
+        prev = self.names[-1 - self.s.match_window: -1]
+        if not prev:
+            return
+        pairs = self.work / "pairs.txt"
+        pairs.write_text("".join(f"{name} {p}\n" for p in prev))
+        popts = pycolmap.ImportedPairingOptions()
+        popts.match_list_path = str(pairs)
+        pycolmap.match_image_pairs(self.db_path, pairing_options=popts, device=pycolmap.Device.cpu)
+
+    # -- mapping
+    def _mapper(self, names: list[str]):
+        copts = pycolmap.DatabaseCacheOptions()
+        copts.min_num_matches = 15
+        copts.image_names = set(names)
+        with pycolmap.Database.open(self.db_path) as db:
+            cache = pycolmap.DatabaseCache.create(db, copts)
+        return cache, pycolmap.IncrementalMapper(cache)
+
+    def _image_id(self, cache, name):
+        for iid, im in cache.images.items():
+            if im.name == name:
+                return iid
+        return None
+
+    def _bootstrap(self, names: list[str]) -> Submodel | None:
+        cache, mapper = self._mapper(names)
+        rec = pycolmap.Reconstruction()
+        mapper.begin_reconstruction(rec)
+        mo = self._mopts.get_mapper()
+        found = None
+        # pycolmap 4.2 finds no pair when both ids are left free (-1, -1); fixing the first works
+        for name in names:
+            iid = self._image_id(cache, name)
+            if iid is not None:
+                found = mapper.find_initial_image_pair(mo, iid, -1)
+                if found is not None:
+                    break
+        if found is None:
+            mapper.end_reconstruction(True)
+            return None
+        (i1, i2), cam2_from_cam1 = found
+        mapper.register_initial_image_pair(mo, i1, i2, cam2_from_cam1)
+        tri = self._mopts.get_triangulation()
+        mapper.triangulate_image(tri, i1)
+        mapper.triangulate_image(tri, i2)
+        mapper.adjust_global_bundle(mo, self._mopts.get_global_bundle_adjustment())
+        for name in names:
+            iid = self._image_id(cache, name)
+            if iid is None or iid in (i1, i2):
+                continue
+            if mapper.register_next_image(mo, iid):
+                mapper.triangulate_image(tri, iid)
+        mapper.iterative_global_refinement(3, 0.0005, mo, self._mopts.get_global_bundle_adjustment(), tri, False)
+        mapper.end_reconstruction(False)
+        sm = Submodel(rec, [n for n in names if self._registered(rec, n)])
+        return sm if len(sm.names) >= 3 else None
+
+    @staticmethod
+    def _registered(rec, name):
+        im = rec.find_image_with_name(name)
+        return im is not None and im.has_pose
+
+    def _register_into(self, sm: Submodel, name: str, refine_global: bool) -> bool:
+        cache, mapper = self._mapper(sm.names + [name])
+        mapper.begin_reconstruction(sm.rec)
+        mo, tri = self._mopts.get_mapper(), self._mopts.get_triangulation()
+        iid = self._image_id(cache, name)
+        ok = iid is not None and mapper.register_next_image(mo, iid)
+        if ok:
+            mapper.triangulate_image(tri, iid)
+            mapper.iterative_local_refinement(2, 0.001, mo, self._mopts.get_local_bundle_adjustment(), tri, iid)
+            if refine_global:
+                mapper.iterative_global_refinement(2, 0.0005, mo, self._mopts.get_global_bundle_adjustment(), tri, False)
+        mapper.end_reconstruction(False)
+        if ok:
+            sm.names.append(name)
+        return ok
+
+    def _chain(self, new: Submodel, old: Submodel) -> None:
+        shared = [n for n in new.names if n in old.names]
+        if len(shared) < 3:
+            raise RuntimeError(f"sub-models share only {len(shared)} cameras")
+        c_new = np.array([new.rec.find_image_with_name(n).projection_center() for n in shared])
+        c_old = np.array([old.rec.find_image_with_name(n).projection_center() for n in shared])
+        to_old = umeyama(c_new, c_old)
+        first = old.to_first or Similarity(1.0, np.eye(3), np.zeros(3))
+        new.to_first = Similarity(first.scale * to_old.scale, first.R @ to_old.R, first.scale * first.R @ to_old.t + first.t)
+
+    def add_keyframe(self, frame: int, image_bgr: np.ndarray) -> bool:
+        """Register one keyframe; returns whether it has a pose now."""
+        t0 = time.perf_counter()
+        name = f"{frame:06d}.jpg"
+        cv2.imwrite(str(self.work / "images" / name), image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        self._extract(name)
+        self.names.append(name)
+        self.frame_of[name] = frame
+        self._match(name)
+        ok = False
+        sm = self.submodels[-1] if self.submodels else None
+        if sm is None:
+            if len(self.names) >= self.s.init_frames:
+                sm = self._bootstrap(self.names[-self.s.init_frames * 2:])
+                if sm is not None:
+                    sm.to_first = Similarity(1.0, np.eye(3), np.zeros(3))
+                    self.submodels.append(sm)
+                    ok = name in sm.names
+        else:
+            if len(sm.names) >= self.s.submodel_size:
+                new = self._bootstrap(sm.names[-self.s.overlap:] + [name])
+                if new is not None:
+                    self._chain(new, sm)
+                    self.submodels.append(new)
+                    ok = name in new.names
+                else:
+                    ok = self._register_into(sm, name, False)
+            else:
+                n = len(sm.names)
+                ok = self._register_into(sm, name, refine_global=(n % self.s.global_ba_every == 0))
+        if not ok:
+            self.failed.append(frame)
+        self.seconds.append(time.perf_counter() - t0)
+        return ok
+
+    def poses(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """World-to-camera (R, t) of every registered keyframe, in the first sub-model's frame (the latest
+        sub-model wins where they overlap)."""
+        from ground.georeference import georeference_poses
+
+        out = {}
+        for sm in self.submodels:
+            m = np.array([sm.rec.find_image_with_name(n).cam_from_world().matrix() for n in sm.names])
+            R, t = georeference_poses(m[:, :, :3], m[:, :, 3], sm.to_first)
+            for name, Ri, ti in zip(sm.names, R, t):
+                out[self.frame_of[name]] = (Ri, ti)
+        return out
