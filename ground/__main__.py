@@ -27,6 +27,22 @@ def _cmd_evaluate(args) -> int:
     return 0
 
 
+def _cmd_register(args) -> int:
+    from ground.register_flight import register_flight
+    from ground.registration import RegistrationSettings
+
+    settings = RegistrationSettings(submodel_size=args.submodel_size, match_window=args.match_window)
+    out = args.out or f"out/register/{Path(args.flight_dir).name}"
+    res = register_flight(args.flight_dir, out, args.every, args.scale, settings, progress=not args.quiet,
+                          frames_limit=args.frames)
+    print(json.dumps(res, indent=2))
+    print(f"poses for every frame: {out}/poses.csv; COLMAP text models (ENU): {out}/model/")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(res, indent=2) + "\n")
+    return 0
+
+
 def main(argv=None) -> int:
     from ground.evaluate import __doc__ as evaluate_doc
 
@@ -57,6 +73,17 @@ def main(argv=None) -> int:
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--json")
     e.set_defaults(func=_cmd_evaluate)
+    r = sub.add_parser("register", help="register a flight's keyframes incrementally with pycolmap; ENU poses for every frame")
+    r.add_argument("flight_dir")
+    r.add_argument("--every", type=int, default=2, help="every Nth frame is a keyframe (as the onboard default)")
+    r.add_argument("--scale", type=float, default=1.0, help="resize keyframes by this factor")
+    r.add_argument("--submodel-size", type=int, default=60)
+    r.add_argument("--match-window", type=int, default=8)
+    r.add_argument("--frames", type=int, help="only the first N frames")
+    r.add_argument("--out")
+    r.add_argument("--json")
+    r.add_argument("--quiet", action="store_true")
+    r.set_defaults(func=_cmd_register)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     from pomar.flight import FlightFormatError

@@ -1,0 +1,206 @@
+"""Register a whole flight from its files (no zenoh): keyframes -> incremental pycolmap -> ENU poses
+for every frame, scored against the truth when the flight has one.
+
+    python -m ground register FLIGHT_DIR [--every 2] [--scale 1.0] [--out DIR] [--json OUT]
+
+Every frame gets a pose and its source: ``registered`` (a keyframe the model registered),
+``interpolated`` (between two registered keyframes at most ``max_interp_gap`` frames apart: centre
+linearly, rotation by slerp), or ``telemetry`` (GPS + gimbal alone). Each carries a rough 1-sigma
+uncertainty (position m, rotation deg) the association can use to loosen its gates.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+from scipy.spatial.transform import Rotation, Slerp
+
+from ground.georeference import fit_similarity, georeference_poses
+from ground.poses import telemetry_poses
+from ground.registration import IncrementalRegistrar, RegistrationSettings
+from onboard.telemetry import read_tlog
+from pomar import flight as ff
+from pomar.camera import Camera
+from pomar.flight import FlightDir
+from pomar.rotations import camera_from_gimbal_attitude, quat_wxyz_to_rotation, rotation_to_quat_wxyz
+from pomar.video import iter_frames
+
+log = logging.getLogger(__name__)
+
+SOURCES = ("registered", "interpolated", "telemetry")
+
+
+def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, settings: RegistrationSettings | None = None,
+                    max_interp_gap: int = 10, sigma_att_deg: float = 0.5, progress: bool = False,
+                    frames_limit: int | None = None) -> dict:
+    fl = FlightDir(flight_dir)
+    meta, cam = fl.meta(), fl.camera()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    kcam = Camera(int(round(cam.width * scale)), int(round(cam.height * scale)), cam.fx * scale, cam.fy * scale,
+                  cam.cx * scale, cam.cy * scale)
+    reg = IncrementalRegistrar(kcam, out / "work", settings)
+    n = meta.frame_count if frames_limit is None else min(frames_limit, meta.frame_count)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=(n + every - 1) // every, unit="keyframe", desc="registering")
+    t0 = time.perf_counter()
+    decoded = 0
+    for i, img in iter_frames(fl.video):
+        if i >= n:
+            break
+        decoded += 1
+        if i % every:
+            continue
+        if scale != 1.0:
+            img = cv2.resize(img, (kcam.width, kcam.height), interpolation=cv2.INTER_AREA)
+        try:
+            reg.add_keyframe(i, img)
+        except Exception as exc:  # one keyframe that breaks the mapper must not stop the flight
+            log.warning("keyframe %d failed to register: %s", i, exc)
+            reg.failed.append(i)
+        if bar:
+            bar.update(1)
+    if bar:
+        bar.close()
+    seconds = time.perf_counter() - t0
+    if decoded < n:
+        log.error("%s: decoded %d of %d frames; the rest get telemetry poses", fl.video, decoded, n)
+
+    # telemetry at every frame, and its poses (the fallback)
+    R_tel, t_tel, tel_flags = telemetry_poses(fl)
+    tl = read_tlog(fl.tlog)
+    tf, _ = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps)
+    s = tl.at(tf)
+    origin = fl.origin() if fl.has_truth else None
+
+    P = reg.poses()  # model coordinates (first sub-model)
+    kf = np.array(sorted(P))
+    R = np.zeros((meta.frame_count, 3, 3))
+    t = np.zeros((meta.frame_count, 3))
+    source = np.full(meta.frame_count, "telemetry", dtype=object)
+    sim = None
+    if len(kf) >= 3:
+        R_m = np.array([P[f][0] for f in kf])
+        t_m = np.array([P[f][1] for f in kf])
+        c_m = -np.einsum("nji,nj->ni", R_m, t_m)
+        if origin is None:
+            from pomar.geo import Origin
+
+            ok = np.isfinite(s["lat"])
+            j = int(np.argmax(ok))
+            origin = Origin(float(s["lat"][j]), float(s["lon"][j]), float(s["alt"][j]))
+        gps = origin.to_enu(s["lat"][kf], s["lon"][kf], s["alt"][kf])
+        sig = np.where(np.isfinite(s["h_acc"][kf]) & (s["h_acc"][kf] > 0), s["h_acc"][kf], 2.0)
+        good = np.isfinite(gps).all(1) & np.isfinite(s["q_gimbal"][kf]).all(1)
+        R_axes = np.swapaxes(camera_from_gimbal_attitude(quat_wxyz_to_rotation(
+            np.where(np.isfinite(s["q_gimbal"][kf]), s["q_gimbal"][kf], [1, 0, 0, 0])), cam.r_gimbal_from_camera), 1, 2)
+        fit = fit_similarity(c_m[good], gps[good], sig[good], R_m[good], R_axes[good], np.radians(sigma_att_deg))
+        sim = fit.similarity
+        R_e, t_e = georeference_poses(R_m, t_m, sim)
+        R[kf], t[kf] = R_e, t_e
+        source[kf] = "registered"
+        # frames between registered keyframes: centre linearly, rotation by slerp
+        C_e = -np.einsum("nji,nj->ni", R_e, t_e)
+        slerp = Slerp(kf, Rotation.from_matrix(R_e))
+        for f in range(meta.frame_count):
+            if source[f] == "registered" or f < kf[0] or f > kf[-1]:
+                continue
+            k = np.searchsorted(kf, f)
+            if kf[k] - kf[k - 1] > max_interp_gap:
+                continue
+            w = (f - kf[k - 1]) / (kf[k] - kf[k - 1])
+            C = (1 - w) * C_e[k - 1] + w * C_e[k]
+            R[f] = slerp([f]).as_matrix()[0]
+            t[f] = -R[f] @ C
+            source[f] = "interpolated"
+    tel = source == "telemetry"
+    R[tel], t[tel] = R_tel[tel], t_tel[tel]
+    sigma_m = np.where(source == "registered", 0.01, np.where(source == "interpolated", 0.02,
+                       np.where(np.isfinite(s["h_acc"]), s["h_acc"], 2.0)))
+    sigma_deg = np.where(source == "telemetry", sigma_att_deg, 0.05)
+
+    # outputs: poses.csv (truth/frames.csv columns + source + uncertainty), COLMAP text models
+    q = rotation_to_quat_wxyz(Rotation.from_matrix(R))
+    C = -np.einsum("nji,nj->ni", R, t)
+    geo = origin.to_geodetic(C) if origin is not None else np.full((meta.frame_count, 3), np.nan)
+    cols = ff.FRAMES_COLUMNS + ["source", "sigma_m", "sigma_deg", "flags"]
+    ff.write_csv(out / "poses.csv", cols, {
+        "frame": np.arange(meta.frame_count), "t_unix": tf, "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
+        "tx": t[:, 0], "ty": t[:, 1], "tz": t[:, 2], "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
+        "source": source, "sigma_m": sigma_m, "sigma_deg": sigma_deg, "flags": tel_flags,
+    }, {"t_unix": ".6f", **{k: ".12f" for k in ("qw", "qx", "qy", "qz")}, **{k: ".7f" for k in ("tx", "ty", "tz")},
+        "lat": ".10f", "lon": ".10f", "alt": ".6f", "sigma_m": ".4f", "sigma_deg": ".4f"})
+    for k, sm in enumerate(reg.submodels):
+        d = out / "model" / str(k)
+        d.mkdir(parents=True, exist_ok=True)
+        rec = pycolmap.Reconstruction(sm.rec)
+        if sim is not None:  # into ENU: first sub-model coordinates, then the georeferencing similarity
+            to_first = sm.to_first
+            S = (sim.scale * to_first.scale, sim.R @ to_first.R, sim.scale * sim.R @ to_first.t + sim.t)
+            rec.transform(pycolmap.Sim3d(S[0], pycolmap.Rotation3d(S[1]), S[2]))
+        rec.write_text(str(d))
+    if sim is not None:
+        (out / "georeference.json").write_text(json.dumps({"origin": origin.as_dict(), "scale": sim.scale,
+                                                           "R": sim.R.tolist(), "t": sim.t.tolist()}, indent=2) + "\n")
+
+    keyframes = (n + every - 1) // every
+    result = {
+        "flight": str(fl.path), "keyframes": keyframes, "registered": int(len(kf)),
+        "registered_fraction": len(kf) / max(keyframes, 1), "submodels": len(reg.submodels),
+        "sources": {src: int((source == src).sum()) for src in SOURCES},
+        "seconds": seconds, "seconds_per_keyframe": float(np.mean(reg.seconds)) if reg.seconds else float("nan"),
+        "seconds_per_keyframe_median": float(np.median(reg.seconds)) if reg.seconds else float("nan"),
+        "seconds_per_keyframe_p95": float(np.percentile(reg.seconds, 95)) if reg.seconds else float("nan"),
+        "keyframe_size": [kcam.width, kcam.height], "every": every,
+        "seconds_per_keyframe_by_decile": [float(np.mean(x)) for x in np.array_split(np.array(reg.seconds), 10)] if len(reg.seconds) >= 10 else [],
+    }
+    if fl.has_truth:
+        result.update(score_poses(fl, R, t, source, kf))
+    (out / "report.json").write_text(json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def score_poses(fl: FlightDir, R: np.ndarray, t: np.ndarray, source: np.ndarray, kf: np.ndarray) -> dict:
+    """Errors in ENU against truth/frames.csv (after georeferencing, no fresh alignment)."""
+    R_true, t_true = fl.truth_poses()
+    cam = fl.camera()
+    C, C_true = -np.einsum("nji,nj->ni", R, t), -np.einsum("nji,nj->ni", R_true, t_true)
+    pos = np.linalg.norm(C - C_true, axis=1)
+    rot = np.degrees(np.linalg.norm(Rotation.from_matrix(np.einsum("nij,nkj->nik", R, R_true)).as_rotvec(), axis=1))
+    a, d = fl.truth_apples(), fl.truth_detections()
+    X = np.stack([a["x"], a["y"], a["z"]], 1)
+    errs, errs_rel = [], []
+    for f in np.unique(d["frame"]):
+        sel = (d["frame"] == f) & (d["visible_fraction"] >= 0.5)
+        if not sel.any():
+            continue
+        idx = np.searchsorted(a["apple_id"], d["apple_id"][sel])
+        uv, _ = cam.project(X[idx], R[f], t[f])
+        uv_t, _ = cam.project(X[idx], R_true[f], t_true[f])
+        errs.append(np.linalg.norm(uv - uv_t, axis=1))
+    e = np.concatenate(errs) if errs else np.zeros(0)
+    reg = source == "registered"
+    out = {
+        "position_error_median_m": float(np.median(pos[reg])) if reg.any() else float("nan"),
+        "position_error_p95_m": float(np.percentile(pos[reg], 95)) if reg.any() else float("nan"),
+        "rotation_error_median_deg": float(np.median(rot[reg])) if reg.any() else float("nan"),
+        "apple_reprojection_error_median_px": float(np.median(e)) if len(e) else float("nan"),
+        "by_source": {src: {"frames": int((source == src).sum()),
+                            "position_error_median_m": float(np.median(pos[source == src])) if (source == src).any() else None,
+                            "rotation_error_median_deg": float(np.median(rot[source == src])) if (source == src).any() else None}
+                      for src in SOURCES},
+    }
+    # the same after removing the mean position offset: what is left once the GPS bias is set aside
+    off = (C - C_true)[reg].mean(0) if reg.any() else np.zeros(3)
+    out["mean_offset_enu_m"] = off.tolist()
+    out["position_error_median_without_mean_offset_m"] = float(np.median(np.linalg.norm(C[reg] - off - C_true[reg], axis=1))) if reg.any() else float("nan")
+    return out
