@@ -18,7 +18,8 @@ def _cmd_evaluate(args) -> int:
                                max_paths=args.max_paths, merge_search_m=args.merge_search_m, seed=args.seed)
     pert = Perturbation(args.noise_px, args.miss, args.fp, args.dup, args.min_visible, args.seed)
     results = [evaluate(args.flight_dir, mode, params, pert, args.detections, args.poses, args.match_m,
-                        baselines=(i == 0), truth_min_views=args.truth_min_views) for i, mode in enumerate(args.mode)]
+                        baselines=(i == 0), truth_min_views=args.truth_min_views,
+                        remove_pose_offset=args.remove_pose_offset) for i, mode in enumerate(args.mode)]
     print(format_table(results))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
@@ -68,6 +69,8 @@ def main(argv=None) -> int:
     e.add_argument("--max-paths", type=int, default=500, help="offline DFS bound per node")
     e.add_argument("--merge-search-m", type=float, default=1.0, help="merge duplicate apples (one apple seen twice) within this distance when their views agree; 0 = the paper as is")
     e.add_argument("--match-m", type=float, default=0.10)
+    e.add_argument("--remove-pose-offset", action="store_true",
+                   help="score the map's shape: subtract the poses' mean camera offset from truth (the GPS bias)")
     e.add_argument("--truth-min-views", type=int, default=3,
                    help="an apple is visible in the flight when seen (at least --min-visible) in this many frames")
     e.add_argument("--seed", type=int, default=0)

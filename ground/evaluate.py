@@ -140,7 +140,8 @@ def match(pred: np.ndarray, truth: np.ndarray, max_dist: float) -> tuple[np.ndar
 
 def evaluate(flight_dir, mode: str = "windowed", params: AssociationParams | None = None,
              pert: Perturbation | None = None, detections: str = "truth", poses: str = "truth",
-             match_m: float = 0.10, baselines: bool = True, truth_min_views: int = 3) -> dict:
+             match_m: float = 0.10, baselines: bool = True, truth_min_views: int = 3,
+             remove_pose_offset: bool = False) -> dict:
     flight = FlightDir(flight_dir)
     if not flight.has_truth:
         raise FlightFormatError(f"{flight.path}: no truth/ to evaluate against")
@@ -177,6 +178,17 @@ def evaluate(flight_dir, mode: str = "windowed", params: AssociationParams | Non
     in_rows = np.isin(a["row"], rows_seen)
 
     pred = np.array([ap.X for ap in apples]).reshape(-1, 3)
+    pose_offset = np.zeros(3)
+    if remove_pose_offset:
+        # the map's shape, not its absolute placement: take away the mean offset of the camera centres
+        # from the truth (with GPS georeferencing, the GPS's bias over the flight)
+        R_true, t_true = flight.truth_poses()
+        K_inv = np.linalg.inv(flight.camera().K_opencv)
+        Rt = np.einsum("ij,njk->nik", K_inv, Ps[:n])
+        C = -np.einsum("nji,nj->ni", Rt[:, :, :3], Rt[:, :, 3])
+        C_true = -np.einsum("nji,nj->ni", R_true[:n], t_true[:n])
+        pose_offset = (C - C_true).mean(0)
+        pred = pred - pose_offset
     pi, ti, dist = match(pred, truth_xyz, match_m)
     tp = len(pi)
     tp_visible = int(is_visible[ti].sum())
@@ -212,6 +224,7 @@ def evaluate(flight_dir, mode: str = "windowed", params: AssociationParams | Non
         "count_error_pct": 100.0 * (count - truth_count) / truth_count if truth_count else float("nan"),
         "median_error_m": float(np.median(dist)) if tp else float("nan"),
         "p95_error_m": float(np.percentile(dist, 95)) if tp else float("nan"),
+        "pose_offset_removed_m": pose_offset.tolist(),
         "frames": n, "detections_total": count_per_frame_sum(xy), "seconds": seconds,
         "frames_per_s": n / seconds if seconds > 0 else float("inf"),
         "rows": per_row, "stats": dict(assoc.stats),

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import pycolmap
 
-from pomar.align import Similarity, umeyama
+from pomar.align import Similarity
 from pomar.camera import Camera
 
 log = logging.getLogger(__name__)
@@ -166,9 +166,16 @@ class IncrementalRegistrar:
         shared = [n for n in new.names if n in old.names]
         if len(shared) < 3:
             raise RuntimeError(f"sub-models share only {len(shared)} cameras")
-        c_new = np.array([new.rec.find_image_with_name(n).projection_center() for n in shared])
-        c_old = np.array([old.rec.find_image_with_name(n).projection_center() for n in shared])
-        to_old = umeyama(c_new, c_old)
+        from ground.georeference import fit_similarity
+
+        m_new = np.array([new.rec.find_image_with_name(n).cam_from_world().matrix() for n in shared])
+        m_old = np.array([old.rec.find_image_with_name(n).cam_from_world().matrix() for n in shared])
+        c_new = -np.einsum("nji,nj->ni", m_new[:, :, :3], m_new[:, :, 3])
+        c_old = -np.einsum("nji,nj->ni", m_old[:, :, :3], m_old[:, :, 3])
+        # the shared cameras lie on a short, nearly straight stretch: their centres leave the roll about
+        # it free, so their orientations take part in the fit (the same fit as georeferencing)
+        spread = max(float(np.linalg.norm(c_old - c_old.mean(0), axis=1).mean()), 1e-9)
+        to_old = fit_similarity(c_new, c_old, 0.01 * spread, m_new[:, :, :3], m_old[:, :, :3], np.radians(0.05)).similarity
         first = old.to_first or Similarity(1.0, np.eye(3), np.zeros(3))
         new.to_first = Similarity(first.scale * to_old.scale, first.R @ to_old.R, first.scale * first.R @ to_old.t + first.t)
 
