@@ -32,7 +32,8 @@ def _cmd_register(args) -> int:
     from ground.register_flight import register_flight
     from ground.registration import RegistrationSettings
 
-    settings = RegistrationSettings(submodel_size=args.submodel_size, match_window=args.match_window)
+    settings = RegistrationSettings(submodel_size=args.submodel_size, match_window=args.match_window,
+                                    max_num_features=args.max_features)
     out = args.out or f"out/register/{Path(args.flight_dir).name}"
     res = register_flight(args.flight_dir, out, args.every, args.scale, settings, progress=not args.quiet,
                           frames_limit=args.frames)
@@ -82,6 +83,7 @@ def main(argv=None) -> int:
     r.add_argument("--scale", type=float, default=1.0, help="resize keyframes by this factor")
     r.add_argument("--submodel-size", type=int, default=60)
     r.add_argument("--match-window", type=int, default=8)
+    r.add_argument("--max-features", type=int, default=4096)
     r.add_argument("--frames", type=int, help="only the first N frames")
     r.add_argument("--out")
     r.add_argument("--json")

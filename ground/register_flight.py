@@ -161,6 +161,8 @@ def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, set
         "seconds_per_keyframe_median": float(np.median(reg.seconds)) if reg.seconds else float("nan"),
         "seconds_per_keyframe_p95": float(np.percentile(reg.seconds, 95)) if reg.seconds else float("nan"),
         "keyframe_size": [kcam.width, kcam.height], "every": every,
+        "stage_seconds_median": dict(zip(("features", "matching", "mapping"),
+                                         np.median(np.array(reg.stage_seconds), axis=0).tolist())) if reg.stage_seconds else {},
         "seconds_per_keyframe_by_decile": [float(np.mean(x)) for x in np.array_split(np.array(reg.seconds), 10)] if len(reg.seconds) >= 10 else [],
     }
     if fl.has_truth:

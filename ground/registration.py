@@ -58,6 +58,7 @@ class IncrementalRegistrar:
         self.submodels: list[Submodel] = []
         self.failed: list[int] = []
         self.seconds: list[float] = []
+        self.stage_seconds: list[tuple[float, float, float]] = []  # features, matching, mapping
         self._mopts = pycolmap.IncrementalPipelineOptions()
         self._mopts.ba_refine_focal_length = False
         self._mopts.ba_refine_principal_point = False
@@ -185,9 +186,11 @@ class IncrementalRegistrar:
         name = f"{frame:06d}.jpg"
         cv2.imwrite(str(self.work / "images" / name), image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
         self._extract(name)
+        t1 = time.perf_counter()
         self.names.append(name)
         self.frame_of[name] = frame
         self._match(name)
+        t2 = time.perf_counter()
         ok = False
         sm = self.submodels[-1] if self.submodels else None
         if sm is None:
@@ -211,7 +214,9 @@ class IncrementalRegistrar:
                 ok = self._register_into(sm, name, refine_global=(n % self.s.global_ba_every == 0))
         if not ok:
             self.failed.append(frame)
-        self.seconds.append(time.perf_counter() - t0)
+        t3 = time.perf_counter()
+        self.seconds.append(t3 - t0)
+        self.stage_seconds.append((t1 - t0, t2 - t1, t3 - t2))
         return ok
 
     def poses(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
