@@ -20,9 +20,8 @@ import pycolmap
 from scipy.spatial.transform import Rotation
 
 from ground.georeference import fit_similarity, georeference_poses
-from onboard.telemetry import read_tlog
+from ground.poses import camera_rotations, frame_telemetry
 from pomar.flight import FlightDir
-from pomar.rotations import camera_from_gimbal_attitude, quat_wxyz_to_rotation
 
 
 def main() -> None:
@@ -46,12 +45,11 @@ def main() -> None:
     frames, R_m, t_m = np.array(frames)[order], np.array(R_m)[order], np.array(t_m)[order]
     c_m = -np.einsum("nji,nj->ni", R_m, t_m)
 
-    tl = read_tlog(fl.tlog)
-    t_frames, _ = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps)
-    s = tl.at(t_frames[frames])
+    _, s = frame_telemetry(fl)
+    s = {k: v[frames] for k, v in s.items()}
     gps = origin.to_enu(s["lat"], s["lon"], s["alt"])
     sigma = np.where(np.isfinite(s["h_acc"]) & (s["h_acc"] > 0), s["h_acc"], 2.0)
-    R_tel = np.swapaxes(camera_from_gimbal_attitude(quat_wxyz_to_rotation(s["q_gimbal"]), cam.r_gimbal_from_camera), 1, 2)
+    R_tel = camera_rotations(s["q_gimbal"], cam)
 
     R_true_all, t_true_all = fl.truth_poses()
     R_true, t_true = R_true_all[frames], t_true_all[frames]
@@ -72,7 +70,7 @@ def main() -> None:
             if not sel.any():
                 continue
             idx = np.searchsorted(a["apple_id"], d["apple_id"][sel])
-            uv_e, _ = cam.project(X[idx], R_e[k], t_e[k] / fit.similarity.scale * fit.similarity.scale)
+            uv_e, _ = cam.project(X[idx], R_e[k], t_e[k])
             uv_t, _ = cam.project(X[idx], R_true[k], t_true[k])
             reproj.append(np.linalg.norm(uv_e - uv_t, axis=1))
         reproj = np.concatenate(reproj)

@@ -499,7 +499,6 @@ class WindowedAssociation:
         return pt[ok], pd[ok], err[ok, V], rows[ok]
 
     def add_frame(self, fd: FrameDetections) -> list[Apple]:
-        p = self.params
         j, P, xy = fd.frame, fd.P, fd.xy
         self.stats["frames"] += 1
         emitted = self._close(j)

@@ -17,7 +17,6 @@ against all apples of the rows the flight saw.
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from dataclasses import asdict, dataclass
@@ -26,7 +25,7 @@ from pathlib import Path
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from ground.association import Apple, AssociationParams, FrameDetections, FruitAssociation, WindowedAssociation
+from ground.association import AssociationParams, FrameDetections, FruitAssociation, WindowedAssociation
 from ground.baselines import SortTracker, count_per_frame_sum
 from ground.rows import direction_rows, kmeans_rows
 from pomar.flight import FlightDir, FlightFormatError, read_csv

@@ -9,18 +9,34 @@ from __future__ import annotations
 import numpy as np
 
 from onboard.telemetry import read_tlog
+from pomar.camera import Camera
 from pomar.flight import FlightDir
 from pomar.geo import Origin
-from pomar.rotations import camera_from_gimbal_attitude, quat_wxyz_to_rotation, world_to_camera
+from pomar.rotations import camera_from_gimbal_attitude, quat_wxyz_to_rotation
 
 
-def telemetry_poses(flight: FlightDir, origin: Origin | None = None, clock_offset_s: float = 0.0):
-    """(R (F, 3, 3), t (F, 3), flags (F,)) for every frame of a flight, in the ENU frame of `origin`
-    (default: the flight's truth origin if any, else its first GPS fix)."""
-    meta, cam = flight.meta(), flight.camera()
+def frame_telemetry(flight: FlightDir, clock_offset_s: float = 0.0) -> tuple[np.ndarray, dict]:
+    """Each frame's capture time and the telemetry sampled there (its flags include the capture-record flag)."""
+    meta = flight.meta()
     tl = read_tlog(flight.tlog)
     t, flags = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps, clock_offset_s)
     s = tl.at(t)
+    s["flags"] = s["flags"] | flags
+    return t, s
+
+
+def camera_rotations(q_gimbal: np.ndarray, camera: Camera) -> np.ndarray:
+    """World(ENU)-to-camera rotations (N, 3, 3) from gimbal attitudes (wxyz, NED; NaN = identity) and the mount."""
+    q = np.where(np.isfinite(q_gimbal), q_gimbal, [1.0, 0.0, 0.0, 0.0])
+    return np.swapaxes(camera_from_gimbal_attitude(quat_wxyz_to_rotation(q), camera.r_gimbal_from_camera), -1, -2)
+
+
+def telemetry_poses(flight: FlightDir, origin: Origin | None = None, clock_offset_s: float = 0.0,
+                    sample: dict | None = None):
+    """(R (F, 3, 3), t (F, 3), flags (F,)) for every frame of a flight, in the ENU frame of `origin`
+    (default: the flight's truth origin if any, else its first GPS fix). `sample`: the output of
+    :func:`frame_telemetry`, when already read."""
+    s = sample if sample is not None else frame_telemetry(flight, clock_offset_s)[1]
     if origin is None:
         if flight.has_truth:
             origin = flight.origin()
@@ -31,7 +47,5 @@ def telemetry_poses(flight: FlightDir, origin: Origin | None = None, clock_offse
             i = int(np.argmax(ok))
             origin = Origin(float(s["lat"][i]), float(s["lon"][i]), float(s["alt"][i]))
     centre = origin.to_enu(s["lat"], s["lon"], s["alt"])
-    q = np.where(np.isfinite(s["q_gimbal"]), s["q_gimbal"], [1.0, 0.0, 0.0, 0.0])
-    r_enu_cam = camera_from_gimbal_attitude(quat_wxyz_to_rotation(q), cam.r_gimbal_from_camera)
-    R, tt = world_to_camera(r_enu_cam, centre)
-    return R, tt, flags | s["flags"]
+    R = camera_rotations(s["q_gimbal"], flight.camera())
+    return R, -np.einsum("nij,nj->ni", R, centre), s["flags"]

@@ -22,13 +22,12 @@ import pycolmap
 from scipy.spatial.transform import Rotation, Slerp
 
 from ground.georeference import fit_similarity, georeference_poses
-from ground.poses import telemetry_poses
+from ground.poses import camera_rotations, frame_telemetry, telemetry_poses
 from ground.registration import IncrementalRegistrar, RegistrationSettings
-from onboard.telemetry import read_tlog
 from pomar import flight as ff
 from pomar.camera import Camera
 from pomar.flight import FlightDir
-from pomar.rotations import camera_from_gimbal_attitude, quat_wxyz_to_rotation, rotation_to_quat_wxyz
+from pomar.rotations import rotation_to_quat_wxyz
 from pomar.video import iter_frames
 
 log = logging.getLogger(__name__)
@@ -76,10 +75,7 @@ def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, set
         log.error("%s: decoded %d of %d frames; the rest get telemetry poses", fl.video, decoded, n)
 
     # telemetry at every frame, and its poses (the fallback)
-    R_tel, t_tel, tel_flags = telemetry_poses(fl)
-    tl = read_tlog(fl.tlog)
-    tf, _ = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps)
-    s = tl.at(tf)
+    tf, s = frame_telemetry(fl)
     origin = fl.origin() if fl.has_truth else None
 
     P = reg.poses()  # model coordinates (first sub-model)
@@ -101,8 +97,7 @@ def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, set
         gps = origin.to_enu(s["lat"][kf], s["lon"][kf], s["alt"][kf])
         sig = np.where(np.isfinite(s["h_acc"][kf]) & (s["h_acc"][kf] > 0), s["h_acc"][kf], 2.0)
         good = np.isfinite(gps).all(1) & np.isfinite(s["q_gimbal"][kf]).all(1)
-        R_axes = np.swapaxes(camera_from_gimbal_attitude(quat_wxyz_to_rotation(
-            np.where(np.isfinite(s["q_gimbal"][kf]), s["q_gimbal"][kf], [1, 0, 0, 0])), cam.r_gimbal_from_camera), 1, 2)
+        R_axes = camera_rotations(s["q_gimbal"][kf], cam)
         fit = fit_similarity(c_m[good], gps[good], sig[good], R_m[good], R_axes[good], np.radians(sigma_att_deg))
         sim = fit.similarity
         R_e, t_e = georeference_poses(R_m, t_m, sim)
@@ -122,6 +117,7 @@ def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, set
             R[f] = slerp([f]).as_matrix()[0]
             t[f] = -R[f] @ C
             source[f] = "interpolated"
+    R_tel, t_tel, tel_flags = telemetry_poses(fl, origin, sample=s)
     tel = source == "telemetry"
     R[tel], t[tel] = R_tel[tel], t_tel[tel]
     sigma_m = np.where(source == "registered", 0.01, np.where(source == "interpolated", 0.02,
@@ -180,7 +176,7 @@ def score_poses(fl: FlightDir, R: np.ndarray, t: np.ndarray, source: np.ndarray,
     rot = np.degrees(np.linalg.norm(Rotation.from_matrix(np.einsum("nij,nkj->nik", R, R_true)).as_rotvec(), axis=1))
     a, d = fl.truth_apples(), fl.truth_detections()
     X = np.stack([a["x"], a["y"], a["z"]], 1)
-    errs, errs_rel = [], []
+    errs = []
     for f in np.unique(d["frame"]):
         sel = (d["frame"] == f) & (d["visible_fraction"] >= 0.5)
         if not sel.any():

@@ -6,7 +6,6 @@ import json
 import logging
 import multiprocessing as mp
 import os
-import shutil
 import time
 from pathlib import Path
 
