@@ -1,20 +1,82 @@
-"""python -m export SUBCOMMAND: train the apple detector and export it to ONNX (needs the `export` extra).
+"""python -m export SUBCOMMAND: train the apple detector, export it to ONNX, score it (needs the `export` extra).
 
-Training and export land with the Detector issue; no subcommand exists yet.
+  train     train the torchvision Faster R-CNN from scratch (ADD256 + simulated crops), checkpointed
+  onnx      export a checkpoint to ONNX (dynamic height and width, native resolution) with its metadata
+  evaluate  AP@0.5 and P/R/F1 on the ADD256 test split and a held-out simulated flight, via onnxruntime
 """
 
 import argparse
+import logging
 import sys
+from pathlib import Path
+
+
+def train_arguments(p: argparse.ArgumentParser):
+    p.add_argument("--out", type=Path, default=Path("out/export/resnet18"), help="run folder (checkpoints, history)")
+    p.add_argument("--add256", help="ADD256 folder (default: $POMAR_ADD256, then the workplace's shared copy)")
+    p.add_argument("--sim-flight", action="append", default=[], type=Path,
+                   help="simulated flight folder(s) to crop training patches from (repeatable)")
+    p.add_argument("--backbone", default="resnet18", choices=["resnet18", "resnet50"])
+    p.add_argument("--fpn-channels", type=int, default=128)
+    p.add_argument("--epochs", type=int, default=8)
+    p.add_argument("--batch", type=int, default=4)
+    p.add_argument("--lr", type=float, default=0.01)
+    p.add_argument("--sim-crops", type=int, default=400, help="simulated crops per epoch")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, help="torch CPU threads")
+    p.add_argument("--checkpoint-every", type=int, default=100)
+    p.add_argument("--max-minutes", type=float, help="stop (checkpointed, resumable) after this long")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+
+
+
+
+
+def onnx_arguments(p: argparse.ArgumentParser):
+    p.add_argument("checkpoint", type=Path, help="a checkpoint of python -m export train (best.pt / last.pt)")
+    p.add_argument("--out", type=Path, default=Path("out/export/apple-detector.onnx"), help="ONNX file to write "
+                   "(its metadata goes next to it, same name with .json)")
+    p.add_argument("--opset", type=int, default=17)
+    p.add_argument("--fp16", action="store_true", help="store weights as float16 (computation stays float32)")
+    p.add_argument("--score-thresh", type=float, default=0.5, help="operating score threshold written in the metadata")
+    p.add_argument("--check-image", type=Path, help="an image to compare torch and onnxruntime on (default: synthetic)")
+
+
+def evaluate_arguments(p: argparse.ArgumentParser):
+    p.add_argument("--model", type=Path, help="ONNX model (default: the shipped one)")
+    p.add_argument("--add256", help="ADD256 folder (default: $POMAR_ADD256, then the workplace's shared copy)")
+    p.add_argument("--sim-flight", type=Path, action="append", default=[],
+                   help="held-out simulated flight(s) to score on (every --sim-every-th frame)")
+    p.add_argument("--sim-every", type=int, default=5)
+    p.add_argument("--min-visible", type=float, default=0.5,
+                   help="simulated apples at least this visible are truth; less visible ones are ignored")
+    p.add_argument("--score-thresh", type=float, help="operating threshold (default: the model's metadata)")
+    p.add_argument("--json", type=Path, help="write the metrics here")
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m export", description=__doc__)
-    p.add_subparsers(dest="cmd", title="subcommands", metavar="(none yet)")
+    p = argparse.ArgumentParser(prog="python -m export", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="cmd", title="subcommands")
+    t = sub.add_parser("train", help="train the detector")
+    o = sub.add_parser("onnx", help="export a checkpoint to ONNX")
+    e = sub.add_parser("evaluate", help="score an ONNX model through the onboard detector")
+    train_arguments(t)
+    onnx_arguments(o)
+    evaluate_arguments(e)
     args = p.parse_args(argv)
     if args.cmd is None:
         p.print_help()
         return 2
-    return 0
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
+    # Imported only now: torch is needed by train and onnx, not by --help nor by evaluate.
+    if args.cmd == "train":
+        from export.train import run
+    elif args.cmd == "onnx":
+        from export.onnx_export import run
+    else:
+        from export.evaluate import run
+    return run(args)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,202 @@
+"""Training and evaluation data for the apple detector: ADD256 patches and crops of simulated flights.
+
+Boxes are ``x1, y1, x2, y2`` in OpenCV's pixel convention (the top-left pixel's centre is (0, 0)),
+as everywhere in the project. ADD256 gives circles ``(cx, cy, r)``: the box is ``cx ± r, cy ± r``.
+ADD256 is CC BY-NC 4.0: it is read from where it lies (``--add256`` or ``$POMAR_ADD256``), never copied.
+
+No torch here: samples are ``(image RGB uint8 HxWx3, boxes float32 Nx4)``; ``export.train`` turns them
+into tensors. That keeps this module usable by ``export.evaluate`` through onnxruntime alone.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+ADD256_ENV = "POMAR_ADD256"
+#: Where the shared ADD256 copy lies in this workplace (tried last, after the option and $POMAR_ADD256).
+ADD256_FALLBACK = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "add256"
+
+
+class DataError(ValueError):
+    """A dataset that is missing or malformed; the message names the file."""
+
+
+def find_add256(path: str | os.PathLike | None = None) -> Path:
+    """The ADD256 folder: ``path``, else ``$POMAR_ADD256``, else the workplace's shared copy."""
+    for cand in (path, os.environ.get(ADD256_ENV), ADD256_FALLBACK):
+        if cand is None:
+            continue
+        root = Path(cand)
+        if (root / "training.json").is_file() and (root / "images").is_dir():
+            return root
+        if cand is not ADD256_FALLBACK:
+            raise DataError(f"{root}: not an ADD256 folder (needs training.json, test.json and images/)")
+    raise DataError(f"ADD256 not found: pass --add256 DIR or set ${ADD256_ENV}")
+
+
+@dataclass
+class Sample:
+    name: str
+    image: np.ndarray  # RGB uint8
+    boxes: np.ndarray  # float32 (N, 4), x1 y1 x2 y2, OpenCV pixels
+    ignore: np.ndarray | None = None  # float32 (M, 4): boxes neither counted as apples nor as false positives
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise DataError(f"{path}: cannot read the image")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def circles_to_boxes(circles) -> np.ndarray:
+    if not circles:
+        return np.zeros((0, 4), np.float32)
+    c = np.array([[a["cx"], a["cy"], a["r"]] for a in circles], np.float32)
+    return np.stack([c[:, 0] - c[:, 2], c[:, 1] - c[:, 2], c[:, 0] + c[:, 2], c[:, 1] + c[:, 2]], 1)
+
+
+def add256_split(root: str | os.PathLike | None, split: str) -> list[tuple[Path, np.ndarray]]:
+    """(image path, boxes) for the official ``training`` or ``test`` split."""
+    root = find_add256(root)
+    path = root / f"{split}.json"
+    try:
+        ann = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise DataError(f"{path}: {e}") from e
+    out = []
+    for name, circles in sorted(ann.items()):
+        try:
+            out.append((root / "images" / name, circles_to_boxes(circles)))
+        except (KeyError, TypeError) as e:
+            raise DataError(f"{path}: bad annotation for {name}: {e}") from e
+    return out
+
+
+def load_add256(root, split: str) -> list[Sample]:
+    return [Sample(p.name, read_rgb(p), b) for p, b in add256_split(root, split)]
+
+
+def sim_frame_boxes(flight_dir: Path, min_visible: float, min_ignore: float = 0.05):
+    """Per frame: (boxes of apples at least ``min_visible`` visible, boxes of the barely visible ones)."""
+    path = Path(flight_dir) / "truth" / "detections.csv"
+    if not path.is_file():
+        raise DataError(f"{path}: missing (a simulated flight has truth/detections.csv)")
+    pos: dict[int, list] = {}
+    ign: dict[int, list] = {}
+    with open(path, newline="") as f:
+        for row in csv.DictReader(f):
+            u, v, r, vis = (float(row[k]) for k in ("u", "v", "r_px", "visible_fraction"))
+            box = [u - r, v - r, u + r, v + r]
+            if vis >= min_visible:
+                pos.setdefault(int(row["frame"]), []).append(box)
+            elif vis >= min_ignore:
+                ign.setdefault(int(row["frame"]), []).append(box)
+    def arr(d, k):
+        return np.array(d.get(k, []), np.float32).reshape(-1, 4)
+    return {k: (arr(pos, k), arr(ign, k)) for k in set(pos) | set(ign)}
+
+
+def load_sim_frames(flight_dir, min_visible: float, every: int = 1, limit: int | None = None) -> list[Sample]:
+    """Whole frames of a simulated flight with their truth boxes (and ignore boxes)."""
+    from pomar.video import iter_frames
+    from pomar.flight import FlightDir
+
+    flight = FlightDir(flight_dir)
+    boxes = sim_frame_boxes(flight.path, min_visible)
+    out = []
+    for idx, bgr in iter_frames(flight.video):
+        if idx % every:
+            continue
+        b, ig = boxes.get(idx, (np.zeros((0, 4), np.float32),) * 2)
+        out.append(Sample(f"{flight.path.name}:{idx}", cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), b, ig))
+        if limit and len(out) >= limit:
+            break
+    return out
+
+
+def clip_boxes(boxes: np.ndarray, w: int, h: int, min_keep: float = 0.4) -> np.ndarray:
+    """Clip to the image; drop boxes that keep less than ``min_keep`` of their area."""
+    if not len(boxes):
+        return boxes
+    area = (boxes[:, 2] - boxes[:, 0]) * (boxes[:, 3] - boxes[:, 1])
+    c = boxes.copy()
+    c[:, [0, 2]] = c[:, [0, 2]].clip(-0.5, w - 0.5)
+    c[:, [1, 3]] = c[:, [1, 3]].clip(-0.5, h - 0.5)
+    carea = (c[:, 2] - c[:, 0]).clip(0) * (c[:, 3] - c[:, 1]).clip(0)
+    return c[carea >= min_keep * np.maximum(area, 1e-6)]
+
+
+def crop(sample_img: np.ndarray, boxes: np.ndarray, x0: int, y0: int, size: int):
+    h, w = sample_img.shape[:2]
+    img = sample_img[y0:y0 + size, x0:x0 + size]
+    b = boxes - np.array([x0, y0, x0, y0], np.float32)
+    return img, clip_boxes(b, img.shape[1], img.shape[0])
+
+
+class Augment:
+    """Random scale, crop, flips, 90° rotations and colour jitter on (RGB uint8, boxes)."""
+
+    def __init__(self, crop_size: int = 256, scale=(0.45, 1.3), rng: np.random.Generator | None = None):
+        self.size = crop_size
+        self.scale = scale
+        self.rng = rng or np.random.default_rng()
+
+    def __call__(self, img: np.ndarray, boxes: np.ndarray, scale=None):
+        r = self.rng
+        lo, hi = scale or self.scale
+        s = float(np.exp(r.uniform(np.log(lo), np.log(hi))))
+        if abs(s - 1) > 0.02:
+            h, w = img.shape[:2]
+            nw, nh = max(16, round(w * s)), max(16, round(h * s))
+            img = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+            # OpenCV convention: pixel centres scale about (-0.5, -0.5).
+            boxes = (boxes + 0.5) * np.array([nw / w, nh / h] * 2, np.float32) - 0.5
+        h, w = img.shape[:2]
+        if h > self.size or w > self.size:
+            # Prefer crops with apples in them: centre on a random apple half of the time.
+            if len(boxes) and r.random() < 0.5:
+                b = boxes[r.integers(len(boxes))]
+                cx, cy = (b[0] + b[2]) / 2, (b[1] + b[3]) / 2
+                x0 = int(np.clip(cx - r.uniform(0.1, 0.9) * self.size, 0, max(0, w - self.size)))
+                y0 = int(np.clip(cy - r.uniform(0.1, 0.9) * self.size, 0, max(0, h - self.size)))
+            else:
+                x0 = int(r.integers(0, max(0, w - self.size) + 1))
+                y0 = int(r.integers(0, max(0, h - self.size) + 1))
+            img, boxes = crop(img, boxes, x0, y0, self.size)
+        h, w = img.shape[:2]
+        if r.random() < 0.5:  # horizontal flip
+            img = img[:, ::-1]
+            boxes = np.stack([w - 1 - boxes[:, 2], boxes[:, 1], w - 1 - boxes[:, 0], boxes[:, 3]], 1)
+        if r.random() < 0.5:  # vertical flip
+            img = img[::-1]
+            boxes = np.stack([boxes[:, 0], h - 1 - boxes[:, 3], boxes[:, 2], h - 1 - boxes[:, 1]], 1)
+        if r.random() < 0.5:  # transpose: with the flips, all eight 90° rotations/reflections
+            img = img.transpose(1, 0, 2)
+            boxes = boxes[:, [1, 0, 3, 2]]
+        img = np.ascontiguousarray(img)
+        img = self.colour(img)
+        return img, boxes.astype(np.float32).reshape(-1, 4)
+
+    def colour(self, img: np.ndarray) -> np.ndarray:
+        r = self.rng
+        hsv = cv2.cvtColor(img, cv2.COLOR_RGB2HSV).astype(np.float32)
+        hsv[..., 0] = (hsv[..., 0] + r.uniform(-6, 6)) % 180
+        hsv[..., 1] *= r.uniform(0.7, 1.3)
+        hsv[..., 2] *= r.uniform(0.7, 1.3)
+        out = cv2.cvtColor(hsv.clip(0, 255).astype(np.uint8), cv2.COLOR_HSV2RGB).astype(np.float32)
+        c = r.uniform(0.8, 1.2)
+        out = (out - out.mean()) * c + out.mean()
+        if r.random() < 0.3:
+            out += r.normal(0, r.uniform(1, 5), out.shape)
+        return out.clip(0, 255).astype(np.uint8)

@@ -1,0 +1,76 @@
+"""Score an ONNX detector through the onboard detector (what ships is what is scored); no torch needed.
+
+    python -m export evaluate [--model FILE.onnx] [--sim-flight DIR] [--json OUT]
+
+Datasets: the ADD256 test split (114 patches, 267 apples), and every ``--sim-every``-th frame of each
+held-out simulated flight, where apples at least ``--min-visible`` visible are the truth and the
+barely visible ones (5 % up to that) are ignored: found or not, they count neither way. Reports
+COCO-style AP@0.5 and precision/recall/F1 at the operating threshold, per dataset, and the
+detector's latency on those frames.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from export.data import add256_split, load_sim_frames, read_rgb
+from export.metrics import evaluate_detections
+
+log = logging.getLogger(__name__)
+
+
+def score(detector, samples, score_thresh: float, progress_name: str) -> dict:
+    preds, truths, times = [], [], []
+    t_last = time.perf_counter()
+    for i, (img, boxes, ignore) in enumerate(samples):
+        t = time.perf_counter()
+        b, s = detector.detect_rgb(img, score_thresh=0.05)  # low threshold: AP needs the whole ranking
+        times.append(time.perf_counter() - t)
+        preds.append((b, s))
+        truths.append((boxes, ignore))
+        if time.perf_counter() - t_last > 10:
+            t_last = time.perf_counter()
+            log.info("%s: %d images, %.2f s/image", progress_name, i + 1, float(np.mean(times)))
+    m = evaluate_detections(preds, truths, score_thresh)
+    m["seconds_per_image"] = round(float(np.mean(times)), 4) if times else None
+    return m
+
+
+def evaluate(model=None, add256=None, sim_flights=(), sim_every: int = 5, min_visible: float = 0.5,
+             score_thresh: float | None = None) -> dict:
+    from onboard.detector import OnnxDetector
+
+    det = OnnxDetector(model)
+    thresh = det.score_thresh if score_thresh is None else score_thresh
+    out = {"model": str(det.path), "score_thresh": thresh}
+    test = ((read_rgb(p), b, None) for p, b in add256_split(add256, "test"))
+    out["add256_test"] = score(det, test, thresh, "ADD256 test")
+    for f in sim_flights:
+        frames = load_sim_frames(f, min_visible, every=sim_every)
+        key = "sim" if len(sim_flights) == 1 else f"sim:{Path(f).name}"
+        out[key] = score(det, ((s.image, s.boxes, s.ignore) for s in frames), thresh, key)
+        out[key]["flight"] = str(f)
+    return out
+
+
+def print_table(res: dict):
+    print(f"model {res['model']}  (score threshold {res['score_thresh']})")
+    print(f"{'dataset':<16}{'images':>7}{'apples':>8}{'AP50':>7}{'P':>7}{'R':>7}{'F1':>7}{'s/img':>8}")
+    for k, m in res.items():
+        if isinstance(m, dict):
+            print(f"{k:<16}{m['images']:>7}{m['apples']:>8}{m['ap50']:>7.3f}{m['precision']:>7.3f}"
+                  f"{m['recall']:>7.3f}{m['f1']:>7.3f}{m['seconds_per_image']:>8.3f}")
+
+
+def run(args) -> int:
+    res = evaluate(args.model, args.add256, args.sim_flight, args.sim_every, args.min_visible, args.score_thresh)
+    print_table(res)
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(res, indent=1) + "\n")
+    return 0

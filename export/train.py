@@ -1,0 +1,175 @@
+"""Train the apple detector from scratch on ADD256 (+ crops of simulated flights), with checkpoints and resume.
+
+    python -m export train --out out/export/r18 [--add256 DIR] [--sim-flight DIR ...] [--epochs N] [--resume]
+
+Each epoch is the ADD256 training split (1,025 patches) plus ``--sim-crops`` random crops of the
+simulated flights' frames, augmented (scale, crops, flips, 90° rotations, colour). The learning rate
+warms up, then follows a cosine to the last iteration. ``last.pt`` is written every
+``--checkpoint-every`` iterations and at each epoch's end (atomically), so a killed run resumes
+where it stopped with ``--resume``; after each epoch the ADD256 test split is scored (AP@0.5) and
+the best epoch kept as ``best.pt``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from export.data import Augment, load_add256, load_sim_frames
+from export.metrics import evaluate_detections
+from export.model import load_checkpoint, make
+
+log = logging.getLogger(__name__)
+
+
+def to_tensor(img: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1).float().div_(255.0)
+
+
+def target(boxes: np.ndarray) -> dict:
+    b = torch.from_numpy(np.asarray(boxes, np.float32).reshape(-1, 4))
+    return {"boxes": b, "labels": torch.ones(len(b), dtype=torch.int64)}
+
+
+class EpochPlan:
+    """The (deterministic from seed and epoch) list of training items of one epoch."""
+
+    def __init__(self, n_add256: int, n_sim_frames: int, sim_crops: int, seed: int):
+        self.n_add, self.n_sim, self.sim_crops, self.seed = n_add256, n_sim_frames, sim_crops if n_sim_frames else 0, seed
+
+    def __len__(self):
+        return self.n_add + self.sim_crops
+
+    def items(self, epoch: int) -> list[tuple[str, int]]:
+        rng = np.random.default_rng([self.seed, epoch])
+        items = [("add256", i) for i in range(self.n_add)]
+        items += [("sim", int(i)) for i in rng.integers(0, max(self.n_sim, 1), self.sim_crops)]
+        return [items[i] for i in rng.permutation(len(items))]
+
+
+def lr_at(it: int, total: int, base: float, warmup: int = 300, final: float = 0.02) -> float:
+    if it < warmup:
+        return base * (0.001 + 0.999 * it / warmup)
+    t = (it - warmup) / max(total - warmup, 1)
+    return base * (final + (1 - final) * 0.5 * (1 + math.cos(math.pi * min(t, 1.0))))
+
+
+@torch.no_grad()
+def score_add256_test(model, test, score_thresh: float = 0.5) -> dict:
+    model.eval()
+    preds = []
+    for s in test:
+        out = model([to_tensor(s.image)])[0]
+        preds.append((out["boxes"].numpy(), out["scores"].numpy()))
+    model.train()
+    return evaluate_detections(preds, [(s.boxes, None) for s in test], score_thresh)
+
+
+def save_atomic(obj, path: Path):
+    tmp = path.with_suffix(".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def train(out: Path, add256=None, sim_flights=(), backbone="resnet18", fpn_channels=128, epochs=8, batch=4,
+          lr=0.01, sim_crops=400, seed=0, threads=None, checkpoint_every=100, resume=False, log_every=10,
+          max_minutes=None):
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if threads:
+        torch.set_num_threads(threads)
+    torch.manual_seed(seed)
+    add = load_add256(add256, "training")
+    test = load_add256(add256, "test")
+    sim = [s for f in sim_flights for s in load_sim_frames(f, min_visible=0.35)]
+    log.info("data: %d ADD256 patches, %d simulated frames (%d crops/epoch), %d test patches",
+             len(add), len(sim), sim_crops if sim else 0, len(test))
+    plan = EpochPlan(len(add), len(sim), sim_crops, seed)
+    per_epoch = math.ceil(len(plan) / batch)
+    total = epochs * per_epoch
+    config = dict(backbone=backbone, fpn_channels=fpn_channels)
+    last = out / "last.pt"
+    if resume and last.is_file():
+        model, ckpt = load_checkpoint(last)
+        opt = torch.optim.SGD(model.parameters(), lr=lr, momentum=0.9, weight_decay=1e-4)
+        opt.load_state_dict(ckpt["optimizer"])
+        it, history, best = ckpt["iteration"], ckpt["history"], ckpt["best_ap50"]
+        torch.set_rng_state(ckpt["torch_rng"])
+        log.info("resumed %s at iteration %d/%d", last, it, total)
+    else:
+        model = make(config)
+        opt = torch.optim.SGD(model.parameters(), lr=lr, momentum=0.9, weight_decay=1e-4)
+        it, history, best = 0, [], -1.0
+    run_info = dict(backbone=backbone, fpn_channels=fpn_channels, epochs=epochs, batch=batch, lr=lr,
+                    sim_crops=sim_crops, seed=seed, sim_flights=[str(f) for f in sim_flights],
+                    add256_train=len(add), sim_frames=len(sim), iterations=total)
+
+    def checkpoint(path):
+        save_atomic({"config": config, "model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it,
+                     "history": history, "best_ap50": best, "torch_rng": torch.get_rng_state(), "run": run_info}, path)
+
+    model.train()
+    t0, it0 = time.time(), it
+    smooth = None
+    while it < total:
+        epoch, pos = divmod(it, per_epoch)
+        items = plan.items(epoch)
+        aug = Augment(rng=np.random.default_rng([seed, epoch, pos]))
+        batch_items = items[pos * batch:(pos + 1) * batch]
+        imgs, tgts = [], []
+        for kind, i in batch_items:
+            if kind == "add256":
+                img, b = aug(add[i].image, add[i].boxes)
+            else:
+                img, b = aug(sim[i].image, sim[i].boxes, scale=(0.8, 1.25))
+            imgs.append(to_tensor(img))
+            tgts.append(target(b))
+        for g in opt.param_groups:
+            g["lr"] = lr_at(it, total, lr)
+        losses = model(imgs, tgts)
+        loss = sum(losses.values())
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"loss is {loss.item()} at iteration {it}; lower --lr")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+        opt.step()
+        it += 1
+        vals = {k: v.item() for k, v in losses.items()}
+        smooth = vals if smooth is None else {k: 0.95 * smooth[k] + 0.05 * vals[k] for k in vals}
+        if it % log_every == 0 or it == total:
+            rate = (time.time() - t0) / max(it - it0, 1)
+            log.info("epoch %d/%d it %d/%d loss %.3f (%s) lr %.4f %.2f s/it ETA %.0f min", epoch + 1, epochs, it, total,
+                     sum(smooth.values()), " ".join(f"{k[5:]} {v:.3f}" for k, v in smooth.items()),
+                     opt.param_groups[0]["lr"], rate, rate * (total - it) / 60)
+        if it % checkpoint_every == 0:
+            checkpoint(last)
+        if it % per_epoch == 0 or it == total:
+            m = score_add256_test(model, test)
+            m.update(epoch=math.ceil(it / per_epoch), iteration=it, minutes=round((time.time() - t0) / 60, 1))
+            history.append(m)
+            log.info("ADD256 test after epoch %d: AP50 %.3f P %.3f R %.3f", m["epoch"], m["ap50"], m["precision"], m["recall"])
+            if m["ap50"] > best:
+                best = m["ap50"]
+                checkpoint(out / "best.pt")
+            checkpoint(last)
+            (out / "history.json").write_text(json.dumps(history, indent=1))
+        if max_minutes and (time.time() - t0) / 60 > max_minutes:
+            checkpoint(last)
+            log.warning("stopping after %.0f minutes (--max-minutes); resume with --resume", max_minutes)
+            break
+    return history
+
+
+def run(args) -> int:
+    train(args.out, args.add256, args.sim_flight, args.backbone, args.fpn_channels, args.epochs, args.batch, args.lr,
+          args.sim_crops, args.seed, args.threads, args.checkpoint_every, args.resume, max_minutes=args.max_minutes)
+    return 0

@@ -1,0 +1,98 @@
+"""The detector's export: torch vs onnxruntime parity, tiling, metrics, bad model files (needs the export extra)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from export.metrics import evaluate_detections, iou
+
+
+def test_metrics_ap_and_ignore():
+    truth = np.array([[0, 0, 10, 10], [20, 20, 30, 30]], float)
+    ignore = np.array([[50, 50, 60, 60]], float)
+    perfect = (truth, np.array([0.9, 0.8]))
+    m = evaluate_detections([perfect], [(truth, None)], 0.5)
+    assert m["ap50"] == pytest.approx(1.0) and m["f1"] == 1.0
+    # A false positive ranked first: precision 1/2 then 2/3, whose envelope is 2/3 at every recall.
+    fp = (np.vstack([[100, 100, 110, 110], truth]), np.array([0.95, 0.9, 0.8]))
+    m = evaluate_detections([fp], [(truth, None)], 0.5)
+    assert m["ap50"] == pytest.approx(2 / 3, abs=1e-3) and m["precision"] == pytest.approx(2 / 3, abs=1e-3)
+    # Ranked last, it costs nothing in AP, but still in precision at the threshold.
+    last = (np.vstack([truth, [[100, 100, 110, 110]]]), np.array([0.9, 0.8, 0.6]))
+    m = evaluate_detections([last], [(truth, None)], 0.5)
+    assert m["ap50"] == pytest.approx(1.0) and m["precision"] == pytest.approx(2 / 3, abs=1e-3)
+    assert evaluate_detections([last], [(truth, None)], 0.7)["precision"] == 1.0
+    # The same box on an ignore region is neither TP nor FP.
+    ig = (np.vstack([[50, 50, 60, 60], truth]), np.array([0.95, 0.9, 0.8]))
+    m = evaluate_detections([ig], [(truth, ignore)], 0.5)
+    assert m["ap50"] == pytest.approx(1.0) and m["precision"] == 1.0
+    assert iou(truth, truth).diagonal() == pytest.approx([1, 1])
+
+
+torch = pytest.importorskip("torch", reason="the export extra (torch, torchvision) is not installed")
+
+
+def _tiny_model_with_bn_stats():
+    from export.data import load_sim_frames
+    from export.model import make
+    from tests.conftest import BUNDLED
+
+    torch.manual_seed(0)
+    model = make(dict(backbone="resnet18", fpn_channels=32))
+    frames = load_sim_frames(BUNDLED, 0.5, every=60)
+    # Put BatchNorm statistics on real images (random init + default stats gives equal scores everywhere).
+    for m in model.modules():
+        if isinstance(m, torch.nn.BatchNorm2d):
+            m.train()
+            m.momentum = None
+    with torch.no_grad():
+        for s in frames:
+            x = torch.from_numpy(s.image[:256, :384].transpose(2, 0, 1).copy()).float() / 255
+            model.backbone(model.transform([x])[0].tensors)
+    model.eval()
+    return model, frames
+
+
+@pytest.fixture(scope="module")
+def tiny_onnx(tmp_path_factory):
+    from export.onnx_export import export_onnx
+
+    model, frames = _tiny_model_with_bn_stats()
+    path = tmp_path_factory.mktemp("onnx") / "tiny.onnx"
+    img = torch.from_numpy(frames[0].image[100:400, 200:620].transpose(2, 0, 1).copy()).float() / 255
+    report = export_onnx(model, path, check=img, score_thresh=0.0)
+    return model, path, report, img
+
+
+def test_tiny_model_onnx_matches_torch(tiny_onnx):
+    model, path, report, img = tiny_onnx
+    assert report["image_hw"] != [256, 320]  # not the trace size
+    assert report["torch_boxes"] > 0 and report["torch_boxes"] == report["onnx_boxes"]
+    assert report["max_box_diff_px"] <= 1e-3
+    meta = json.loads(path.with_suffix(".json").read_text())
+    assert meta["format"] == "pomar-detector/1" and meta["input"]["channels"] == "RGB"
+    # Through the onboard detector class (BGR in), at yet another size.
+    from onboard.detector import OnnxDetector
+
+    det = OnnxDetector(path, score_thresh=0.0)
+    rgb = (img.numpy().transpose(1, 2, 0) * 255).round().astype(np.uint8)
+    boxes, scores = det.detect(0, rgb[..., ::-1].copy())
+    with torch.no_grad():
+        ref = model([torch.from_numpy(rgb.transpose(2, 0, 1).copy()).float() / 255])[0]
+    order = np.argsort(-ref["scores"].numpy(), kind="stable")
+    assert len(boxes) == len(order)
+    assert np.abs(boxes - ref["boxes"].numpy()[order]).max() <= 1e-3
+
+
+def test_fp16_weights_halve_the_file_and_keep_boxes(tiny_onnx, tmp_path):
+    from export.onnx_export import export_onnx
+
+    model, path, _, img = tiny_onnx
+    half = tmp_path / "half.onnx"
+    report = export_onnx(model, half, fp16=True, check=img, score_thresh=0.0)
+    assert half.stat().st_size < 0.6 * path.stat().st_size
+    assert report["max_box_diff_px"] <= 1e-3  # the float32 graph, before the weights are halved
+    assert report["fp16"]["boxes"] > 0
