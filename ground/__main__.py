@@ -1,4 +1,10 @@
-"""python -m ground SUBCOMMAND: the ground side (association and its evaluation; the live node comes later)."""
+"""python -m ground SUBCOMMAND: the ground side of the system.
+
+  replay    replay a recorded flight (default: the bundled one) through the onboard and ground nodes
+  run       the ground node: subscribe to a flight over zenoh, map its apples live, log to rerun
+  register  register a flight's keyframes with pycolmap (files, no zenoh)
+  evaluate  run the association on a simulated flight and score it against the truth
+"""
 
 from __future__ import annotations
 
@@ -45,6 +51,68 @@ def _cmd_register(args) -> int:
     return 0
 
 
+def _settings(args):
+    from ground.association import AssociationParams
+    from ground.pipeline import GroundSettings
+    from ground.registration import RegistrationSettings
+
+    return GroundSettings(association=AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom),
+                          registration=RegistrationSettings(max_num_features=args.max_features),
+                          max_wait_s=args.max_wait_s, min_score=args.min_score)
+
+
+def _cmd_run(args) -> int:
+    from ground.node import run_ground
+    from pomar.transport import DEFAULT_ENDPOINT
+
+    connect = args.connect or (None if args.listen or args.zenoh_config else [DEFAULT_ENDPOINT])
+    report = run_ground(args.flight_id, args.out, connect=connect, listen=args.listen, zenoh_config=args.zenoh_config,
+                        drone_id=args.drone_id, settings=_settings(args), rrd=not args.no_rrd, serve=args.serve,
+                        viewer=args.viewer, harvest=args.harvest, idle_timeout_s=args.idle_timeout,
+                        resume=not args.fresh)
+    rows = ", ".join(f"row {r['row']}: {r['count']}" for r in report["rows"])
+    print(f"{report['apples']} apples ({rows}); outputs in {args.out}/")
+    return 0
+
+
+def _cmd_replay(args) -> int:
+    from ground.replay import BUNDLED, format_evaluation, replay
+
+    flight = args.flight_dir or BUNDLED
+    out = Path(args.out or f"out/replay/{Path(flight).name}")
+    ground_args = ["--k", str(args.k), "--tau-epipolar", str(args.tau_epipolar), "--tau-geom", str(args.tau_geom),
+                   "--max-features", str(args.max_features), "--max-wait-s", str(args.max_wait_s),
+                   "--min-score", str(args.min_score)]
+    rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
+                 keyframe_every=args.keyframe_every, keyframe_width=args.keyframe_width, every=args.every,
+                 ground_args=ground_args, quiet=args.quiet)
+    print()
+    print(f"flight {rep['flight_id']}: {rep['apples']} apples in {len(rep['rows'])} rows; "
+          f"{rep['frames']['frames']} frames ({rep['frames']['registered']} registered, "
+          f"{rep['frames']['interpolated']} interpolated, {rep['frames']['telemetry']} telemetry poses)")
+    for r in rep["rows"]:
+        print(f"  row {r['row']}: {r['count']} apples over {r['length_m']:.1f} m")
+    print(f"wall {rep['wall_seconds']:.1f} s for a {rep['flight_seconds']:.1f} s flight: real-time factor "
+          f"{rep['realtime_factor']:.2f}; ground peak memory {rep['timings']['peak_rss_mb']:.0f} MB")
+    if "evaluation" in rep:
+        print("against the flight's truth:")
+        print(format_evaluation(rep["evaluation"]))
+    print(f"map: {out}/apples.csv, apples.geojson (open in any GIS, e.g. QGIS or geojson.io), apples.ply, rows.csv")
+    print(f"rerun recording: {out}/flight.rrd  (open it with: rerun {out}/flight.rrd)")
+    print(f"report: {out}/report.json")
+    return 0
+
+
+def _ground_options(p):
+    p.add_argument("--k", type=int, default=5, help="association: frames ahead linked")
+    p.add_argument("--tau-epipolar", type=float, default=4.0, help="association: epipolar gate, px")
+    p.add_argument("--tau-geom", type=float, default=3.0, help="association: RANSAC inlier threshold, px")
+    p.add_argument("--max-features", type=int, default=4096, help="registration: SIFT features per keyframe")
+    p.add_argument("--max-wait-s", type=float, default=5.0,
+                   help="frames wait for the keyframe after them unless no keyframe came for this long (s)")
+    p.add_argument("--min-score", type=float, default=0.0, help="ignore detections scored below this")
+
+
 def main(argv=None) -> int:
     from ground.evaluate import __doc__ as evaluate_doc
 
@@ -77,6 +145,35 @@ def main(argv=None) -> int:
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--json")
     e.set_defaults(func=_cmd_evaluate)
+    rp = sub.add_parser("replay", help="replay a recorded flight through the onboard and ground nodes (zenoh on loopback)",
+                        description=__import__("ground.replay", fromlist=["x"]).__doc__,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    rp.add_argument("flight_dir", nargs="?", help="flight directory (default: the bundled replay_data/demo-flight)")
+    rp.add_argument("--out", help="output folder (default out/replay/<flight>)")
+    rp.add_argument("--realtime", action="store_true", help="frames at the video's rate, newest first (drops counted)")
+    rp.add_argument("--detector", choices=["onnx", "truth-replay"], default="onnx")
+    rp.add_argument("--model", help="ONNX model (default: the shipped one)")
+    rp.add_argument("--keyframe-every", type=int, default=2)
+    rp.add_argument("--keyframe-width", type=int, default=960)
+    rp.add_argument("--every", type=int, default=1, help="onboard processes every Nth frame")
+    rp.add_argument("--quiet", action="store_true", help="no progress lines")
+    _ground_options(rp)
+    rp.set_defaults(func=_cmd_replay)
+    g = sub.add_parser("run", help="the ground node: subscribe to a flight over zenoh and map its apples live")
+    g.add_argument("--flight-id", required=True)
+    g.add_argument("--drone-id", default="*")
+    g.add_argument("--out", default="out/ground")
+    g.add_argument("--connect", action="append", help="zenoh endpoint of the onboard node (default tcp/127.0.0.1:7447)")
+    g.add_argument("--listen", action="append", help="zenoh endpoint to listen on")
+    g.add_argument("--zenoh-config", help="a zenoh JSON5 config file for real links")
+    g.add_argument("--no-rrd", action="store_true", help="no OUT/flight.rrd")
+    g.add_argument("--serve", action="store_true", help="serve the rerun stream over gRPC for a viewer elsewhere")
+    g.add_argument("--viewer", help="send the rerun stream to a running viewer at this URL")
+    g.add_argument("--harvest", help="CSV row,kg: report the correlation of per-row counts with yield")
+    g.add_argument("--idle-timeout", type=float, default=60.0, help="finish after this long without a message (s)")
+    g.add_argument("--fresh", action="store_true", help="ignore OUT/journal.bin (default: resume from it)")
+    _ground_options(g)
+    g.set_defaults(func=_cmd_run)
     r = sub.add_parser("register", help="register a flight's keyframes incrementally with pycolmap; ENU poses for every frame")
     r.add_argument("flight_dir")
     r.add_argument("--every", type=int, default=2, help="every Nth frame is a keyframe (as the onboard default)")
@@ -90,7 +187,7 @@ def main(argv=None) -> int:
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(func=_cmd_register)
     args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
     from pomar.flight import FlightFormatError
 
     try:

@@ -137,6 +137,59 @@ def match(pred: np.ndarray, truth: np.ndarray, max_dist: float) -> tuple[np.ndar
     return r[ok], c[ok], d[ok]
 
 
+def score_map(flight: FlightDir, pred: np.ndarray, min_visible: float = 0.5, truth_min_views: int = 3,
+              match_m: float = 0.10) -> dict:
+    """Score an apple map (N, 3), in the flight's truth ENU frame, against its truth: precision, recall
+    (against apples visible in the flight, and against all apples of the rows seen), F1, counts,
+    position errors, and per-row counts (row direction and K-means) next to the truth's."""
+    a = flight.truth_apples()
+    truth_xyz = np.stack([a["x"], a["y"], a["z"]], 1)
+    d = flight.truth_detections()
+    good = d["visible_fraction"] >= min_visible
+    ids, nviews = np.unique(d["apple_id"][good], return_counts=True)
+    visible_ids = ids[nviews >= truth_min_views]
+    is_visible = np.isin(a["apple_id"], visible_ids)
+    rows_seen = np.unique(a["row"][np.isin(a["apple_id"], np.unique(d["apple_id"]))])
+    in_rows = np.isin(a["row"], rows_seen)
+
+    pred = np.asarray(pred, float).reshape(-1, 3)
+    pi, ti, dist = match(pred, truth_xyz, match_m)
+    tp = len(pi)
+    tp_visible = int(is_visible[ti].sum())
+    count, truth_count = len(pred), int(is_visible.sum())
+    precision = tp / count if count else 0.0
+    recall = tp_visible / truth_count if truth_count else 0.0
+    f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+
+    # rows: the truth row of each predicted apple is the nearest truth row line
+    row_x = {r: np.median(truth_xyz[a["row"] == r, :2], axis=0) for r in np.unique(a["row"])}
+    rows_pred, direction = direction_rows(pred[:, :2]) if len(pred) else (np.zeros(0, int), 0.0)
+    n_rows_seen = len(np.unique(rows_pred)) if len(pred) else 0
+    rows_km = kmeans_rows(pred[:, :2], n_rows_seen) if len(pred) else np.zeros(0, int)
+    normal = np.array([-np.sin(direction), np.cos(direction)])
+    per_row = []
+    truth_rows_x = np.array([row_x[r] @ normal for r in row_x])
+    truth_rows_id = np.array(list(row_x))
+    for lab in range(n_rows_seen):
+        sel = rows_pred == lab
+        across = np.median(pred[sel, :2] @ normal)
+        r = int(truth_rows_id[np.argmin(np.abs(truth_rows_x - across))])
+        km_sel = rows_km == lab
+        per_row.append({"row": r, "count": int(sel.sum()), "count_kmeans": int(km_sel.sum()),
+                        "truth_visible": int((is_visible & (a["row"] == r)).sum()),
+                        "truth_all": int((a["row"] == r).sum())})
+
+    return {
+        "precision": precision, "recall": recall, "f1": f1,
+        "recall_all_apples_in_rows_seen": tp / int(in_rows.sum()) if in_rows.any() else 0.0,
+        "count": count, "truth_count": truth_count,
+        "count_error_pct": 100.0 * (count - truth_count) / truth_count if truth_count else float("nan"),
+        "median_error_m": float(np.median(dist)) if tp else float("nan"),
+        "p95_error_m": float(np.percentile(dist, 95)) if tp else float("nan"),
+        "rows": per_row,
+    }
+
+
 def evaluate(flight_dir, mode: str = "windowed", params: AssociationParams | None = None,
              pert: Perturbation | None = None, detections: str = "truth", poses: str = "truth",
              match_m: float = 0.10, baselines: bool = True, truth_min_views: int = 3,
@@ -166,16 +219,6 @@ def evaluate(flight_dir, mode: str = "windowed", params: AssociationParams | Non
         raise ValueError(f"mode must be 'offline' or 'windowed', got {mode!r}")
     seconds = time.perf_counter() - t0
 
-    a = flight.truth_apples()
-    truth_xyz = np.stack([a["x"], a["y"], a["z"]], 1)
-    d = flight.truth_detections()
-    good = d["visible_fraction"] >= pert.min_visible
-    ids, nviews = np.unique(d["apple_id"][good], return_counts=True)
-    visible_ids = ids[nviews >= truth_min_views]
-    is_visible = np.isin(a["apple_id"], visible_ids)
-    rows_seen = np.unique(a["row"][np.isin(a["apple_id"], np.unique(d["apple_id"]))])
-    in_rows = np.isin(a["row"], rows_seen)
-
     pred = np.array([ap.X for ap in apples]).reshape(-1, 3)
     pose_offset = np.zeros(3)
     if remove_pose_offset:
@@ -188,45 +231,15 @@ def evaluate(flight_dir, mode: str = "windowed", params: AssociationParams | Non
         C_true = -np.einsum("nji,nj->ni", R_true[:n], t_true[:n])
         pose_offset = (C - C_true).mean(0)
         pred = pred - pose_offset
-    pi, ti, dist = match(pred, truth_xyz, match_m)
-    tp = len(pi)
-    tp_visible = int(is_visible[ti].sum())
-    count, truth_count = len(pred), int(is_visible.sum())
-    precision = tp / count if count else 0.0
-    recall = tp_visible / truth_count if truth_count else 0.0
-    f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
-
-    # rows: the truth row of each predicted apple is the nearest truth row line
-    row_x = {r: np.median(truth_xyz[a["row"] == r, :2], axis=0) for r in np.unique(a["row"])}
-    rows_pred, direction = direction_rows(pred[:, :2]) if len(pred) else (np.zeros(0, int), 0.0)
-    n_rows_seen = len(np.unique(rows_pred)) if len(pred) else 0
-    rows_km = kmeans_rows(pred[:, :2], n_rows_seen) if len(pred) else np.zeros(0, int)
-    normal = np.array([-np.sin(direction), np.cos(direction)])
-    per_row = []
-    truth_rows_x = np.array([row_x[r] @ normal for r in row_x])
-    truth_rows_id = np.array(list(row_x))
-    for lab in range(n_rows_seen):
-        sel = rows_pred == lab
-        across = np.median(pred[sel, :2] @ normal)
-        r = int(truth_rows_id[np.argmin(np.abs(truth_rows_x - across))])
-        km_sel = rows_km == lab
-        per_row.append({"row": r, "count": int(sel.sum()), "count_kmeans": int(km_sel.sum()),
-                        "truth_visible": int((is_visible & (a["row"] == r)).sum()),
-                        "truth_all": int((a["row"] == r).sum())})
+    scores = score_map(flight, pred, pert.min_visible, truth_min_views, match_m)
+    truth_count = scores["truth_count"]
 
     result = {
         "flight": str(flight.path), "mode": mode, "params": asdict(params), "perturbation": asdict(pert),
-        "detections": detections, "poses": poses,
-        "precision": precision, "recall": recall, "f1": f1,
-        "recall_all_apples_in_rows_seen": tp / int(in_rows.sum()) if in_rows.any() else 0.0,
-        "count": count, "truth_count": truth_count,
-        "count_error_pct": 100.0 * (count - truth_count) / truth_count if truth_count else float("nan"),
-        "median_error_m": float(np.median(dist)) if tp else float("nan"),
-        "p95_error_m": float(np.percentile(dist, 95)) if tp else float("nan"),
+        "detections": detections, "poses": poses, **scores,
         "pose_offset_removed_m": pose_offset.tolist(),
         "frames": n, "detections_total": count_per_frame_sum(xy), "seconds": seconds,
-        "frames_per_s": n / seconds if seconds > 0 else float("inf"),
-        "rows": per_row, "stats": dict(assoc.stats),
+        "frames_per_s": n / seconds if seconds > 0 else float("inf"), "stats": dict(assoc.stats),
     }
     if baselines:
         tr = SortTracker(max_age=params.k)

@@ -47,12 +47,18 @@ def _cmd_run(args) -> int:
     from pomar.flight import FlightDir
 
     if args.detector == "onnx":
-        print("error: the ONNX detector lands with the Detector issue and no model ships yet; "
-              "--detector truth-replay runs the stand-in that replays truth/detections.csv", file=sys.stderr)
-        return 2
-    from onboard.replay_detector import TruthReplayDetector
+        from onboard.detector import ModelError, OnnxDetector
 
-    detector = TruthReplayDetector(args.flight_dir)
+        try:
+            detector = OnnxDetector(args.model, providers=args.providers, score_thresh=args.score_thresh,
+                                    tile_size=args.tile_size, threads=args.threads)
+        except ModelError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+    else:
+        from onboard.replay_detector import TruthReplayDetector
+
+        detector = TruthReplayDetector(args.flight_dir)
     settings = NodeSettings(lockstep=not args.realtime, every=args.every, keyframe_every=args.keyframe_every,
                             keyframe_width=args.keyframe_width, jpeg_quality=args.jpeg_quality)
     listen = None if args.zenoh_config else (args.listen or [transport.DEFAULT_ENDPOINT])
@@ -62,12 +68,19 @@ def _cmd_run(args) -> int:
     try:
         summary = OnboardNode(args.flight_dir, pub, detector, settings).run()
         print(json.dumps(summary, indent=2))
+        if args.summary:
+            from pathlib import Path
+
+            Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
         code = 0
     except Exception as exc:
         print(f"error: {exc}", file=sys.stderr)
         code = 1
     # closing a session with data still queued loses it: keep serving the publisher's history a while
-    time.sleep(args.linger)
+    try:
+        time.sleep(args.linger)
+    except KeyboardInterrupt:
+        pass
     pub.close()
     session.close()
     return code
@@ -80,7 +93,14 @@ def main(argv=None) -> int:
     r = sub.add_parser("run", help="replay a flight directory through the node and publish it over zenoh")
     r.add_argument("flight_dir")
     r.add_argument("--detector", choices=["onnx", "truth-replay"], default="onnx",
-                   help="onnx (the shipped model; not yet) or truth-replay (stand-in from truth/detections.csv)")
+                   help="onnx (the shipped model, default) or truth-replay (a diagnostic stand-in that replays "
+                        "truth/detections.csv)")
+    r.add_argument("--model", help="ONNX model (default: $POMAR_DETECTOR, else the shipped onboard/models/apple-detector.onnx)")
+    r.add_argument("--providers", nargs="+", help="onnxruntime execution providers, in order of preference "
+                   "(default CPUExecutionProvider; e.g. CUDAExecutionProvider TensorrtExecutionProvider)")
+    r.add_argument("--score-thresh", type=float, help="detection score threshold (default: the model's)")
+    r.add_argument("--tile-size", type=int, default=1344, help="frames larger than this are tiled")
+    r.add_argument("--threads", type=int, help="onnxruntime intra-op threads")
     r.add_argument("--realtime", action="store_true", help="play at the video's frame rate, newest frame first, count drops")
     r.add_argument("--every", type=int, default=1, help="process every Nth frame (lock-step)")
     r.add_argument("--keyframe-every", type=int, default=2,
@@ -91,6 +111,7 @@ def main(argv=None) -> int:
     r.add_argument("--listen", action="append", help=f"zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})")
     r.add_argument("--connect", action="append", help="zenoh endpoint to connect to")
     r.add_argument("--zenoh-config", help="a zenoh JSON5 config file for real links")
+    r.add_argument("--summary", help="also write the run's summary (JSON) here")
     r.add_argument("--linger", type=float, default=10.0, help="seconds to keep serving history after the end")
     r.set_defaults(func=_cmd_run)
     t = sub.add_parser("telemetry", help="read a .tlog: streams, rates, gaps, and each frame's sample")

@@ -85,20 +85,24 @@ class FlightSubscriber:
     stop the ground.
     """
 
-    def __init__(self, session: zenoh.Session, flight_id: str, drone_id: str = "*", capacity: int = 1_000_000):
+    def __init__(self, session: zenoh.Session, flight_id: str, drone_id: str = "*", capacity: int = 1_000_000,
+                 on_accept=None, seen: dict | None = None):
         self._sub = zext.declare_advanced_subscriber(
             session, wire.key(flight_id, drone_id, "**"), zenoh.handlers.FifoChannel(capacity),
             history=zext.HistoryConfig(detect_late_publishers=True),
             recovery=zext.RecoveryConfig(heartbeat=True),
             subscriber_detection=True,
         )
-        self._seen: dict[tuple[str, str], set[int]] = {}
+        # (kind, drone) -> frame indices already accepted; a restarted ground passes what its journal holds
+        self._seen: dict[tuple[str, str], set[int]] = seen if seen is not None else {}
         self.duplicates = 0
         self.errors: list[str] = []
+        self.on_accept = on_accept  # called with the raw bytes of each accepted message (e.g. a journal)
 
     def _accept(self, sample) -> object | None:
+        payload = bytes(sample.payload.to_bytes())
         try:
-            msg = wire.decode(bytes(sample.payload.to_bytes()))
+            msg = wire.decode(payload)
         except wire.WireError as exc:
             self.errors.append(f"{sample.key_expr}: {exc}")
             log.warning("dropped a message on %s: %s", sample.key_expr, exc)
@@ -110,6 +114,8 @@ class FlightSubscriber:
                 self.duplicates += 1
                 return None
             seen.add(msg.frame)
+        if self.on_accept is not None:
+            self.on_accept(payload)
         return msg
 
     def recv(self, timeout: float | None = None):

@@ -1,0 +1,236 @@
+"""The ground node: the flight's zenoh stream -> pipeline -> apple map files and a rerun recording.
+
+    python -m ground run --flight-id ID [--connect tcp/127.0.0.1:7447] [--out DIR] [--serve | --viewer URL]
+
+It subscribes to ``pomar/<flight>/<drone>/**`` with zenoh's advanced subscriber (history + recovery),
+journals every message it accepts (``OUT/journal.bin``: its checkpoint; a restarted ground replays
+it, then the publisher's history fills the rest), feeds the pipeline, logs each frame to rerun and
+refreshes the map files every ``refresh_s`` seconds (atomically). It ends when the drone says the
+flight is finished (and every frame it announced has arrived, or ``end_grace_s`` passed), after
+``idle_timeout_s`` without a message, or on Ctrl-C; in every case it writes the final outputs.
+"""
+
+from __future__ import annotations
+
+import logging
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ground.journal import Journal, read_journal
+from ground.outputs import harvest_correlation, poses_csv, read_harvest, write_atomic, write_json, write_map
+from ground.pipeline import GroundPipeline, GroundSettings
+from pomar import wire
+
+log = logging.getLogger(__name__)
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+class GroundNode:
+    """Feed it wire messages (decoded) with :meth:`handle`; it keeps the outputs and the rerun log current."""
+
+    def __init__(self, out_dir, settings: GroundSettings | None = None, rrd: Path | None | bool = True,
+                 serve: bool = False, viewer: str | None = None, harvest: Path | None = None, refresh_s: float = 2.0):
+        self.out = Path(out_dir)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.settings = settings or GroundSettings()
+        self.pipe = GroundPipeline(self.out / "work", self.settings)
+        self._rr_args = (self.out / "flight.rrd" if rrd is True else (rrd or None), serve, viewer)
+        self.rr = None
+        self.harvest = read_harvest(harvest) if harvest else None
+        self.refresh_s = refresh_s
+        self._last_refresh = 0.0
+        self.t_start = time.monotonic()
+        self.t_first_msg = None
+        self.messages = 0
+        self.errors: list[str] = []
+        self._fps_t: list[float] = []
+        self.latency: list[float] = []
+
+    def _rerun(self):
+        if self.rr is None and self.pipe.flight_id is not None and any(self._rr_args):
+            from ground.rerun_log import RerunLog
+
+            rrd, serve, viewer = self._rr_args
+            self.rr = RerunLog(self.pipe.flight_id, rrd, serve, viewer)
+        return self.rr
+
+    def handle(self, msg) -> None:
+        if self.t_first_msg is None:
+            self.t_first_msg = time.monotonic()
+        self.messages += 1
+        try:
+            events = self.pipe.feed(msg)
+        except Exception as exc:  # never stop on one bad message: log it, keep the state
+            log.exception("message %s failed: %s", type(msg).__name__, exc)
+            self.errors.append(f"{type(msg).__name__}: {exc}")
+            return
+        self._log_events(events)
+        if time.monotonic() - self._last_refresh > self.refresh_s:
+            self.refresh()
+
+    def _log_events(self, events):
+        rr = self._rerun()
+        now = time.time()
+        for e in events:
+            self._fps_t.append(time.monotonic())
+            self.latency.append(now - e.t_capture)
+            if rr is not None:
+                st = self.pipe.status
+                rr.frame(e, self.pipe.camera, {
+                    "frames_per_s": self.ground_fps(),
+                    "drops": float(st.frames_dropped) if st else None,
+                    "detector_latency_s": float(st.detector_latency_s) if st else None,
+                })
+
+    def ground_fps(self) -> float:
+        t = self._fps_t[-20:]
+        return (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else float("nan")
+
+    def refresh(self, final: bool = False) -> dict:
+        """Write the map files and report.json (atomically) and log the map to rerun."""
+        self._last_refresh = time.monotonic()
+        table = self.pipe.table()
+        rows = write_map(self.out, table, getattr(self.pipe, "row_direction", 0.0))
+        write_atomic(self.out / "poses.csv", poses_csv(self.pipe.pose_table()))
+        rr = self._rerun()
+        if rr is not None and self.pipe.released >= 0:
+            rr.apples(self.pipe.released, self.pipe.frame_times.get(self.pipe.released, float("nan")), table,
+                      self.pipe.apples, rows, force=True)
+        report = self.report(table, rows, final)
+        write_json(self.out / "report.json", report)
+        return report
+
+    def report(self, table, rows, final) -> dict:
+        p = self.pipe
+        st = p.status
+        reg = p.poses.registrar if p.poses is not None else None
+        r = {
+            "flight_id": p.flight_id, "drone_id": p.drone_id, "final": final,
+            "apples": int(len(table["id"])), "rows": rows,
+            "frames": dict(p.counters), "gaps": p.gaps[:100],
+            "registration": {
+                "keyframes_processed": len(reg.seconds) if reg else 0,
+                "registered": len(p.poses.model_pose) if p.poses else 0,
+                "failed": len(p.poses.failed) if p.poses else 0,
+                "submodels": len(reg.submodels) if reg else 0,
+                "seconds_per_keyframe_median": float(np.median(reg.seconds)) if reg and reg.seconds else None,
+                "georeference_gps_rms_m": p.poses.fit_residual_m if p.poses else None,
+                "origin": p.poses.origin.as_dict() if p.poses and p.poses.origin else None,
+            },
+            "association": {"params": vars(self.settings.association).copy(), "stats": dict(p.assoc.stats)},
+            "timings": {"wall_seconds": time.monotonic() - self.t_start,
+                        "registration_seconds": p.seconds["registration"],
+                        "association_seconds": p.seconds["association"],
+                        "ground_latency_median_s": float(np.median(self.latency)) if self.latency else None,
+                        "peak_rss_mb": peak_rss_mb()},
+            "onboard_status": vars(st).copy() if st else None,
+            "errors": self.errors[-50:],
+        }
+        if self.harvest is not None:
+            r["harvest_correlation"] = harvest_correlation(rows, self.harvest)
+        return r
+
+    def finish(self) -> dict:
+        try:
+            self._log_events(self.pipe.finish())
+        except Exception as exc:
+            log.exception("finishing the flight failed: %s", exc)
+            self.errors.append(f"finish: {exc}")
+        report = self.refresh(final=True)
+        if self.pipe.poses is not None and self.pipe.poses.registrar.submodels:
+            self.write_model()
+        if self.rr is not None:
+            self.rr.close()
+        return report
+
+    def write_model(self):
+        """The COLMAP model(s), in ENU, as text."""
+        import pycolmap
+
+        poses = self.pipe.poses
+        for k, sm in enumerate(poses.registrar.submodels):
+            d = self.out / "model" / str(k)
+            d.mkdir(parents=True, exist_ok=True)
+            rec = pycolmap.Reconstruction(sm.rec)
+            if poses.fit is not None:
+                from ground.live_poses import compose
+
+                S = compose(poses.fit, sm.to_first)
+                rec.transform(pycolmap.Sim3d(S.scale, pycolmap.Rotation3d(S.R), S.t))
+            rec.write_text(str(d))
+
+
+def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=None, drone_id: str = "*",
+               settings: GroundSettings | None = None, rrd=True, serve=False, viewer=None, harvest=None,
+               idle_timeout_s: float = 60.0, end_grace_s: float = 10.0, resume: bool = True,
+               progress_s: float = 5.0) -> dict:
+    from pomar import transport
+
+    out = Path(out_dir)
+    journal_path = out / "journal.bin"
+    node = GroundNode(out, settings, rrd, serve, viewer, harvest)
+    seen: dict = {}
+    if resume and journal_path.is_file():
+        records = read_journal(journal_path)
+        log.info("resuming from %s: %d messages", journal_path, len(records))
+        for payload in records:
+            try:
+                msg = wire.decode(payload)
+            except wire.WireError as exc:
+                log.warning("journal record skipped: %s", exc)
+                continue
+            if isinstance(msg, (wire.FrameMessage, wire.KeyframeMessage)):
+                kind = "frame" if isinstance(msg, wire.FrameMessage) else "keyframe"
+                seen.setdefault((kind, msg.drone_id), set()).add(msg.frame)
+            node.handle(msg)
+    elif journal_path.exists():
+        journal_path.unlink()
+    journal = Journal(journal_path)
+    session = transport.open_session(listen=listen, connect=connect, config_file=zenoh_config)
+    sub = transport.FlightSubscriber(session, flight_id, drone_id, on_accept=journal.append, seen=seen)
+    last_msg = time.monotonic()
+    last_progress = time.monotonic()
+    finished_at = None
+    report = None
+    try:
+        while True:
+            msg = sub.recv(timeout=0.5)
+            now = time.monotonic()
+            if msg is not None:
+                last_msg = now
+                node.handle(msg)
+                if isinstance(msg, wire.StatusMessage) and msg.state in ("finished", "error") and finished_at is None:
+                    finished_at = now
+                    log.info("the drone says the flight is %s (%d frames processed)", msg.state, msg.frames_processed)
+            st = node.pipe.status
+            if finished_at is not None:
+                have = node.pipe.counters["frames"] + node.pipe.counters["late_frames"]
+                if have >= st.frames_processed or now - finished_at > end_grace_s:
+                    if have < st.frames_processed:
+                        log.warning("%d of %d frames arrived; finishing anyway", have, st.frames_processed)
+                    break
+            if now - last_msg > idle_timeout_s:
+                log.warning("no message for %.0f s: finishing the flight", idle_timeout_s)
+                break
+            if now - last_progress > progress_s:
+                last_progress = now
+                c = node.pipe.counters
+                log.info("frames %d received, %d mapped (%.1f fps), keyframes %d, apples %d, wall %.0f s",
+                         c["frames"], node.pipe.released + 1, node.ground_fps(), c["keyframes"], len(node.pipe.apples),
+                         now - node.t_start)
+    except KeyboardInterrupt:
+        log.warning("interrupted: writing what there is")
+    finally:
+        sub.close()
+        session.close()
+        journal.close()
+        report = node.finish()
+    report["subscriber"] = {"duplicates": sub.duplicates, "decode_errors": len(sub.errors)}
+    write_json(out / "report.json", report)
+    return report

@@ -1,0 +1,262 @@
+"""The ground's processing, fed wire messages one at a time: registration -> poses -> windowed association.
+
+    pipe = GroundPipeline(workdir)
+    for msg in messages:          # pomar.wire messages, in any order, repeats allowed
+        for event in pipe.feed(msg):
+            ...                   # FrameEvent: a frame went through the association (its pose, new apples)
+    pipe.finish()
+    pipe.apples                   # id -> Apple (association frame); pipe.table() in ENU / WGS84 with rows
+
+Frames are de-duplicated and released to the association in index order, once their pose can be
+decided (:class:`ground.live_poses.LivePoses`). A frame that arrives after a later one was
+released is counted as late and dropped (the association only moves forward); missing frame
+indices are reported as gaps. A keyframe that does not decode or register is logged, and its
+frame gets an interpolated or telemetry pose: nothing stops the flight.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ground.association import Apple, AssociationParams, FrameDetections, WindowedAssociation
+from ground.live_poses import LivePoses, Pose
+from ground.registration import RegistrationSettings
+from ground.rows import direction_rows
+from pomar import wire
+from pomar.camera import Camera
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class GroundSettings:
+    association: AssociationParams = field(default_factory=AssociationParams)
+    registration: RegistrationSettings = field(default_factory=RegistrationSettings)
+    #: Frames wait for the keyframe after them; when no keyframe has come for this long, they go on
+    #: with interpolated or telemetry poses.
+    max_wait_s: float = 5.0
+    max_interp_gap: int = 10
+    min_score: float = 0.0  # detections below this score are not used
+
+
+@dataclass
+class FrameEvent:
+    frame: int
+    t_capture: float
+    pose: Pose | None
+    msg: wire.FrameMessage
+    new_apples: list[Apple]
+    keyframe: bytes | None = None
+
+
+class GroundPipeline:
+    def __init__(self, workdir, settings: GroundSettings | None = None, origin=None):
+        self.workdir = workdir
+        self.s = settings or GroundSettings()
+        self.origin = origin
+        self.camera: Camera | None = None
+        self.flight_id = self.drone_id = None
+        self.poses: LivePoses | None = None
+        self.assoc = WindowedAssociation(self.s.association)
+        self.apples: dict[int, Apple] = {}
+        self.pending: dict[int, wire.FrameMessage] = {}
+        self.keyframes: dict[int, bytes] = {}  # waiting for registration
+        self._kf_for_event: dict[int, bytes] = {}
+        self._kf_seen: set[int] = set()
+        self._last_kf_t = time.monotonic()
+        self.released = -1
+        self.status: wire.StatusMessage | None = None
+        self.counters = {"frames": 0, "keyframes": 0, "late_frames": 0, "gaps": 0, "missing_frames": 0,
+                         "bad_keyframes": 0, "frames_without_pose": 0, "detections": 0,
+                         "registered": 0, "interpolated": 0, "telemetry": 0}
+        self.seconds = {"registration": 0.0, "association": 0.0}
+        self.gaps: list[tuple[int, int]] = []
+        self.frame_times: dict[int, float] = {}
+        self.frame_poses: dict[int, Pose] = {}  # every released frame's pose (association frame)
+
+    # -- inputs
+    def feed(self, msg) -> list[FrameEvent]:
+        if isinstance(msg, wire.CameraMessage):
+            self.on_camera(msg)
+        elif isinstance(msg, wire.FrameMessage):
+            self.on_frame(msg)
+        elif isinstance(msg, wire.KeyframeMessage):
+            self.on_keyframe(msg)
+        elif isinstance(msg, wire.StatusMessage):
+            self.status = msg
+        return self.step()
+
+    def on_camera(self, msg: wire.CameraMessage):
+        if self.camera is not None:
+            return
+        self.camera = Camera.from_dict(msg.camera, source=f"camera message of {msg.flight_id}/{msg.drone_id}")
+        self.flight_id, self.drone_id = msg.flight_id, msg.drone_id
+        kf_w = None
+        for jpeg in self.keyframes.values():  # keyframes that came before the camera tell their width
+            img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+            if img is not None:
+                kf_w = img.shape[1]
+                break
+        self._kf_width = kf_w
+        if kf_w is not None:
+            self._make_poses(kf_w)
+
+    def _make_poses(self, kf_width: int):
+        self.poses = LivePoses(self.camera, self.workdir, keyframe_width=kf_width, settings=self.s.registration,
+                               origin=self.origin,
+                               max_interp_gap=self.s.max_interp_gap)
+        for f in sorted(self.pending):
+            t = self.pending[f].telemetry
+            self.poses.add_telemetry(f, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc)
+
+    def on_frame(self, msg: wire.FrameMessage):
+        if msg.frame <= self.released or msg.frame in self.pending:
+            if msg.frame <= self.released:
+                self.counters["late_frames"] += 1
+                log.warning("frame %d arrived after frame %d was processed: dropped", msg.frame, self.released)
+            return
+        self.pending[msg.frame] = msg
+        self.frame_times[msg.frame] = msg.t_capture
+        if self.counters["frames"] == 1 and not self._kf_seen:
+            self._last_kf_t = time.monotonic()  # the wait for keyframes starts with the first frame
+        self.counters["frames"] += 1
+        if self.poses is not None:
+            t = msg.telemetry
+            self.poses.add_telemetry(msg.frame, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc)
+
+    def on_keyframe(self, msg: wire.KeyframeMessage):
+        if msg.frame in self._kf_seen:
+            return
+        self._kf_seen.add(msg.frame)
+        self._last_kf_t = time.monotonic()
+        self.keyframes[msg.frame] = msg.jpeg
+        self.counters["keyframes"] += 1
+
+    # -- processing
+    def step(self, final: bool = False) -> list[FrameEvent]:
+        """Register waiting keyframes, then release every frame whose pose can be decided."""
+        if self.camera is None:
+            return []
+        if self.poses is None:
+            if not self.keyframes and not final and not self._stalled():
+                return []
+            self._make_poses(self._first_keyframe_width())
+        events = []
+        # keyframes in order, but never ahead of the frames: a frame needs the keyframe after it
+        for f in sorted(self.keyframes):
+            jpeg = self.keyframes.pop(f)
+            self._register(f, jpeg)
+            events += self._release(final=False)
+        events += self._release(final)
+        return events
+
+    def _stalled(self) -> bool:
+        return time.monotonic() - self._last_kf_t > self.s.max_wait_s
+
+    def _first_keyframe_width(self) -> int | None:
+        for jpeg in self.keyframes.values():
+            img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+            if img is not None:
+                return img.shape[1]
+        return None
+
+    def _register(self, frame: int, jpeg: bytes):
+        img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        if img is None:
+            self.counters["bad_keyframes"] += 1
+            log.warning("keyframe %d: JPEG does not decode; the frame gets an interpolated or telemetry pose", frame)
+            return
+        t0 = time.perf_counter()
+        self.poses.add_keyframe(frame, img)
+        self.seconds["registration"] += time.perf_counter() - t0
+        self._last_kf_t = time.monotonic()  # the wait is counted from when registration is free again
+        self._kf_for_event[frame] = jpeg
+
+    def _release(self, final: bool) -> list[FrameEvent]:
+        events = []
+        while self.pending:
+            f = min(self.pending)
+            # wait for a keyframe at or after f that has arrived but is not registered yet
+            if not final and any(k >= f for k in self.keyframes):
+                break
+            if not self.poses.ready(f, final, self._stalled()):
+                break
+            msg = self.pending.pop(f)
+            if f > self.released + 1 and self.released >= 0:
+                self.gaps.append((self.released + 1, f - 1))
+                self.counters["gaps"] += 1
+                self.counters["missing_frames"] += f - 1 - self.released
+            self.released = f
+            pose = self.poses.pose(f)
+            new: list[Apple] = []
+            if pose is None:
+                self.counters["frames_without_pose"] += 1
+                log.warning("frame %d: no pose (no registration and no position telemetry): skipped", f)
+            else:
+                self.counters[pose.source] += 1
+                self.frame_poses[f] = pose
+                keep = np.asarray(msg.scores) >= self.s.min_score
+                xy = msg.centres[keep]
+                self.counters["detections"] += len(xy)
+                P = self.camera.K_opencv @ np.hstack([pose.R, pose.t[:, None]])
+                t0 = time.perf_counter()
+                new = self.assoc.add_frame(FrameDetections(f, P, xy))
+                self.seconds["association"] += time.perf_counter() - t0
+                for a in new:
+                    self.apples[a.id] = a
+            events.append(FrameEvent(f, msg.t_capture, pose, msg, new, self._kf_for_event.pop(f, None)))
+            for k in [k for k in self._kf_for_event if k < f]:
+                del self._kf_for_event[k]
+            self.poses.forget_before(f - 4 * self.s.association.k - 2 * self.s.max_interp_gap)
+        return events
+
+    def finish(self) -> list[FrameEvent]:
+        """End of the flight: register what is left, release every frame, close every track."""
+        events = self.step(final=True) if self.camera is not None else []
+        for a in self.assoc.finish():
+            self.apples[a.id] = a
+        self._kf_for_event.clear()
+        return events
+
+    # -- results
+    def pose_table(self) -> dict[str, np.ndarray]:
+        """Every mapped frame's camera: frame, capture time, source, centre (ENU and WGS84), ENU-to-camera quaternion."""
+        from scipy.spatial.transform import Rotation
+
+        frames = sorted(self.frame_poses)
+        P = [self.frame_poses[f] for f in frames]
+        if not P or self.poses is None:
+            return {k: np.zeros(0) for k in ("frame", "t_unix", "source", "x", "y", "z", "lat", "lon", "alt",
+                                             "qw", "qx", "qy", "qz", "sigma_m")}
+        S = self.poses.assoc_to_enu()
+        C = S.apply(np.array([p.centre for p in P]))
+        R = np.array([p.R for p in P]) @ S.R.T  # ENU-to-camera
+        q = Rotation.from_matrix(R).as_quat()  # xyzw
+        geo = np.asarray(self.poses.origin.to_geodetic(C)).reshape(-1, 3) if self.poses.origin else np.full(C.shape, np.nan)
+        return {"frame": np.array(frames), "t_unix": np.array([self.frame_times.get(f, np.nan) for f in frames]),
+                "source": np.array([p.source for p in P], dtype=object), "x": C[:, 0], "y": C[:, 1], "z": C[:, 2],
+                "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
+                "qw": q[:, 3], "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2],
+                "sigma_m": np.array([p.sigma_m for p in P])}
+
+    def table(self) -> dict[str, np.ndarray]:
+        """Apples as columns: id, x y z (ENU), lat lon alt, row, observations, reprojection error, first/last frame."""
+        ids = sorted(self.apples)
+        A = [self.apples[i] for i in ids]
+        X = np.array([a.X for a in A]).reshape(-1, 3)
+        enu = self.poses.to_enu(X) if self.poses is not None and len(X) else X
+        geo = (np.asarray(self.poses.origin.to_geodetic(enu)).reshape(-1, 3)
+               if self.poses is not None and self.poses.origin is not None and len(X) else np.full((len(X), 3), np.nan))
+        rows, direction = direction_rows(enu[:, :2]) if len(X) >= 2 else (np.zeros(len(X), int), 0.0)
+        self.row_direction = direction
+        return {"id": np.array(ids, int), "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
+                "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2], "row": np.asarray(rows, int),
+                "observations": np.array([a.n_observations for a in A], int),
+                "reprojection_error_px": np.array([a.reprojection_error for a in A], float),
+                "first_frame": np.array([a.first_frame for a in A], int),
+                "last_frame": np.array([a.last_frame for a in A], int)}

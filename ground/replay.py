@@ -1,0 +1,176 @@
+"""Replay a recorded flight through both processes, as if live: onboard node + ground node over zenoh on loopback.
+
+    python -m ground replay [FLIGHT_DIR] [--out DIR] [--realtime] [--detector onnx|truth-replay]
+
+Starts ``python -m onboard run`` (listening on a free 127.0.0.1 port) and ``python -m ground run``
+(connecting to it) as two processes, shows the ground's progress, waits for the ground to finish,
+then stops the onboard node by its PID. Lock-step (default): every frame is processed, as fast as
+the machine goes; ``--realtime``: frames come at the video's rate and the onboard node takes the
+newest one, dropping what it cannot keep up with. With the flight's ``truth/``, the map is scored
+against it and the scores go to ``report.json`` under ``evaluation``, next to ``wall_seconds``,
+``flight_seconds`` and ``realtime_factor``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pomar.flight import FlightDir
+
+log = logging.getLogger(__name__)
+
+BUNDLED = Path(__file__).resolve().parents[1] / "replay_data" / "demo-flight"
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _enu(flight: FlightDir, path: Path) -> np.ndarray:
+    from pomar.flight import read_csv
+
+    d = read_csv(path, ["lat", "lon", "alt"])
+    geo = np.stack([d["lat"], d["lon"], d["alt"]], 1).reshape(-1, 3)
+    return flight.origin().to_enu(geo[:, 0], geo[:, 1], geo[:, 2]).reshape(-1, 3)
+
+
+def evaluate_map(flight: FlightDir, out: Path, min_visible: float = 0.5, match_m: float = 0.10) -> dict:
+    """Score the written apples.csv against the flight's truth (in the truth's ENU frame).
+
+    Two scores. ``absolute``: the map where GPS put it. The headline: the map's *shape*, after taking
+    away the georeferencing error, i.e. the similarity that best takes our camera poses (poses.csv:
+    centres and orientations) onto the true ones. That error comes from the GPS (its bias over the
+    flight, and the scale it gives over a short straight line), which no image processing can see;
+    its size is reported as ``georeference_error``."""
+    from ground.evaluate import score_map
+    from ground.georeference import fit_similarity
+    from pomar.flight import read_csv
+    from pomar.rotations import quat_wxyz_to_rotation
+
+    keys = ("precision", "recall", "f1", "count", "truth_count", "count_error_pct", "median_error_m", "p95_error_m",
+            "recall_all_apples_in_rows_seen", "rows")
+    apples = _enu(flight, out / "apples.csv")
+    cams = _enu(flight, out / "poses.csv")
+    d = read_csv(out / "poses.csv", ["frame", "qw", "qx", "qy", "qz"])
+    frames = d["frame"].astype(int)
+    R_true, t_true = flight.truth_poses()
+    C_true = -np.einsum("nji,nj->ni", R_true, t_true)[frames]
+    res = {}
+    if len(frames) >= 3:
+        R_ours = quat_wxyz_to_rotation(np.stack([d[k] for k in ("qw", "qx", "qy", "qz")], 1)).as_matrix()
+        # ENU of the map's origin -> ENU of the truth's origin is a translation; the fit takes care of it
+        fit = fit_similarity(cams, C_true, 0.05, R_ours, R_true[frames], np.radians(0.05))
+        S = fit.similarity
+        shape = score_map(flight, S.apply(apples), min_visible=min_visible, match_m=match_m)
+        res = {k: shape[k] for k in keys}
+        res["georeference_error"] = {
+            "offset_m": float(np.linalg.norm((cams - C_true).mean(0))),
+            "offset_enu_m": (cams - C_true).mean(0).tolist(),
+            "scale_error_pct": 100.0 * (1.0 / S.scale - 1.0),
+            "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(S.R) - 1) / 2, -1, 1)))),
+            "camera_rms_after_m": fit.position_rms_m,
+        }
+    absolute = score_map(flight, apples, min_visible=min_visible, match_m=match_m)
+    res["absolute"] = {k: absolute[k] for k in keys if k != "rows"}
+    if not res.get("rows"):
+        res.update({k: absolute[k] for k in keys})
+    return res
+
+
+def format_evaluation(ev: dict) -> str:
+    g = ev.get("georeference_error")
+    lines = []
+    if g:
+        lines.append(f"the map's shape, scored after removing the georeferencing error (GPS: offset {g['offset_m']:.2f} m, "
+                     f"scale {g['scale_error_pct']:+.2f} %, rotation {g['rotation_deg']:.2f} deg)")
+    lines += [f"{'count':>7}{'truth':>7}{'err %':>8}{'prec':>7}{'rec':>7}{'F1':>7}{'med m':>8}{'p95 m':>8}",
+             f"{ev['count']:>7}{ev['truth_count']:>7}{ev['count_error_pct']:>8.1f}{ev['precision']:>7.3f}"
+             f"{ev['recall']:>7.3f}{ev['f1']:>7.3f}{ev['median_error_m']:>8.3f}{ev['p95_error_m']:>8.3f}"]
+    if ev.get("rows"):
+        lines.append("rows: truth row, count (row direction), count (K-means), truth visible")
+        for r in ev["rows"]:
+            lines.append(f"  row {r['row']:>2}: {r['count']:>5} {r['count_kmeans']:>5} {r['truth_visible']:>5}")
+    a = ev["absolute"]
+    lines.append(f"absolute (where GPS put the map): F1 {a['f1']:.3f}, median error "
+                 f"{a['median_error_m'] if a['median_error_m'] == a['median_error_m'] else float('nan'):.3f} m")
+    return "\n".join(lines)
+
+
+def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: str = "onnx", model=None,
+           keyframe_every: int = 2, keyframe_width: int = 960, every: int = 1, rrd: bool = True,
+           ground_args: list[str] | None = None, onboard_args: list[str] | None = None, timeout_s: float = 3600,
+           quiet: bool = False) -> dict:
+    flight = FlightDir(flight_dir)
+    meta = flight.meta()
+    out = Path(out_dir or f"out/replay/{flight.path.name}")
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in ("journal.bin", "report.json"):
+        (out / stale).unlink(missing_ok=True)
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    py = sys.executable
+    onboard_cmd = [py, "-m", "onboard", "run", str(flight.path), "--listen", endpoint, "--detector", detector,
+                   "--keyframe-every", str(keyframe_every), "--keyframe-width", str(keyframe_width),
+                   "--every", str(every), "--linger", "600", "--summary", str(out / "onboard.json")]
+    if realtime:
+        onboard_cmd.append("--realtime")
+    if model:
+        onboard_cmd += ["--model", str(model)]
+    onboard_cmd += onboard_args or []
+    ground_cmd = [py, "-m", "ground", "run", "--flight-id", meta.flight_id, "--connect", endpoint, "--out", str(out),
+                  "--fresh"] + ([] if rrd else ["--no-rrd"]) + (ground_args or [])
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    t0 = time.monotonic()
+    logs = {name: open(out / f"{name}.log", "w") for name in ("onboard", "ground")}
+    onboard = subprocess.Popen(onboard_cmd, stdout=logs["onboard"], stderr=subprocess.STDOUT, env=env)
+    ground = None
+    try:
+        time.sleep(0.5)
+        ground = subprocess.Popen(ground_cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, text=True)
+        for line in ground.stdout:  # the ground's progress, shown and kept
+            logs["ground"].write(line)
+            if not quiet:
+                sys.stderr.write(line)
+            if time.monotonic() - t0 > timeout_s:
+                raise TimeoutError(f"replay of {flight.path} ran past {timeout_s:.0f} s")
+        ground.wait()
+    finally:
+        for name, proc in (("ground", ground), ("onboard", onboard)):
+            if proc is not None and proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+                try:
+                    proc.wait(10)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+        for f in logs.values():
+            f.close()
+    wall = time.monotonic() - t0
+    if ground.returncode != 0:
+        raise RuntimeError(f"the ground node failed (exit {ground.returncode}); see {out / 'ground.log'}")
+    report = json.loads((out / "report.json").read_text())
+    flight_s = meta.frame_count / meta.fps
+    report.update(wall_seconds=wall, flight_seconds=flight_s, realtime_factor=flight_s / wall,
+                  replay={"flight": str(flight.path), "realtime": realtime, "detector": detector,
+                          "keyframe_every": keyframe_every, "keyframe_width": keyframe_width, "every": every})
+    onboard_json = out / "onboard.json"
+    if onboard_json.is_file():
+        report["onboard"] = json.loads(onboard_json.read_text())
+    if flight.has_truth:
+        report["evaluation"] = evaluate_map(flight, out)
+    from ground.outputs import write_json
+
+    write_json(out / "report.json", report)
+    return report
