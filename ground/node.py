@@ -97,11 +97,13 @@ class GroundNode:
         self._last_refresh = time.monotonic()
         table = self.pipe.table()
         rows = write_map(self.out, table, getattr(self.pipe, "row_direction", 0.0))
-        write_atomic(self.out / "poses.csv", poses_csv(self.pipe.pose_table()))
+        cams = self.pipe.pose_table()
+        write_atomic(self.out / "poses.csv", poses_csv(cams))
         rr = self._rerun()
         if rr is not None and self.pipe.released >= 0:
+            drone = [cams["lat"][-1], cams["lon"][-1]] if len(cams["frame"]) else None
             rr.apples(self.pipe.released, self.pipe.frame_times.get(self.pipe.released, float("nan")), table,
-                      self.pipe.apples, rows, force=True)
+                      self.pipe.apples, rows, drone_latlon=drone, force=True)
         report = self.report(table, rows, final)
         write_json(self.out / "report.json", report)
         return report

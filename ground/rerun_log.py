@@ -173,3 +173,14 @@ class RerunLog:
     def close(self):
         self.rec.flush()
         self.rec.disconnect()
+
+
+def rrd_entities(path) -> dict[str, int]:
+    """Entity path -> number of rows logged, read back from an .rrd file (rerun's RrdReader)."""
+    from rerun.chunk import RrdReader
+
+    counts: dict[str, int] = {}
+    for chunk in RrdReader(str(path)).stream():
+        p = str(chunk.entity_path)
+        counts[p] = counts.get(p, 0) + chunk.num_rows
+    return counts

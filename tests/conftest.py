@@ -24,3 +24,18 @@ def small_flight(tmp_path_factory):
     out = tmp_path_factory.mktemp("small") / "flight"
     simulate_flight(config.load(SMALL_CONFIG), out, jobs=2, progress=False)
     return FlightDir(out)
+
+
+REPLAY_TEST_CONFIG = ROOT / "sim" / "configs" / "replay-test.toml"
+
+
+@pytest.fixture(scope="session")
+def replay_test_flight(tmp_path_factory):
+    """A tiny flight for end-to-end replays (640x360, 20 frames; about 7 s to render)."""
+    from pomar.flight import FlightDir
+    from sim import config
+    from sim.flight import simulate_flight
+
+    out = tmp_path_factory.mktemp("replay-test") / "flight"
+    simulate_flight(config.load(REPLAY_TEST_CONFIG), out, jobs=2, progress=False)
+    return FlightDir(out)

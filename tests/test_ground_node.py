@@ -1,0 +1,171 @@
+"""The ground node end to end: two processes over real zenoh on loopback, real pycolmap, real onnxruntime,
+the outputs and the .rrd read back; a ground killed mid-flight resumes and ends with every frame."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from ground.journal import Journal, read_journal
+from ground.outputs import APPLE_COLUMNS, harvest_correlation, read_harvest
+
+
+def test_replay_end_to_end(replay_test_flight, tmp_path):
+    from ground.rerun_log import rrd_entities
+    from ground.replay import replay
+
+    out = tmp_path / "out"
+    rep = replay(replay_test_flight.path, out, detector="onnx", keyframe_every=1, keyframe_width=0, quiet=True)
+    # every frame went through, most with registered poses
+    assert rep["frames"]["frames"] == 20 and rep["frames"]["missing_frames"] == 0
+    assert rep["frames"]["registered"] >= 10
+    assert rep["final"] and rep["wall_seconds"] > 0 and rep["realtime_factor"] > 0
+    # apples found, within a loose bound of the truth (the shipped detector, a tiny flight)
+    ev = rep["evaluation"]
+    assert {"precision", "recall", "f1", "count", "truth_count", "count_error_pct", "median_error_m"} <= set(ev)
+    assert 0.3 * ev["truth_count"] <= ev["count"] <= 3 * ev["truth_count"]
+    assert ev["precision"] > 0.2
+    # output files
+    with open(out / "apples.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0]) == APPLE_COLUMNS and len(rows) == rep["apples"]
+    gj = json.loads((out / "apples.geojson").read_text())
+    assert gj["type"] == "FeatureCollection" and len(gj["features"]) == rep["apples"]
+    lon, lat, _ = gj["features"][0]["geometry"]["coordinates"]
+    assert abs(lat - -28.516) < 0.01 and abs(lon - -50.881) < 0.01
+    ply = (out / "apples.ply").read_text().splitlines()
+    assert ply[0] == "ply" and f"element vertex {rep['apples']}" in ply
+    with open(out / "rows.csv", newline="") as f:
+        assert sum(int(r["count"]) for r in csv.DictReader(f)) == rep["apples"]
+    assert (out / "model" / "0" / "images.txt").is_file()
+    # the rerun recording, read back
+    ents = rrd_entities(out / "flight.rrd")
+    for e in ("/world/camera", "/world/camera/image", "/world/camera/image/detections", "/world/apples",
+              "/world/trajectory", "/map/apples", "/stats/apples"):
+        assert e in ents, (e, sorted(ents))
+    assert ents["/world/camera"] == 20
+    assert any(e.startswith("/world/tracks/") for e in ents)
+
+
+def _wait_for(pred, timeout, what):
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        if pred():
+            return
+        time.sleep(0.1)
+    raise TimeoutError(what)
+
+
+def test_killed_ground_resumes_with_every_frame(replay_test_flight, tmp_path):
+    from ground.replay import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    out = tmp_path / "ground"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    onboard = subprocess.Popen([sys.executable, "-m", "onboard", "run", str(replay_test_flight.path), "--listen", endpoint,
+                                "--detector", "truth-replay", "--realtime", "--keyframe-every", "1",
+                                "--keyframe-width", "0", "--linger", "120"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    ground_cmd = [sys.executable, "-m", "ground", "run", "--flight-id", "sim-replay-test", "--connect", endpoint,
+                  "--out", str(out), "--no-rrd", "--idle-timeout", "30"]
+    procs = [onboard]
+    try:
+        first = subprocess.Popen(ground_cmd + ["--fresh"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+        procs.append(first)
+        journal = out / "journal.bin"
+        _wait_for(lambda: journal.is_file() and len(read_journal(journal)) >= 12, 60, "the ground journals messages")
+        first.send_signal(signal.SIGKILL)  # no clean shutdown: what survives is the journal
+        first.wait(10)
+        assert first.returncode == -signal.SIGKILL
+        before = len(read_journal(journal))
+        second = subprocess.Popen(ground_cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True)
+        procs.append(second)
+        _, err = second.communicate(timeout=180)
+        assert second.returncode == 0, err[-3000:]
+        assert "resuming from" in err
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["final"]
+    assert rep["frames"]["frames"] == 20  # every frame, once
+    assert rep["frames"]["missing_frames"] == 0 and rep["frames"]["late_frames"] == 0
+    assert len(read_journal(out / "journal.bin")) > before
+    assert rep["apples"] > 0
+
+
+def test_journal_cuts_a_truncated_tail(tmp_path):
+    j = Journal(tmp_path / "j.bin")
+    for i in range(5):
+        j.append(bytes([i]) * (i + 1))
+    j.close()
+    with open(tmp_path / "j.bin", "ab") as f:
+        f.write(b"\x10\x00\x00\x00abc")  # a record announced 16 bytes long, cut after 3
+    recs = read_journal(tmp_path / "j.bin")
+    assert recs == [bytes([i]) * (i + 1) for i in range(5)]
+    assert read_journal(tmp_path / "j.bin") == recs  # the tail was cut off the file
+
+
+def test_pipeline_survives_bad_keyframes_and_late_frames(replay_test_flight, tmp_path):
+    """Messages made by the onboard node (no zenoh here): a keyframe that does not decode, a frame that comes
+    after a later one was mapped, repeats; every other frame still gets a pose and nothing stops."""
+    from ground.pipeline import GroundPipeline, GroundSettings
+    from onboard.node import NodeSettings, OnboardNode
+    from onboard.replay_detector import TruthReplayDetector
+    from pomar import wire
+
+    class Collect:
+        def __init__(self):
+            self.msgs = []
+            self.sent = {k: 0 for k in wire.KINDS}
+            self.bytes = {k: 0 for k in wire.KINDS}
+
+        def publish(self, msg):
+            self.msgs.append(msg)
+
+    sink = Collect()
+    OnboardNode(replay_test_flight.path, sink, TruthReplayDetector(replay_test_flight.path),
+                NodeSettings(keyframe_every=1)).run()
+    msgs = [m for m in sink.msgs if not isinstance(m, wire.StatusMessage)]
+    for m in msgs:
+        if isinstance(m, wire.KeyframeMessage) and m.frame == 9:
+            m.jpeg = b"\xff\xd8" + b"not a jpeg" * 10
+    late = next(m for m in msgs if isinstance(m, wire.FrameMessage) and m.frame == 3)
+    pipe = GroundPipeline(tmp_path / "work", GroundSettings())
+    events = []
+    for m in msgs + msgs[:5]:  # repeats at the end
+        events += pipe.feed(m)
+    events += pipe.feed(late)
+    events += pipe.finish()
+    assert [e.frame for e in events] == list(range(20))
+    assert all(e.pose is not None for e in events)
+    assert pipe.counters["bad_keyframes"] == 1 and pipe.counters["late_frames"] >= 1
+    assert next(e for e in events if e.frame == 9).pose.source in ("interpolated", "telemetry")
+    assert pipe.counters["registered"] >= 10
+    t = pipe.table()
+    assert len(t["id"]) == len(pipe.apples) > 0 and np.isfinite(t["lat"]).all()
+
+
+def test_harvest_correlation(tmp_path):
+    p = tmp_path / "harvest.csv"
+    p.write_text("row,kg\n0,10\n1,20\n2,31\n")
+    h = read_harvest(p)
+    r = harvest_correlation([{"row": 0, "count": 100}, {"row": 1, "count": 210}, {"row": 2, "count": 300}], h)
+    assert r["rows"] == 3 and r["r"] > 0.99
+    bad = tmp_path / "bad.csv"
+    bad.write_text("row,weight\n0,1\n")
+    with pytest.raises(ValueError, match="bad.csv"):
+        read_harvest(bad)
