@@ -1,6 +1,7 @@
 """python -m onboard SUBCOMMAND: the drone's companion-computer node.
 
   run         replay a flight directory through the node: frames + telemetry -> detector -> zenoh
+  live        a camera or stream + a live MAVLink link -> detector -> zenoh
   telemetry   read a .tlog and report its streams, gaps and, with --flight, each frame's sample
 """
 
@@ -46,20 +47,15 @@ def _cmd_run(args) -> int:
     from pomar import transport
     from pomar.flight import FlightDir
 
-    if args.detector == "onnx":
-        from onboard.detector import ModelError, OnnxDetector
+    from onboard.detector import ModelError
 
-        try:
-            detector = OnnxDetector(args.model, providers=args.providers, score_thresh=args.score_thresh,
-                                    tile_size=args.tile_size, threads=args.threads)
-        except ModelError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
-    else:
-        from onboard.replay_detector import TruthReplayDetector
-
-        detector = TruthReplayDetector(args.flight_dir)
+    try:
+        detector = _detector(args, args.flight_dir)
+    except ModelError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     settings = NodeSettings(lockstep=not args.realtime, every=args.every, keyframe_every=args.keyframe_every,
+                            keyframe_every_s=args.keyframe_every_s, keyframe_every_m=args.keyframe_every_m,
                             keyframe_width=args.keyframe_width, jpeg_quality=args.jpeg_quality)
     listen = None if args.zenoh_config else (args.listen or [transport.DEFAULT_ENDPOINT])
     session = transport.open_session(listen=listen, connect=args.connect, config_file=args.zenoh_config)
@@ -86,6 +82,80 @@ def _cmd_run(args) -> int:
     return code
 
 
+def _detector(args, flight_dir=None):
+    if args.detector == "onnx":
+        from onboard.detector import OnnxDetector
+
+        return OnnxDetector(args.model, providers=args.providers, score_thresh=args.score_thresh,
+                            tile_size=args.tile_size, threads=args.threads)
+    from onboard.replay_detector import TruthReplayDetector
+
+    if flight_dir is None:
+        raise SystemExit("error: --detector truth-replay needs a simulated flight (--truth-flight DIR)")
+    return TruthReplayDetector(flight_dir)
+
+
+def _cmd_live(args) -> int:
+    import json
+    import time
+
+    from onboard.detector import ModelError
+    from onboard.live import run_live
+    from onboard.node import KeyframePolicy
+    from onboard.telemetry import LiveTelemetry
+    from pomar import transport
+    from pomar.camera import Camera
+
+    try:
+        detector = _detector(args, args.truth_flight)
+    except ModelError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    camera = Camera.load(args.camera_json).to_dict()
+    telemetry = LiveTelemetry(args.mavlink, max_gap_s=args.max_gap_s)
+    listen = None if args.zenoh_config else (args.listen or [transport.DEFAULT_ENDPOINT])
+    session = transport.open_session(listen=listen, connect=args.connect, config_file=args.zenoh_config)
+    pub = transport.FlightPublisher(session, args.flight_id, args.drone_id)
+    try:
+        summary = run_live(args.camera, telemetry, camera, args.flight_id, args.drone_id, pub, detector,
+                           KeyframePolicy(args.keyframe_every, args.keyframe_every_s, args.keyframe_every_m),
+                           args.keyframe_width, args.jpeg_quality, args.clock_offset_s, play_fps=args.play_fps,
+                           max_frames=args.max_frames, duration_s=args.duration)
+        print(json.dumps(summary, indent=2))
+    finally:
+        telemetry.close()
+        try:
+            time.sleep(args.linger)
+        except KeyboardInterrupt:
+            pass
+        pub.close()
+        session.close()
+    return 0
+
+
+def _detector_options(r):
+    r.add_argument("--model", help="ONNX model (default: $POMAR_DETECTOR, else the shipped onboard/models/apple-detector.onnx)")
+    r.add_argument("--providers", nargs="+", help="onnxruntime execution providers, in order of preference "
+                   "(default CPUExecutionProvider; e.g. CUDAExecutionProvider TensorrtExecutionProvider)")
+    r.add_argument("--score-thresh", type=float, help="detection score threshold (default: the model's)")
+    r.add_argument("--tile-size", type=int, default=1344, help="frames larger than this are tiled")
+    r.add_argument("--threads", type=int, help="onnxruntime intra-op threads")
+
+
+def _link_options(r, keyframe_every=2):
+    r.add_argument("--keyframe-every", type=int, default=keyframe_every,
+                   help="send every Nth processed frame as a JPEG keyframe (0 = none); the default keeps a "
+                        "10 fps 1280x720 flight under 1 MB/s")
+    r.add_argument("--keyframe-every-s", type=float, default=0.0, help="or: a keyframe every this many seconds")
+    r.add_argument("--keyframe-every-m", type=float, default=0.0, help="or: a keyframe every this many metres flown")
+    r.add_argument("--keyframe-width", type=int, default=960, help="keyframe width in pixels (0 = native)")
+    r.add_argument("--jpeg-quality", type=int, default=85)
+    r.add_argument("--listen", action="append", help=f"zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})")
+    r.add_argument("--connect", action="append", help="zenoh endpoint to connect to")
+    r.add_argument("--zenoh-config", help="a zenoh JSON5 config file for real links")
+    r.add_argument("--linger", type=float, default=10.0, help="seconds to keep serving history after the end")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m onboard", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -95,25 +165,28 @@ def main(argv=None) -> int:
     r.add_argument("--detector", choices=["onnx", "truth-replay"], default="onnx",
                    help="onnx (the shipped model, default) or truth-replay (a diagnostic stand-in that replays "
                         "truth/detections.csv)")
-    r.add_argument("--model", help="ONNX model (default: $POMAR_DETECTOR, else the shipped onboard/models/apple-detector.onnx)")
-    r.add_argument("--providers", nargs="+", help="onnxruntime execution providers, in order of preference "
-                   "(default CPUExecutionProvider; e.g. CUDAExecutionProvider TensorrtExecutionProvider)")
-    r.add_argument("--score-thresh", type=float, help="detection score threshold (default: the model's)")
-    r.add_argument("--tile-size", type=int, default=1344, help="frames larger than this are tiled")
-    r.add_argument("--threads", type=int, help="onnxruntime intra-op threads")
+    _detector_options(r)
     r.add_argument("--realtime", action="store_true", help="play at the video's frame rate, newest frame first, count drops")
     r.add_argument("--every", type=int, default=1, help="process every Nth frame (lock-step)")
-    r.add_argument("--keyframe-every", type=int, default=2,
-                   help="send every Nth processed frame as a JPEG keyframe (0 = none); the default keeps a "
-                        "10 fps 1280x720 flight under 1 MB/s")
-    r.add_argument("--keyframe-width", type=int, default=960, help="keyframe width in pixels (0 = native)")
-    r.add_argument("--jpeg-quality", type=int, default=85)
-    r.add_argument("--listen", action="append", help=f"zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})")
-    r.add_argument("--connect", action="append", help="zenoh endpoint to connect to")
-    r.add_argument("--zenoh-config", help="a zenoh JSON5 config file for real links")
+    _link_options(r)
     r.add_argument("--summary", help="also write the run's summary (JSON) here")
-    r.add_argument("--linger", type=float, default=10.0, help="seconds to keep serving history after the end")
     r.set_defaults(func=_cmd_run)
+    lv = sub.add_parser("live", help="a camera or stream + a live MAVLink link -> detector -> zenoh")
+    lv.add_argument("--camera", required=True, help="OpenCV camera index, stream URL or video file")
+    lv.add_argument("--mavlink", default="udpin:127.0.0.1:14550", help="pymavlink connection string (udpin:..., serial)")
+    lv.add_argument("--camera-json", required=True, help="the camera's intrinsics (camera.json, COLMAP convention)")
+    lv.add_argument("--flight-id", required=True)
+    lv.add_argument("--drone-id", default="drone-1")
+    lv.add_argument("--detector", choices=["onnx", "truth-replay"], default="onnx")
+    lv.add_argument("--truth-flight", help="for --detector truth-replay: the simulated flight whose truth to replay")
+    _detector_options(lv)
+    _link_options(lv)
+    lv.add_argument("--clock-offset-s", type=float, default=0.0, help="camera clock minus autopilot clock")
+    lv.add_argument("--max-gap-s", type=float, default=1.0, help="telemetry gaps longer than this flag frames")
+    lv.add_argument("--play-fps", type=float, help="play a video file at this rate (a camera sets its own)")
+    lv.add_argument("--max-frames", type=int, help="stop after this many processed frames")
+    lv.add_argument("--duration", type=float, help="stop after this many seconds")
+    lv.set_defaults(func=_cmd_live)
     t = sub.add_parser("telemetry", help="read a .tlog: streams, rates, gaps, and each frame's sample")
     t.add_argument("tlog")
     t.add_argument("--flight", help="flight directory: sample the telemetry at its frames")

@@ -23,11 +23,52 @@ from pomar.flight import FlightDir
 log = logging.getLogger(__name__)
 
 
+class KeyframePolicy:
+    """Which processed frames also go as JPEG keyframes: every Nth, every S seconds, or every D metres flown
+    (by the telemetry's position). The first frame always goes."""
+
+    def __init__(self, every: int = 1, every_s: float = 0.0, every_m: float = 0.0):
+        self.every, self.every_s, self.every_m = every, every_s, every_m
+        self._n = 0
+        self._last_t = None
+        self._last_pos = None
+
+    @property
+    def active(self) -> bool:
+        return bool(self.every or self.every_s or self.every_m)
+
+    def due(self, t: float, lat: float = float("nan"), lon: float = float("nan"), alt: float = float("nan")) -> bool:
+        n, self._n = self._n, self._n + 1
+        if not self.active:
+            return False
+        if self._last_t is None:
+            ok = True
+        elif self.every_m:
+            from pomar.geo import Origin
+
+            if self._last_pos is None or not np.isfinite([lat, lon, alt]).all():
+                ok = self._last_t is not None and t - self._last_t > 2.0  # no position: fall back to time
+            else:
+                d = Origin(*self._last_pos).to_enu(lat, lon, alt)
+                ok = float(np.hypot(d[0], d[1])) >= self.every_m
+        elif self.every_s:
+            ok = t - self._last_t >= self.every_s - 1e-6
+        else:
+            ok = n % self.every == 0
+        if ok:
+            self._last_t = t
+            if np.isfinite([lat, lon, alt]).all():
+                self._last_pos = (float(lat), float(lon), float(alt))
+        return ok
+
+
 @dataclass
 class NodeSettings:
     lockstep: bool = True  # every frame (every Nth), none dropped; False = real time, newest frame first
     every: int = 1
     keyframe_every: int = 1  # every Nth processed frame also goes as a JPEG keyframe; 0 = none
+    keyframe_every_s: float = 0.0  # or: a keyframe every this many seconds (capture time)
+    keyframe_every_m: float = 0.0  # or: a keyframe every this many metres flown
     keyframe_width: int = 0  # resize keyframes to this width (0 = native)
     jpeg_quality: int = 85
     status_period_s: float = 1.0
@@ -74,6 +115,7 @@ class OnboardNode:
         frames = source if self.s.lockstep else LatestFrame(source, fps=meta.fps)
         t0 = last_status = time.monotonic()
         processed = 0
+        policy = KeyframePolicy(self.s.keyframe_every, self.s.keyframe_every_s, self.s.keyframe_every_m)
         error = None
         try:
             for i, img in frames:
@@ -86,7 +128,7 @@ class OnboardNode:
                                            int(tel["gps_fix"][i]), float(tel["h_acc"][i]), int(tel["flags"][i]))
                 self.pub.publish(wire.FrameMessage(meta.flight_id, meta.drone_id, i, float(t_frames[i]), telemetry,
                                                    img.shape[1], img.shape[0], boxes, scores))
-                if self.s.keyframe_every and processed % self.s.keyframe_every == 0:
+                if policy.due(float(t_frames[i]), telemetry.lat, telemetry.lon, telemetry.alt):
                     jpeg = encode_jpeg(img, self.s.keyframe_width, self.s.jpeg_quality)
                     self.pub.publish(wire.KeyframeMessage(meta.flight_id, meta.drone_id, i, jpeg))
                     self.stats["keyframes"] += 1
@@ -117,8 +159,8 @@ class OnboardNode:
             "telemetry_flagged_frames": int((tel["flags"] != 0).sum()), "error": str(error) if error else None,
         }
         # what the link must carry at the video's frame rate with these settings
-        per_frame = summary["bytes_per_message"]["frames"] + (
-            summary["bytes_per_message"]["keyframes"] / self.s.keyframe_every if self.s.keyframe_every else 0)
+        kf_share = self.stats["keyframes"] / max(processed, 1)
+        per_frame = summary["bytes_per_message"]["frames"] + summary["bytes_per_message"]["keyframes"] * kf_share
         summary["link_bytes_per_s_at_video_fps"] = per_frame * meta.fps / self.s.every
         if error:
             raise SourceError(f"{error} — summary: {summary}")

@@ -233,9 +233,9 @@ class _Accumulator:
                 log.warning("%s: no SYSTEM_TIME: timing telemetry by the records' receive timestamps", source)
 
         def times(rows):
+            if not len(rows):  # nothing of this stream (yet, on a live link)
+                return np.zeros(0), np.zeros((0, 8))
             a = np.array(rows, float).reshape(len(rows), -1)
-            if not len(a):
-                return np.zeros(0), a
             if boot is not None and np.isfinite(a[:, 0]).all():
                 return boot + a[:, 0] / 1e3, a
             return a[:, 1], a
