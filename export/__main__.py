@@ -52,6 +52,8 @@ def evaluate_arguments(p: argparse.ArgumentParser):
                    help="simulated apples at least this visible are truth; less visible ones are ignored")
     p.add_argument("--score-thresh", type=float, help="operating threshold (default: the model's metadata)")
     p.add_argument("--json", type=Path, help="write the metrics here")
+    p.add_argument("--write-metadata", action="store_true",
+                   help="also store the metrics (and the score threshold used) in the model's metadata file")
 
 
 def main(argv=None) -> int:

@@ -73,4 +73,11 @@ def run(args) -> int:
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(res, indent=1) + "\n")
+    if args.write_metadata:
+        meta_path = Path(res["model"]).with_suffix(".json")
+        meta = json.loads(meta_path.read_text())
+        meta["metrics"] = {k: v for k, v in res.items() if isinstance(v, dict)}
+        meta["score_thresh"] = res["score_thresh"]
+        meta_path.write_text(json.dumps(meta, indent=1) + "\n")
+        print(f"metrics stored in {meta_path}")
     return 0
