@@ -67,8 +67,25 @@ def print_table(res: dict):
                   f"{m['recall']:>7.3f}{m['f1']:>7.3f}{m['seconds_per_image']:>8.3f}")
 
 
+def choose_threshold(model, val_flight, every: int, min_visible: float) -> float:
+    from export.metrics import best_f1_threshold
+    from onboard.detector import OnnxDetector
+
+    det = OnnxDetector(model)
+    frames = load_sim_frames(val_flight, min_visible, every=every)
+    preds = [det.detect_rgb(s.image, score_thresh=0.05) for s in frames]
+    t = best_f1_threshold(preds, [(s.boxes, s.ignore) for s in frames], np.round(np.arange(0.3, 0.96, 0.05), 2))
+    log.info("operating threshold %.2f: the best F1 on %d frames of %s", t, len(frames), val_flight)
+    return t
+
+
 def run(args) -> int:
-    res = evaluate(args.model, args.add256, args.sim_flight, args.sim_every, args.min_visible, args.score_thresh)
+    thresh = args.score_thresh
+    if args.val_flight:
+        thresh = choose_threshold(args.model, args.val_flight, args.sim_every, args.min_visible)
+    res = evaluate(args.model, args.add256, args.sim_flight, args.sim_every, args.min_visible, thresh)
+    if args.val_flight:
+        res["score_thresh_chosen_on"] = str(args.val_flight)
     print_table(res)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
@@ -78,6 +95,8 @@ def run(args) -> int:
         meta = json.loads(meta_path.read_text())
         meta["metrics"] = {k: v for k, v in res.items() if isinstance(v, dict)}
         meta["score_thresh"] = res["score_thresh"]
+        if "score_thresh_chosen_on" in res:
+            meta["score_thresh_chosen_on"] = res["score_thresh_chosen_on"]
         meta_path.write_text(json.dumps(meta, indent=1) + "\n")
         print(f"metrics stored in {meta_path}")
     return 0
