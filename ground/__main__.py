@@ -92,8 +92,14 @@ def _cmd_replay(args) -> int:
           f"{rep['frames']['interpolated']} interpolated, {rep['frames']['telemetry']} telemetry poses)")
     for r in rep["rows"]:
         print(f"  row {r['row']}: {r['count']} apples over {r['length_m']:.1f} m")
+    ob = rep.get("onboard", {})
     print(f"wall {rep['wall_seconds']:.1f} s for a {rep['flight_seconds']:.1f} s flight: real-time factor "
-          f"{rep['realtime_factor']:.2f}; ground peak memory {rep['timings']['peak_rss_mb']:.0f} MB")
+          f"{rep['realtime_factor']:.2f}; peak memory: ground {rep['timings']['peak_rss_mb']:.0f} MB, "
+          f"onboard {ob.get('peak_rss_mb', float('nan')):.0f} MB")
+    if ob:
+        print(f"onboard: {ob['frames_processed']} frames processed, {ob['frames_dropped']} dropped, detector "
+              f"{ob['detector_latency_s']:.3f} s/frame, read-to-publish median {ob['read_to_publish_median_s']:.3f} s, "
+              f"link {ob['link_bytes_per_s_at_video_fps'] / 1e6:.2f} MB/s at the video's frame rate")
     if "evaluation" in rep:
         print("against the flight's truth:")
         print(format_evaluation(rep["evaluation"]))

@@ -10,6 +10,7 @@ ends the run with an error status after everything before it was published.
 from __future__ import annotations
 
 import logging
+import resource
 import time
 from dataclasses import dataclass
 
@@ -157,6 +158,7 @@ class OnboardNode:
             "read_to_publish_median_s": float(np.median(lat)),
             "bytes_per_message": {k: self.pub.bytes[k] / max(self.pub.sent[k], 1) for k in wire.KINDS},
             "telemetry_flagged_frames": int((tel["flags"] != 0).sum()), "error": str(error) if error else None,
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
         }
         # what the link must carry at the video's frame rate with these settings
         kf_share = self.stats["keyframes"] / max(processed, 1)
