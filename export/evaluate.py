@@ -52,7 +52,7 @@ def evaluate(model=None, add256=None, sim_flights=(), sim_every: int = 5, min_vi
     out["add256_test"] = score(det, test, thresh, "ADD256 test")
     for f in sim_flights:
         frames = load_sim_frames(f, min_visible, every=sim_every)
-        key = "sim" if len(sim_flights) == 1 else f"sim:{Path(f).name}"
+        key = "sim" if f == sim_flights[0] else f"sim:{Path(f).name}"  # the first is the headline
         out[key] = score(det, ((s.image, s.boxes, s.ignore) for s in frames), thresh, key)
         out[key]["flight"] = str(f)
     return out
