@@ -56,7 +56,8 @@ def _settings(args):
     from ground.pipeline import GroundSettings
     from ground.registration import RegistrationSettings
 
-    return GroundSettings(association=AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom),
+    return GroundSettings(association=AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom,
+                                                        min_inliers=args.min_inliers),
                           registration=RegistrationSettings(max_num_features=args.max_features),
                           max_wait_s=args.max_wait_s, min_score=args.min_score)
 
@@ -81,11 +82,13 @@ def _cmd_replay(args) -> int:
     flight = args.flight_dir or BUNDLED
     out = Path(args.out or f"out/replay/{Path(flight).name}")
     ground_args = ["--k", str(args.k), "--tau-epipolar", str(args.tau_epipolar), "--tau-geom", str(args.tau_geom),
+                   "--min-inliers", str(args.min_inliers),
                    "--max-features", str(args.max_features), "--max-wait-s", str(args.max_wait_s),
                    "--min-score", str(args.min_score)]
     rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
                  keyframe_every=args.keyframe_every, keyframe_width=args.keyframe_width, every=args.every,
-                 ground_args=ground_args, quiet=args.quiet)
+                 ground_args=ground_args, quiet=args.quiet,
+                 onboard_args=["--score-thresh", str(args.detector_score_thresh)] if args.detector_score_thresh else None)
     print()
     print(f"flight {rep['flight_id']}: {rep['apples']} apples in {len(rep['rows'])} rows; "
           f"{rep['frames']['frames']} frames ({rep['frames']['registered']} registered, "
@@ -112,7 +115,10 @@ def _cmd_replay(args) -> int:
 def _ground_options(p):
     p.add_argument("--k", type=int, default=5, help="association: frames ahead linked")
     p.add_argument("--tau-epipolar", type=float, default=4.0, help="association: epipolar gate, px")
-    p.add_argument("--tau-geom", type=float, default=3.0, help="association: RANSAC inlier threshold, px")
+    # detector boxes are noisier than the 1 px jitter the association's own defaults were set for (partly
+    # hidden apples shift the box centre), and false positives make short tracks: 4 px and 4 inliers
+    p.add_argument("--tau-geom", type=float, default=4.0, help="association: RANSAC inlier threshold, px")
+    p.add_argument("--min-inliers", type=int, default=4, help="association: views an apple needs")
     p.add_argument("--max-features", type=int, default=4096, help="registration: SIFT features per keyframe")
     p.add_argument("--max-wait-s", type=float, default=5.0,
                    help="frames wait for the keyframe after them unless no keyframe came for this long (s)")
@@ -159,6 +165,7 @@ def main(argv=None) -> int:
     rp.add_argument("--realtime", action="store_true", help="frames at the video's rate, newest first (drops counted)")
     rp.add_argument("--detector", choices=["onnx", "truth-replay"], default="onnx")
     rp.add_argument("--model", help="ONNX model (default: the shipped one)")
+    rp.add_argument("--detector-score-thresh", type=float, help="the detector's score threshold (default: the model's)")
     rp.add_argument("--keyframe-every", type=int, default=2)
     rp.add_argument("--keyframe-width", type=int, default=960)
     rp.add_argument("--every", type=int, default=1, help="onboard processes every Nth frame")
