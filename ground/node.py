@@ -79,7 +79,8 @@ class GroundNode:
         now = time.time()
         for e in events:
             self._fps_t.append(time.monotonic())
-            self.latency.append(now - e.t_capture)
+            if abs(now - e.t_capture) < 3600:  # a live flight (a replay's capture times are the recording's)
+                self.latency.append(now - e.t_capture)
             if rr is not None:
                 st = self.pipe.status
                 rr.frame(e, self.pipe.camera, {
