@@ -80,6 +80,7 @@ class GroundPipeline:
         self.gaps: list[tuple[int, int]] = []
         self.frame_times: dict[int, float] = {}
         self.frame_poses: dict[int, Pose] = {}  # every released frame's pose (association frame)
+        self._seq_frame: list[int] = []  # association frame number -> frame index
 
     # -- inputs
     def feed(self, msg) -> list[FrameEvent]:
@@ -207,7 +208,11 @@ class GroundPipeline:
                 self.counters["detections"] += len(xy)
                 P = self.camera.K_opencv @ np.hstack([pose.R, pose.t[:, None]])
                 t0 = time.perf_counter()
-                new = self.assoc.add_frame(FrameDetections(f, P, xy))
+                # The association's window is the next k frames *of the stream*: a real-time onboard node
+                # that drops frames sends indices with gaps, so the association counts frames, not indices.
+                seq = len(self._seq_frame)
+                self._seq_frame.append(f)
+                new = self.assoc.add_frame(FrameDetections(seq, P, xy))
                 self.seconds["association"] += time.perf_counter() - t0
                 for a in new:
                     self.apples[a.id] = a
@@ -260,5 +265,5 @@ class GroundPipeline:
                 "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2], "row": np.asarray(rows, int),
                 "observations": np.array([a.n_observations for a in A], int),
                 "reprojection_error_px": np.array([a.reprojection_error for a in A], float),
-                "first_frame": np.array([a.first_frame for a in A], int),
-                "last_frame": np.array([a.last_frame for a in A], int)}
+                "first_frame": np.array([self._seq_frame[a.first_frame] for a in A], int),
+                "last_frame": np.array([self._seq_frame[a.last_frame] for a in A], int)}
