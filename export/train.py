@@ -12,7 +12,6 @@ the best epoch kept as ``best.pt``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import math

@@ -41,26 +41,16 @@ def _cmd_telemetry(args) -> int:
 
 def _cmd_run(args) -> int:
     import json
-    import time
 
     from onboard.node import NodeSettings, OnboardNode
-    from pomar import transport
     from pomar.flight import FlightDir
 
-    from onboard.detector import ModelError
-
-    try:
-        detector = _detector(args, args.flight_dir)
-    except ModelError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    detector = _detector(args, args.flight_dir)
     settings = NodeSettings(lockstep=not args.realtime, every=args.every, keyframe_every=args.keyframe_every,
                             keyframe_every_s=args.keyframe_every_s, keyframe_every_m=args.keyframe_every_m,
                             keyframe_width=args.keyframe_width, jpeg_quality=args.jpeg_quality)
-    listen = None if args.zenoh_config else (args.listen or [transport.DEFAULT_ENDPOINT])
-    session = transport.open_session(listen=listen, connect=args.connect, config_file=args.zenoh_config)
     meta = FlightDir(args.flight_dir).meta()
-    pub = transport.FlightPublisher(session, meta.flight_id, meta.drone_id)
+    session, pub = _publisher(args, meta.flight_id, meta.drone_id)
     try:
         summary = OnboardNode(args.flight_dir, pub, detector, settings).run()
         print(json.dumps(summary, indent=2))
@@ -72,22 +62,41 @@ def _cmd_run(args) -> int:
     except Exception as exc:
         print(f"error: {exc}", file=sys.stderr)
         code = 1
-    # closing a session with data still queued loses it: keep serving the publisher's history a while
+    _linger_and_close(args, session, pub)
+    return code
+
+
+def _publisher(args, flight_id: str, drone_id: str):
+    """The zenoh session (listening on the default endpoint unless told otherwise) and the flight's publisher."""
+    from pomar import transport
+
+    listen = None if args.zenoh_config else (args.listen or [transport.DEFAULT_ENDPOINT])
+    session = transport.open_session(listen=listen, connect=args.connect, config_file=args.zenoh_config)
+    return session, transport.FlightPublisher(session, flight_id, drone_id)
+
+
+def _linger_and_close(args, session, pub):
+    """Closing a session with data still queued loses it: keep serving the publisher's history a while."""
+    import time
+
     try:
         time.sleep(args.linger)
     except KeyboardInterrupt:
         pass
     pub.close()
     session.close()
-    return code
 
 
 def _detector(args, flight_dir=None):
     if args.detector == "onnx":
-        from onboard.detector import OnnxDetector
+        from onboard.detector import ModelError, OnnxDetector
 
-        return OnnxDetector(args.model, providers=args.providers, score_thresh=args.score_thresh,
-                            tile_size=args.tile_size, threads=args.threads)
+        try:
+            return OnnxDetector(args.model, providers=args.providers, score_thresh=args.score_thresh,
+                                tile_size=args.tile_size, threads=args.threads)
+        except ModelError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
     from onboard.replay_detector import TruthReplayDetector
 
     if flight_dir is None:
@@ -97,25 +106,16 @@ def _detector(args, flight_dir=None):
 
 def _cmd_live(args) -> int:
     import json
-    import time
 
-    from onboard.detector import ModelError
     from onboard.live import run_live
     from onboard.node import KeyframePolicy
     from onboard.telemetry import LiveTelemetry
-    from pomar import transport
     from pomar.camera import Camera
 
-    try:
-        detector = _detector(args, args.truth_flight)
-    except ModelError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    detector = _detector(args, args.truth_flight)
     camera = Camera.load(args.camera_json).to_dict()
     telemetry = LiveTelemetry(args.mavlink, max_gap_s=args.max_gap_s)
-    listen = None if args.zenoh_config else (args.listen or [transport.DEFAULT_ENDPOINT])
-    session = transport.open_session(listen=listen, connect=args.connect, config_file=args.zenoh_config)
-    pub = transport.FlightPublisher(session, args.flight_id, args.drone_id)
+    session, pub = _publisher(args, args.flight_id, args.drone_id)
     try:
         summary = run_live(args.camera, telemetry, camera, args.flight_id, args.drone_id, pub, detector,
                            KeyframePolicy(args.keyframe_every, args.keyframe_every_s, args.keyframe_every_m),
@@ -124,12 +124,7 @@ def _cmd_live(args) -> int:
         print(json.dumps(summary, indent=2))
     finally:
         telemetry.close()
-        try:
-            time.sleep(args.linger)
-        except KeyboardInterrupt:
-            pass
-        pub.close()
-        session.close()
+        _linger_and_close(args, session, pub)
     return 0
 
 
