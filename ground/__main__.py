@@ -70,7 +70,7 @@ def _cmd_run(args) -> int:
     report = run_ground(args.flight_id, args.out, connect=connect, listen=args.listen, zenoh_config=args.zenoh_config,
                         drone_id=args.drone_id, settings=_settings(args), rrd=not args.no_rrd, serve=args.serve,
                         viewer=args.viewer, harvest=args.harvest, idle_timeout_s=args.idle_timeout,
-                        resume=not args.fresh)
+                        resume=not args.fresh, expected_frames=args.expected_frames)
     rows = ", ".join(f"row {r['row']}: {r['count']}" for r in report["rows"])
     print(f"{report['apples']} apples ({rows}); outputs in {args.out}/")
     return 0
@@ -185,6 +185,7 @@ def main(argv=None) -> int:
     g.add_argument("--harvest", help="CSV row,kg: report the correlation of per-row counts with yield")
     g.add_argument("--idle-timeout", type=float, default=60.0, help="finish after this long without a message (s)")
     g.add_argument("--fresh", action="store_true", help="ignore OUT/journal.bin (default: resume from it)")
+    g.add_argument("--expected-frames", type=int, help="frames the flight will have, when known (progress ETA)")
     _ground_options(g)
     g.set_defaults(func=_cmd_run)
     r = sub.add_parser("register", help="register a flight's keyframes incrementally with pycolmap; ENU poses for every frame")

@@ -172,7 +172,7 @@ class GroundNode:
 def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=None, drone_id: str = "*",
                settings: GroundSettings | None = None, rrd=True, serve=False, viewer=None, harvest=None,
                idle_timeout_s: float = 60.0, end_grace_s: float = 10.0, resume: bool = True,
-               progress_s: float = 5.0) -> dict:
+               progress_s: float = 5.0, expected_frames: int | None = None) -> dict:
     from pomar import transport
 
     out = Path(out_dir)
@@ -224,9 +224,12 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
             if now - last_progress > progress_s:
                 last_progress = now
                 c = node.pipe.counters
-                log.info("frames %d received, %d mapped (%.1f fps), keyframes %d, apples %d, wall %.0f s",
-                         c["frames"], node.pipe.released + 1, node.ground_fps(), c["keyframes"], len(node.pipe.apples),
-                         now - node.t_start)
+                mapped, fps = node.pipe.released + 1, node.ground_fps()
+                eta = (f", ETA {(expected_frames - mapped) / fps:.0f} s" if expected_frames and fps == fps and fps > 0
+                       else "")
+                log.info("frames %d received, %d%s mapped (%.1f fps%s), keyframes %d, apples %d, wall %.0f s",
+                         c["frames"], mapped, f"/{expected_frames}" if expected_frames else "", fps, eta,
+                         c["keyframes"], len(node.pipe.apples), now - node.t_start)
     except KeyboardInterrupt:
         log.warning("interrupted: writing what there is")
     finally:

@@ -24,6 +24,8 @@ from pomar.align import Similarity
 from pomar.camera import Camera
 
 log = logging.getLogger(__name__)
+# COLMAP's own INFO lines (several per keyframe) would drown the node's progress; warnings still show.
+pycolmap.logging.minloglevel = 1
 
 
 @dataclass
