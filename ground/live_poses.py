@@ -17,6 +17,7 @@ current best ENU frame; :attr:`origin` is the ENU origin (the first GPS fix, unl
 
 from __future__ import annotations
 
+import bisect
 import logging
 from dataclasses import dataclass
 
@@ -73,12 +74,11 @@ class LivePoses:
         self.tel: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}  # frame -> (enu, q_gimbal, h_acc)
         self.model_pose: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # registered keyframes, model coords
         self.kf_processed = -1  # index of the newest keyframe through registration
-        self.newest_frame = -1
         self.fit: Similarity | None = None  # model -> ENU, current
         self.frozen: Similarity | None = None  # model -> association frame (a fit frozen), or None
         self.assoc_from_enu: Similarity | None = None  # set when the association frame is ENU itself
         self.fit_residual_m = float("nan")
-        self.failed: list[int] = []
+        self._kf_sorted: list[int] = []  # the keys of model_pose, in order (kept, not re-sorted per frame)
 
     @staticmethod
     def _scaled(cam: Camera, width: int) -> Camera:
@@ -92,7 +92,6 @@ class LivePoses:
         enu = (np.asarray(self.origin.to_enu(lat, lon, alt), float).reshape(3) if self.origin is not None
                else np.full(3, np.nan))
         self.tel[frame] = (enu, np.asarray(q_gimbal, float), float(h_acc) if np.isfinite(h_acc) and h_acc > 0 else 2.0)
-        self.newest_frame = max(self.newest_frame, frame)
 
     def add_keyframe(self, frame: int, image_bgr: np.ndarray) -> bool:
         """Register a keyframe (in frame order); returns whether it has a pose."""
@@ -107,14 +106,12 @@ class LivePoses:
             ok = self.registrar.add_keyframe(frame, image_bgr)
         except Exception as exc:  # one keyframe that breaks the mapper must not stop the flight
             log.warning("keyframe %d failed to register: %s", frame, exc)
+            self.registrar.failed.append(frame)
             ok = False
         self.kf_processed = frame
-        self.newest_frame = max(self.newest_frame, frame)
         if ok:
             self._refresh_model_poses()
             self._refit()
-        else:
-            self.failed.append(frame)
         return ok
 
     def _refresh_model_poses(self):
@@ -125,14 +122,17 @@ class LivePoses:
         for name in names:
             m = sm.rec.find_image_with_name(name).cam_from_world().matrix()
             R, t = georeference_poses(m[None, :, :3], m[None, :, 3], sm.to_first)
-            self.model_pose[reg.frame_of[name]] = (R[0], t[0])
+            f = reg.frame_of[name]
+            if f not in self.model_pose:
+                bisect.insort(self._kf_sorted, f)
+            self.model_pose[f] = (R[0], t[0])
 
     def _refit(self):
-        frames = [f for f in sorted(self.model_pose) if f in self.tel and np.isfinite(self.tel[f][0]).all()
+        frames = [f for f in self._kf_sorted[-400:] if f in self.tel and np.isfinite(self.tel[f][0]).all()
                   and np.isfinite(self.tel[f][1]).all()]
         if len(frames) < 3:
             return
-        frames = frames[-400:]  # bounded cost; the recent stretch of the flight
+        # bounded cost: the recent stretch of the flight (the last 400 registered keyframes)
         R_m = np.array([self.model_pose[f][0] for f in frames])
         t_m = np.array([self.model_pose[f][1] for f in frames])
         c_m = -np.einsum("nji,nj->ni", R_m, t_m)
@@ -187,8 +187,8 @@ class LivePoses:
             if frame in self.model_pose:
                 R, t = georeference_poses(self.model_pose[frame][0][None], self.model_pose[frame][1][None], m2a)
                 return Pose(frame, R[0], t[0], "registered", 0.01, 0.05)
-            kf = np.array(sorted(self.model_pose))
-            k = int(np.searchsorted(kf, frame))
+            kf = self._kf_sorted
+            k = bisect.bisect_left(kf, frame)
             if 0 < k < len(kf) and kf[k] - kf[k - 1] <= self.max_interp_gap:
                 a, b = int(kf[k - 1]), int(kf[k])
                 R2, t2 = georeference_poses(np.array([self.model_pose[a][0], self.model_pose[b][0]]),

@@ -120,7 +120,7 @@ class GroundNode:
             "registration": {
                 "keyframes_processed": len(reg.seconds) if reg else 0,
                 "registered": len(p.poses.model_pose) if p.poses else 0,
-                "failed": len(p.poses.failed) if p.poses else 0,
+                "failed": len(reg.failed) if reg else 0,
                 "submodels": len(reg.submodels) if reg else 0,
                 "seconds_per_keyframe_median": float(np.median(reg.seconds)) if reg and reg.seconds else None,
                 "georeference_gps_rms_m": p.poses.fit_residual_m if p.poses else None,

@@ -99,15 +99,7 @@ class GroundPipeline:
             return
         self.camera = Camera.from_dict(msg.camera, source=f"camera message of {msg.flight_id}/{msg.drone_id}")
         self.flight_id, self.drone_id = msg.flight_id, msg.drone_id
-        kf_w = None
-        for jpeg in self.keyframes.values():  # keyframes that came before the camera tell their width
-            img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
-            if img is not None:
-                kf_w = img.shape[1]
-                break
-        self._kf_width = kf_w
-        if kf_w is not None:
-            self._make_poses(kf_w)
+        # the registration is made in step(), once the first keyframe tells the keyframes' width
 
     def _make_poses(self, kf_width: int):
         self.poses = LivePoses(self.camera, self.workdir, keyframe_width=kf_width, settings=self.s.registration,
