@@ -27,6 +27,8 @@ def train_arguments(p: argparse.ArgumentParser):
     p.add_argument("--checkpoint-every", type=int, default=100)
     p.add_argument("--max-minutes", type=float, help="stop (checkpointed, resumable) after this long")
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--init", type=Path, metavar="CKPT",
+                   help="start from this checkpoint's weights with a fresh optimiser and schedule (a second cycle)")
 
 
 

@@ -1,6 +1,7 @@
 """Train the apple detector from scratch on ADD256 (+ crops of simulated flights), with checkpoints and resume.
 
     python -m export train --out out/export/r18 [--add256 DIR] [--sim-flight DIR ...] [--epochs N] [--resume]
+                           [--init CKPT]   # a second cycle from trained weights
 
 Each epoch is the ADD256 training split (1,025 patches) plus ``--sim-crops`` random crops of the
 simulated flights' frames, augmented (scale, crops, flips, 90° rotations, colour). The learning rate
@@ -80,7 +81,7 @@ def save_atomic(obj, path: Path):
 
 def train(out: Path, add256=None, sim_flights=(), backbone="resnet18", fpn_channels=128, epochs=8, batch=4,
           lr=0.01, sim_crops=400, seed=0, threads=None, checkpoint_every=100, resume=False, log_every=10,
-          max_minutes=None):
+          max_minutes=None, init=None):
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if threads:
@@ -103,13 +104,20 @@ def train(out: Path, add256=None, sim_flights=(), backbone="resnet18", fpn_chann
         it, history, best = ckpt["iteration"], ckpt["history"], ckpt["best_ap50"]
         torch.set_rng_state(ckpt["torch_rng"])
         log.info("resumed %s at iteration %d/%d", last, it, total)
+    elif init is not None:
+        model, ckpt = load_checkpoint(init)
+        config = ckpt["config"]
+        log.info("initialised from %s (%s, trained %d iterations)", init, config, ckpt["iteration"])
+        opt = torch.optim.SGD(model.parameters(), lr=lr, momentum=0.9, weight_decay=1e-4)
+        it, history, best = 0, [], -1.0
     else:
         model = make(config)
         opt = torch.optim.SGD(model.parameters(), lr=lr, momentum=0.9, weight_decay=1e-4)
         it, history, best = 0, [], -1.0
     run_info = dict(backbone=backbone, fpn_channels=fpn_channels, epochs=epochs, batch=batch, lr=lr,
                     sim_crops=sim_crops, seed=seed, sim_flights=[str(f) for f in sim_flights],
-                    add256_train=len(add), sim_frames=len(sim), iterations=total)
+                    add256_train=len(add), sim_frames=len(sim), iterations=total,
+                    init=str(init) if init is not None else None)
 
     def checkpoint(path):
         save_atomic({"config": config, "model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it,
@@ -170,5 +178,5 @@ def train(out: Path, add256=None, sim_flights=(), backbone="resnet18", fpn_chann
 
 def run(args) -> int:
     train(args.out, args.add256, args.sim_flight, args.backbone, args.fpn_channels, args.epochs, args.batch, args.lr,
-          args.sim_crops, args.seed, args.threads, args.checkpoint_every, args.resume, max_minutes=args.max_minutes)
+          args.sim_crops, args.seed, args.threads, args.checkpoint_every, args.resume, max_minutes=args.max_minutes, init=args.init)
     return 0
