@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import shutil
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,6 +21,7 @@ import cv2
 import numpy as np
 import pycolmap
 
+from ground.matching import match_descriptors, unit_descriptors
 from pomar.align import Similarity
 from pomar.camera import Camera
 
@@ -37,6 +39,7 @@ class RegistrationSettings:
     init_frames: int = 6
     first_octave: int = 0
     max_num_features: int = 4096
+    max_num_orientations: int = 2
     init_min_tri_angle: float = 2.0
 
 
@@ -67,42 +70,60 @@ class IncrementalRegistrar:
         self._mopts.ba_refine_extra_params = False
         self._mopts.mapper.init_min_tri_angle = self.s.init_min_tri_angle
         self._mopts.mapper.init_min_num_inliers = 50
-        self._camera_id = None
+        self._open_database()
 
     # -- features and matches
-    def _extract(self, name: str):
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = self.cam.model
-        reader.camera_params = ",".join(str(p) for p in self.cam.params())
-        if self._camera_id is not None:
-            reader.existing_camera_id = self._camera_id
+    def _open_database(self):
+        """One database for the flight: the camera and its rig once, then an image and a frame per keyframe."""
+        self._db = pycolmap.Database.open(self.db_path)
+        self._pcam = pycolmap.Camera(model=self.cam.model, width=self.cam.width, height=self.cam.height,
+                                     params=list(self.cam.params()))
+        self._camera_id = self._db.write_camera(self._pcam)
+        self._pcam.camera_id = self._camera_id
+        self._sensor = pycolmap.sensor_t(type=pycolmap.SensorType.CAMERA, id=self._camera_id)
+        rig = pycolmap.Rig()
+        rig.add_ref_sensor(self._sensor)
+        self._rig_id = self._db.write_rig(rig)
         ext = pycolmap.FeatureExtractionOptions()
         ext.sift.first_octave = self.s.first_octave
         ext.sift.max_num_features = self.s.max_num_features
-        pycolmap.extract_features(self.db_path, self.work / "images", image_names=[name],
-                                  camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                                  extraction_options=ext, device=pycolmap.Device.cpu)
-        if self._camera_id is None:
-            with pycolmap.Database.open(self.db_path) as db:
-                self._camera_id = db.read_image_with_name(name).camera_id
+        ext.sift.max_num_orientations = self.s.max_num_orientations
+        # kept alive for the whole flight: pycolmap's extract_features would rebuild it and re-read the image
+        self._extractor = pycolmap.FeatureExtractor.create(ext, pycolmap.Device.cpu)
+        self._two_view = pycolmap.TwoViewGeometryOptions()
+        self._recent = deque(maxlen=max(self.s.match_window, 1))  # (image id, keypoint xy, unit descriptors)
 
-    def _match(self, name: str):
-        prev = self.names[-1 - self.s.match_window: -1]
-        if not prev:
-            return
-        pairs = self.work / "pairs.txt"
-        pairs.write_text("".join(f"{name} {p}\n" for p in prev))
-        popts = pycolmap.ImportedPairingOptions()
-        popts.match_list_path = str(pairs)
-        pycolmap.match_image_pairs(self.db_path, pairing_options=popts, device=pycolmap.Device.cpu)
+    def _extract(self, name: str, image_bgr: np.ndarray):
+        gray = image_bgr if image_bgr.ndim == 2 else cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)
+        keypoints, descriptors = self._extractor.extract_from_uint8_array(np.ascontiguousarray(gray))
+        kp = pycolmap.keypoints_to_matrix(keypoints)
+        image_id = self._db.write_image(pycolmap.Image(name=name, camera_id=self._camera_id))
+        frame = pycolmap.Frame(rig_id=self._rig_id)
+        frame.add_data_id(pycolmap.data_t(sensor_id=self._sensor, id=image_id))
+        self._db.write_frame(frame)
+        self._db.write_keypoints(image_id, kp)
+        self._db.write_descriptors(image_id, descriptors)
+        return image_id, kp[:, :2].astype(np.float64), unit_descriptors(descriptors.data)
+
+    def _match(self, new) -> None:
+        """Match the new keyframe against the previous ``match_window`` ones and verify each pair's geometry."""
+        image_id, xy, desc = new
+        for prev_id, prev_xy, prev_desc in self._recent:
+            matches = match_descriptors(prev_desc, desc)
+            if len(matches) == 0:
+                continue
+            self._db.write_matches(prev_id, image_id, matches)
+            geom = pycolmap.estimate_calibrated_two_view_geometry(self._pcam, prev_xy, self._pcam, xy, matches,
+                                                                  self._two_view)
+            self._db.write_two_view_geometry(prev_id, image_id, geom)
+        self._recent.append(new)
 
     # -- mapping
     def _mapper(self, names: list[str]):
         copts = pycolmap.DatabaseCacheOptions()
         copts.min_num_matches = 15
         copts.image_names = set(names)
-        with pycolmap.Database.open(self.db_path) as db:
-            cache = pycolmap.DatabaseCache.create(db, copts)
+        cache = pycolmap.DatabaseCache.create(self._db, copts)
         return cache, pycolmap.IncrementalMapper(cache)
 
     def _image_id(self, cache, name):
@@ -187,11 +208,11 @@ class IncrementalRegistrar:
         t0 = time.perf_counter()
         name = f"{frame:06d}.jpg"
         cv2.imwrite(str(self.work / "images" / name), image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
-        self._extract(name)
+        features = self._extract(name, image_bgr)
         t1 = time.perf_counter()
         self.names.append(name)
         self.frame_of[name] = frame
-        self._match(name)
+        self._match(features)
         t2 = time.perf_counter()
         ok = False
         sm = self.submodels[-1] if self.submodels else None

@@ -1,4 +1,4 @@
-"""python -m sim {flight,info,show}: render synthetic orchard flights and look at them."""
+"""python -m sim {flight,info,show,telemetry}: render synthetic orchard flights and look at them."""
 
 from __future__ import annotations
 
@@ -42,6 +42,16 @@ def _cmd_show(args) -> int:
     return 0
 
 
+def _cmd_telemetry(args) -> int:
+    from sim.flight import rewrite_telemetry
+
+    changes = {k: v for k, v in (("gps_noise_m", args.gps_noise_m), ("gps_alt_noise_m", args.gps_alt_noise_m),
+                                 ("attitude_noise_deg", args.attitude_noise_deg),
+                                 ("gimbal_noise_deg", args.gimbal_noise_deg)) if v is not None}
+    print(json.dumps(rewrite_telemetry(args.flight_dir, args.out, **changes), indent=2))
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m sim", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -61,6 +71,15 @@ def main(argv=None) -> int:
     s.add_argument("--out", default="out/frame.png")
     s.add_argument("--min-visible", type=float, default=0.5)
     s.set_defaults(func=_cmd_show)
+    t = sub.add_parser("telemetry", help="write a simulated flight's .tlog again with other telemetry settings "
+                                         "(e.g. RTK-grade GPS); video and truth are linked, not copied")
+    t.add_argument("flight_dir")
+    t.add_argument("--out", required=True, help="new flight directory")
+    t.add_argument("--gps-noise-m", type=float, help="horizontal GPS error sigma (m); RTK is about 0.02")
+    t.add_argument("--gps-alt-noise-m", type=float, help="vertical GPS error sigma (m)")
+    t.add_argument("--attitude-noise-deg", type=float)
+    t.add_argument("--gimbal-noise-deg", type=float)
+    t.set_defaults(func=_cmd_telemetry)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     from pomar.flight import FlightFormatError

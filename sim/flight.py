@@ -166,3 +166,42 @@ def simulate_flight(cfg: SimConfig, out_dir: str | Path, jobs: int | None = None
     }
     log.info("flight written: %s", summary)
     return summary
+
+
+def rewrite_telemetry(flight_dir: str | Path, out_dir: str | Path, **telemetry) -> dict:
+    """A copy of a simulated flight whose .tlog is written again with other telemetry settings.
+
+    The video, camera and truth are the same flight's (linked, not copied); only the autopilot's view
+    changes, e.g. an RTK receiver (``gps_noise_m=0.02``) in place of a plain GPS, to separate what the
+    images can give from what the GPS allows.
+    """
+    src, out = Path(flight_dir), Path(out_dir)
+    cfg_path = src / "sim_config.json"
+    if not cfg_path.is_file():
+        raise ff.FlightFormatError(f"{cfg_path}: missing; only a simulated flight's telemetry can be written again")
+    from sim import config as sc
+
+    data = json.loads(cfg_path.read_text())
+    for key, value in telemetry.items():
+        if key not in data["telemetry"]:
+            raise sc.ConfigError(f"telemetry.{key}: unknown (known: {', '.join(data['telemetry'])})")
+        data["telemetry"][key] = value
+    cfg = sc.from_dict(data, str(cfg_path))
+    meta = json.loads((src / ff.FLIGHT).read_text())
+    out.mkdir(parents=True, exist_ok=True)
+    for name in (ff.VIDEO, ff.TRUTH):
+        link = out / name
+        if link.is_symlink() or link.exists():
+            if not link.is_symlink():
+                raise FileExistsError(f"{link}: exists and is not a link; choose an empty --out")
+            link.unlink()
+        link.symlink_to((src / name).resolve())
+    (out / ff.CAMERA).write_text((src / ff.CAMERA).read_text())
+    origin = Origin(cfg.origin.lat, cfg.origin.lon, cfg.origin.alt)
+    counts = write_tlog(cfg, build_trajectory(cfg), origin, parse_utc(cfg.flight.start_utc), int(meta["frame_count"]),
+                        out / ff.TLOG)
+    meta["telemetry_rewritten_from"] = str(src)
+    (out / ff.FLIGHT).write_text(json.dumps(meta, indent=2) + "\n")
+    (out / "sim_config.json").write_text(json.dumps(cfg.to_dict(), indent=2) + "\n")
+    log.info("telemetry of %s written again into %s (%s)", src, out, telemetry)
+    return {"out": str(out), "telemetry": cfg.to_dict()["telemetry"], "tlog_messages": counts}

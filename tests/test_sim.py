@@ -108,3 +108,45 @@ def test_apples_sizes_rows_and_varieties(bundled_flight):
     # some apples are hidden: the flight sees some only partly
     det = bundled_flight.truth_detections()
     assert (det["visible_fraction"] < 0.5).mean() > 0.1
+
+
+def test_rewrite_telemetry_same_settings_is_identical_and_rtk_is_accurate(bundled_flight, tmp_path):
+    import json
+
+    import numpy as np
+
+    from ground.poses import frame_telemetry
+    from pomar.flight import FRAMES_COLUMNS, FlightDir, read_csv
+    from pomar.geo import Origin
+    from sim.flight import rewrite_telemetry
+
+    rewrite_telemetry(bundled_flight.path, tmp_path / "same")
+    assert (tmp_path / "same" / "telemetry.tlog").read_bytes() == bundled_flight.tlog.read_bytes()
+
+    rewrite_telemetry(bundled_flight.path, tmp_path / "rtk", gps_noise_m=0.02, gps_alt_noise_m=0.03)
+    rtk = FlightDir(tmp_path / "rtk")
+    assert rtk.video.resolve() == bundled_flight.video.resolve()
+    truth = read_csv(bundled_flight.truth_dir / "frames.csv", FRAMES_COLUMNS)
+    o = json.loads((bundled_flight.truth_dir / "origin.json").read_text())
+    origin = Origin(o["lat"], o["lon"], o["alt"])
+    true_enu = origin.to_enu(truth["lat"], truth["lon"], truth["alt"])
+
+    def gps_error(flight):
+        _, s = frame_telemetry(flight)
+        return np.linalg.norm(origin.to_enu(s["lat"], s["lon"], s["alt"]) - true_enu, axis=1)
+
+    assert np.median(gps_error(rtk)) < 0.1 < np.median(gps_error(bundled_flight))
+
+
+def test_rewrite_telemetry_refuses_unknown_keys_and_real_flights(bundled_flight, tmp_path):
+    import pytest
+
+    from pomar.flight import FlightFormatError
+    from sim.config import ConfigError
+    from sim.flight import rewrite_telemetry
+
+    with pytest.raises(ConfigError, match="gps_nois"):
+        rewrite_telemetry(bundled_flight.path, tmp_path / "x", gps_nois=1.0)
+    (tmp_path / "real").mkdir()
+    with pytest.raises(FlightFormatError, match="sim_config.json"):
+        rewrite_telemetry(tmp_path / "real", tmp_path / "y")
