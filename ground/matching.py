@@ -30,14 +30,16 @@ def match_descriptors(a: np.ndarray, b: np.ndarray, max_ratio: float = 0.8, max_
     rows = np.arange(len(a))
     j = sim.argmax(1)
     best = sim[rows, j]
-    back = sim.argmax(0) if cross_check else None
+    # cross-check: row i's best must also be the best of its column (a max over axis 0 is a fast
+    # contiguous reduction; an argmax over it is not)
+    col_best = sim.max(0) if cross_check else None
     sim[rows, j] = -np.inf  # the product is ours: mask the best in place to find the second
     second = sim.max(1)
     d_best = np.sqrt(np.maximum(2.0 - 2.0 * best, 0.0))
     d_second = np.sqrt(np.maximum(2.0 - 2.0 * second, 0.0))
     ok = (d_best <= max_distance) & (d_best < max_ratio * d_second)
     if cross_check:
-        ok &= back[j] == rows
+        ok &= best >= col_best[j]
     return np.stack([rows[ok], j[ok]], axis=1).astype(np.uint32)
 
 

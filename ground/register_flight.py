@@ -70,6 +70,7 @@ def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, set
             bar.update(1)
     if bar:
         bar.close()
+    reg.close()
     seconds = time.perf_counter() - t0
     if decoded < n:
         log.error("%s: decoded %d of %d frames; the rest get telemetry poses", fl.video, decoded, n)

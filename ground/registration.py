@@ -14,6 +14,7 @@ import logging
 import shutil
 import time
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -32,14 +33,15 @@ pycolmap.logging.minloglevel = 1
 
 @dataclass
 class RegistrationSettings:
-    match_window: int = 8
+    match_window: int = 6
     submodel_size: int = 60
     overlap: int = 10
     global_ba_every: int = 10
     init_frames: int = 6
     first_octave: int = 0
-    max_num_features: int = 4096
+    max_num_features: int = 3000
     max_num_orientations: int = 2
+    sift: str = "opencv"  # or "colmap"
     init_min_tri_angle: float = 2.0
 
 
@@ -90,33 +92,52 @@ class IncrementalRegistrar:
         ext.sift.max_num_orientations = self.s.max_num_orientations
         # kept alive for the whole flight: pycolmap's extract_features would rebuild it and re-read the image
         self._extractor = pycolmap.FeatureExtractor.create(ext, pycolmap.Device.cpu)
+        # OpenCV's SIFT (the default) takes about half the time of COLMAP's on a 1280x720 keyframe here; the
+        # mapper only reads keypoints and verified matches, so either serves
+        self._cv_sift = cv2.SIFT_create(nfeatures=self.s.max_num_features) if self.s.sift == "opencv" else None
+        self._pool = ThreadPoolExecutor(2, thread_name_prefix="two-view")
         self._two_view = pycolmap.TwoViewGeometryOptions()
         self._recent = deque(maxlen=max(self.s.match_window, 1))  # (image id, keypoint xy, unit descriptors)
 
     def _extract(self, name: str, image_bgr: np.ndarray):
-        gray = image_bgr if image_bgr.ndim == 2 else cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)
-        keypoints, descriptors = self._extractor.extract_from_uint8_array(np.ascontiguousarray(gray))
-        kp = pycolmap.keypoints_to_matrix(keypoints)
+        gray = np.ascontiguousarray(image_bgr if image_bgr.ndim == 2 else cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY))
+        if self._cv_sift is not None:
+            kps, raw = self._cv_sift.detectAndCompute(gray, None)
+            # OpenCV puts the top-left pixel centre at (0, 0), COLMAP at (0.5, 0.5)
+            kp = np.array([k.pt for k in kps], np.float32).reshape(-1, 2) + 0.5
+            raw = np.zeros((0, 128), np.float32) if raw is None else raw
+            root = np.sqrt(raw / np.maximum(raw.sum(1, keepdims=True), 1e-12))  # RootSIFT, as COLMAP stores it
+            descriptors = pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT,
+                                                      np.clip(np.round(root * 512), 0, 255).astype(np.uint8))
+            desc = root.astype(np.float32)
+        else:
+            keypoints, descriptors = self._extractor.extract_from_uint8_array(gray)
+            kp = pycolmap.keypoints_to_matrix(keypoints)
+            desc = unit_descriptors(descriptors.data)
         image_id = self._db.write_image(pycolmap.Image(name=name, camera_id=self._camera_id))
         frame = pycolmap.Frame(rig_id=self._rig_id)
         frame.add_data_id(pycolmap.data_t(sensor_id=self._sensor, id=image_id))
         self._db.write_frame(frame)
         self._db.write_keypoints(image_id, kp)
         self._db.write_descriptors(image_id, descriptors)
-        return image_id, kp[:, :2].astype(np.float64), unit_descriptors(descriptors.data)
+        return image_id, kp[:, :2].astype(np.float64), desc
 
     def _match(self, new) -> None:
-        """Match the new keyframe against the previous ``match_window`` ones and verify each pair's geometry."""
+        """Match the new keyframe against the previous ``match_window`` ones and verify each pair's geometry
+        (RANSAC in pycolmap releases the GIL: the pairs are verified on two threads)."""
         image_id, xy, desc = new
-        for prev_id, prev_xy, prev_desc in self._recent:
-            matches = match_descriptors(prev_desc, desc)
-            if len(matches) == 0:
-                continue
+        pairs = [(prev_id, prev_xy, match_descriptors(prev_desc, desc)) for prev_id, prev_xy, prev_desc in self._recent]
+        pairs = [p for p in pairs if len(p[2])]
+        geoms = self._pool.map(lambda p: pycolmap.estimate_calibrated_two_view_geometry(
+            self._pcam, p[1], self._pcam, xy, p[2], self._two_view), pairs)
+        for (prev_id, _, matches), geom in zip(pairs, geoms):
             self._db.write_matches(prev_id, image_id, matches)
-            geom = pycolmap.estimate_calibrated_two_view_geometry(self._pcam, prev_xy, self._pcam, xy, matches,
-                                                                  self._two_view)
             self._db.write_two_view_geometry(prev_id, image_id, geom)
         self._recent.append(new)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)
+        self._db.close()
 
     # -- mapping
     def _mapper(self, names: list[str]):

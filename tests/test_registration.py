@@ -67,3 +67,14 @@ def test_unregistered_frame_between_registered_ones_is_interpolated(reg_flight, 
     rows = read_poses(tmp_path / "b" / "poses.csv")
     assert rows[12]["source"] == "interpolated"
     assert res["by_source"]["interpolated"]["rotation_error_median_deg"] < 0.5
+
+
+def test_colmap_sift_registers_too(reg_flight, tmp_path):
+    """The mapper reads only keypoints and verified matches: COLMAP's own SIFT still works in their place."""
+    from ground.register_flight import register_flight
+    from ground.registration import RegistrationSettings
+
+    res = register_flight(reg_flight.path, tmp_path / "c", every=1, settings=RegistrationSettings(sift="colmap"),
+                          progress=False, frames_limit=12)
+    assert res["registered_fraction"] > 0.9
+    assert res["rotation_error_median_deg"] < 0.5
