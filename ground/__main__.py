@@ -58,7 +58,8 @@ def _settings(args):
 
     return GroundSettings(association=AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom,
                                                         min_inliers=args.min_inliers),
-                          registration=RegistrationSettings(max_num_features=args.max_features),
+                          registration=RegistrationSettings(max_num_features=args.max_features,
+                                                            match_window=args.match_window, sift=args.sift),
                           max_wait_s=args.max_wait_s, min_score=args.min_score)
 
 
@@ -83,7 +84,8 @@ def _cmd_replay(args) -> int:
     out = Path(args.out or f"out/replay/{Path(flight).name}")
     ground_args = ["--k", str(args.k), "--tau-epipolar", str(args.tau_epipolar), "--tau-geom", str(args.tau_geom),
                    "--min-inliers", str(args.min_inliers),
-                   "--max-features", str(args.max_features), "--max-wait-s", str(args.max_wait_s),
+                   "--max-features", str(args.max_features), "--match-window", str(args.match_window),
+                   "--sift", args.sift, "--max-wait-s", str(args.max_wait_s),
                    "--min-score", str(args.min_score)]
     rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
                  keyframe_every=args.keyframe_every, keyframe_width=args.keyframe_width, every=args.every,
@@ -123,6 +125,10 @@ def _ground_options(p):
     p.add_argument("--min-inliers", type=int, default=4, help="association: views an apple needs")
     p.add_argument("--max-features", type=int, default=RegistrationSettings.max_num_features,
                    help="registration: SIFT features per keyframe")
+    p.add_argument("--match-window", type=int, default=RegistrationSettings.match_window,
+                   help="registration: match each keyframe against this many previous ones")
+    p.add_argument("--sift", choices=["opencv", "colmap"], default=RegistrationSettings.sift,
+                   help="registration: SIFT implementation")
     p.add_argument("--max-wait-s", type=float, default=5.0,
                    help="frames wait for the keyframe after them unless no keyframe came for this long (s)")
     p.add_argument("--min-score", type=float, default=0.0, help="ignore detections scored below this")
