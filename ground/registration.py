@@ -94,10 +94,13 @@ class IncrementalRegistrar:
         ext.sift.first_octave = self.s.first_octave
         ext.sift.max_num_features = self.s.max_num_features
         ext.sift.max_num_orientations = self.s.max_num_orientations
-        # kept alive for the whole flight: pycolmap's extract_features would rebuild it and re-read the image
-        self._extractor = pycolmap.FeatureExtractor.create(ext, pycolmap.Device.cpu)
-        # the mapper only reads keypoints and verified matches, so either SIFT serves (see RegistrationSettings)
-        self._cv_sift = cv2.SIFT_create(nfeatures=self.s.max_num_features) if self.s.sift == "opencv" else None
+        if self.s.sift not in ("colmap", "opencv"):
+            raise ValueError(f"RegistrationSettings.sift must be 'colmap' or 'opencv', got {self.s.sift!r}")
+        # kept alive for the whole flight: pycolmap's extract_features would rebuild it and re-read the image.
+        # The mapper only reads keypoints and verified matches, so either SIFT serves (see RegistrationSettings)
+        colmap = self.s.sift == "colmap"
+        self._extractor = pycolmap.FeatureExtractor.create(ext, pycolmap.Device.cpu) if colmap else None
+        self._cv_sift = None if colmap else cv2.SIFT_create(nfeatures=self.s.max_num_features)
         self._pool = ThreadPoolExecutor(2, thread_name_prefix="two-view")
         self._two_view = pycolmap.TwoViewGeometryOptions()
         self._recent = deque(maxlen=max(self.s.match_window, 1))  # (image id, keypoint xy, unit descriptors)
