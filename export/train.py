@@ -178,5 +178,6 @@ def train(out: Path, add256=None, sim_flights=(), backbone="resnet18", fpn_chann
 
 def run(args) -> int:
     train(args.out, args.add256, args.sim_flight, args.backbone, args.fpn_channels, args.epochs, args.batch, args.lr,
-          args.sim_crops, args.seed, args.threads, args.checkpoint_every, args.resume, max_minutes=args.max_minutes, init=args.init)
+          args.sim_crops, args.seed, args.threads, args.checkpoint_every, args.resume, max_minutes=args.max_minutes,
+          init=args.init)
     return 0

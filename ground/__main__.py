@@ -114,21 +114,25 @@ def _cmd_replay(args) -> int:
     return 0
 
 
-def _ground_options(p):
+def _registration_options(p):
     from ground.registration import RegistrationSettings
 
+    p.add_argument("--max-features", type=int, default=RegistrationSettings.max_num_features,
+                   help="registration: SIFT features per keyframe")
+    p.add_argument("--match-window", type=int, default=RegistrationSettings.match_window,
+                   help="registration: match each keyframe against this many previous ones")
+    p.add_argument("--sift", choices=["opencv", "colmap"], default=RegistrationSettings.sift,
+                   help="registration: SIFT implementation (the mapper reads only keypoints and verified matches)")
+
+
+def _ground_options(p):
     p.add_argument("--k", type=int, default=5, help="association: frames ahead linked")
     p.add_argument("--tau-epipolar", type=float, default=4.0, help="association: epipolar gate, px")
     # detector boxes are noisier than the 1 px jitter the association's own defaults were set for (partly
     # hidden apples shift the box centre), and false positives make short tracks: 4 px and 4 inliers
     p.add_argument("--tau-geom", type=float, default=4.0, help="association: RANSAC inlier threshold, px")
     p.add_argument("--min-inliers", type=int, default=4, help="association: views an apple needs")
-    p.add_argument("--max-features", type=int, default=RegistrationSettings.max_num_features,
-                   help="registration: SIFT features per keyframe")
-    p.add_argument("--match-window", type=int, default=RegistrationSettings.match_window,
-                   help="registration: match each keyframe against this many previous ones")
-    p.add_argument("--sift", choices=["opencv", "colmap"], default=RegistrationSettings.sift,
-                   help="registration: SIFT implementation")
+    _registration_options(p)
     p.add_argument("--max-wait-s", type=float, default=5.0,
                    help="frames wait for the keyframe after them unless no keyframe came for this long (s)")
     p.add_argument("--min-score", type=float, default=0.0, help="ignore detections scored below this")
@@ -136,7 +140,6 @@ def _ground_options(p):
 
 def main(argv=None) -> int:
     from ground.evaluate import __doc__ as evaluate_doc
-    from ground.registration import RegistrationSettings
 
     p = argparse.ArgumentParser(prog="python -m ground", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -203,11 +206,7 @@ def main(argv=None) -> int:
     r.add_argument("--every", type=int, default=2, help="every Nth frame is a keyframe (as the onboard default)")
     r.add_argument("--scale", type=float, default=1.0, help="resize keyframes by this factor")
     r.add_argument("--submodel-size", type=int, default=60)
-    r.add_argument("--match-window", type=int, default=RegistrationSettings.match_window,
-                   help="match each keyframe against this many previous ones")
-    r.add_argument("--max-features", type=int, default=RegistrationSettings.max_num_features)
-    r.add_argument("--sift", choices=["opencv", "colmap"], default=RegistrationSettings.sift,
-                   help="SIFT implementation (the mapper reads only keypoints and verified matches)")
+    _registration_options(r)
     r.add_argument("--frames", type=int, help="only the first N frames")
     r.add_argument("--out")
     r.add_argument("--json")

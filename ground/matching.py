@@ -2,8 +2,9 @@
 
 COLMAP's own CPU matcher, called pair by pair through pycolmap (``FeatureMatcher.match``), took 1.8 s per
 pair of 3,500-feature 1280x720 keyframes here (measured while a training run shared the CPU), and
-``match_image_pairs`` pays about 0.15 s of set-up per call. One float32 matrix product per pair (numpy's BLAS) gives the same matches (2,172 of COLMAP's 2,175
-on a bundled-flight pair) in a few tens of milliseconds. The criteria are COLMAP's defaults: ratio 0.8,
+``match_image_pairs`` pays about 0.15 s of set-up per call. One float32 matrix product per pair (numpy's
+BLAS) gives the same matches (2,172 of COLMAP's 2,175 on a bundled-flight pair) in a few tens of
+milliseconds. The criteria are COLMAP's defaults: ratio 0.8,
 distance 0.7 on unit descriptors, cross-check.
 
     python -m ground.matching A.npy B.npy     # descriptors saved with numpy, prints the match count

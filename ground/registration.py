@@ -40,7 +40,6 @@ class RegistrationSettings:
     init_frames: int = 6
     first_octave: int = 0
     max_num_features: int = 4096
-    max_num_orientations: int = 2
     # "colmap" (pycolmap's SIFT) or "opencv": OpenCV's takes half the time (0.17 against 0.33 s per
     # 1280x720 keyframe) and the final batch poses are as good, but in the live ground node, where each
     # frame's pose is decided soon after its keyframe registers, it let the model's scale drift (4.5 px
@@ -93,7 +92,6 @@ class IncrementalRegistrar:
         ext = pycolmap.FeatureExtractionOptions()
         ext.sift.first_octave = self.s.first_octave
         ext.sift.max_num_features = self.s.max_num_features
-        ext.sift.max_num_orientations = self.s.max_num_orientations
         if self.s.sift not in ("colmap", "opencv"):
             raise ValueError(f"RegistrationSettings.sift must be 'colmap' or 'opencv', got {self.s.sift!r}")
         # kept alive for the whole flight: pycolmap's extract_features would rebuild it and re-read the image.
