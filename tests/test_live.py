@@ -93,7 +93,11 @@ def test_live_camera_and_mavlink_to_zenoh(replay_test_flight):
     assert ok.mean() >= 0.8 and abs(np.nanmean(lat) - -28.516) < 0.01
     # the frames read before the autopilot's first messages are flagged, not filled in
     assert all(f.telemetry.flags & Flags.NO_POSITION for f, good in zip(frames, ok) if not good)
-    assert all(np.isfinite(f.telemetry.q_gimbal).all() for f, good in zip(frames, ok) if good)
+    # the gimbal is its own MAVLink component and its stream may start after the autopilot's position:
+    # a frame without a gimbal attitude is flagged, never filled in
+    gimbal = np.array([np.isfinite(f.telemetry.q_gimbal).all() for f in frames])
+    assert gimbal.mean() >= 0.7
+    assert all(f.telemetry.flags & (Flags.NO_GIMBAL | Flags.GIMBAL_GAP) for f, g in zip(frames, gimbal) if not g)
     # keyframes by time: about one every 0.5 s of a 4 s video
     assert 3 <= len(keyframes) <= 12
     # the node announced itself to the autopilot as a companion computer
