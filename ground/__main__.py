@@ -36,10 +36,8 @@ def _cmd_evaluate(args) -> int:
 
 def _cmd_register(args) -> int:
     from ground.register_flight import register_flight
-    from ground.registration import RegistrationSettings
 
-    settings = RegistrationSettings(submodel_size=args.submodel_size, match_window=args.match_window,
-                                    max_num_features=args.max_features, sift=args.sift)
+    settings = _registration_settings(args, submodel_size=args.submodel_size)
     out = args.out or f"out/register/{Path(args.flight_dir).name}"
     res = register_flight(args.flight_dir, out, args.every, args.scale, settings, progress=not args.quiet,
                           frames_limit=args.frames)
@@ -54,12 +52,10 @@ def _cmd_register(args) -> int:
 def _settings(args):
     from ground.association import AssociationParams
     from ground.pipeline import GroundSettings
-    from ground.registration import RegistrationSettings
 
     return GroundSettings(association=AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom,
                                                         min_inliers=args.min_inliers),
-                          registration=RegistrationSettings(max_num_features=args.max_features,
-                                                            match_window=args.match_window, sift=args.sift),
+                          registration=_registration_settings(args),
                           max_wait_s=args.max_wait_s, min_score=args.min_score)
 
 
@@ -86,7 +82,7 @@ def _cmd_replay(args) -> int:
                    "--min-inliers", str(args.min_inliers),
                    "--max-features", str(args.max_features), "--match-window", str(args.match_window),
                    "--sift", args.sift, "--max-wait-s", str(args.max_wait_s),
-                   "--min-score", str(args.min_score)]
+                   "--min-score", str(args.min_score)] + (["--upright"] if args.upright else [])
     rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
                  keyframe_every=args.keyframe_every, keyframe_width=args.keyframe_width, every=args.every,
                  ground_args=ground_args, quiet=args.quiet,
@@ -123,6 +119,15 @@ def _registration_options(p):
                    help="registration: match each keyframe against this many previous ones")
     p.add_argument("--sift", choices=["opencv", "colmap"], default=RegistrationSettings.sift,
                    help="registration: SIFT implementation (the mapper reads only keypoints and verified matches)")
+    p.add_argument("--upright", action="store_true",
+                   help="registration: SIFT without orientation (faster; for a camera that does not rotate in the image plane)")
+
+
+def _registration_settings(args, **extra):
+    from ground.registration import RegistrationSettings
+
+    return RegistrationSettings(max_num_features=args.max_features, match_window=args.match_window, sift=args.sift,
+                                upright=args.upright, **extra)
 
 
 def _ground_options(p):
