@@ -131,12 +131,13 @@ def _registration_settings(args, **extra):
 
 
 def _ground_options(p):
-    p.add_argument("--k", type=int, default=5, help="association: frames ahead linked")
-    p.add_argument("--tau-epipolar", type=float, default=4.0, help="association: epipolar gate, px")
-    # detector boxes are noisier than the 1 px jitter the association's own defaults were set for (partly
-    # hidden apples shift the box centre), and false positives make short tracks: 4 px and 4 inliers
-    p.add_argument("--tau-geom", type=float, default=4.0, help="association: RANSAC inlier threshold, px")
-    p.add_argument("--min-inliers", type=int, default=4, help="association: views an apple needs")
+    from ground.association import AssociationParams
+
+    a = AssociationParams()
+    p.add_argument("--k", type=int, default=a.k, help="association: frames ahead linked")
+    p.add_argument("--tau-epipolar", type=float, default=a.tau_epipolar, help="association: epipolar gate, px")
+    p.add_argument("--tau-geom", type=float, default=a.tau_geom, help="association: RANSAC inlier threshold, px")
+    p.add_argument("--min-inliers", type=int, default=a.min_inliers, help="association: views an apple needs")
     _registration_options(p)
     p.add_argument("--max-wait-s", type=float, default=5.0,
                    help="frames wait for the keyframe after them unless no keyframe came for this long (s)")
