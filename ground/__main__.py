@@ -131,9 +131,9 @@ def _registration_settings(args, **extra):
 
 
 def _ground_options(p):
-    from ground.association import AssociationParams
+    from ground.pipeline import GroundSettings
 
-    a = AssociationParams()
+    a = GroundSettings().association
     p.add_argument("--k", type=int, default=a.k, help="association: frames ahead linked")
     p.add_argument("--tau-epipolar", type=float, default=a.tau_epipolar, help="association: epipolar gate, px")
     p.add_argument("--tau-geom", type=float, default=a.tau_geom, help="association: RANSAC inlier threshold, px")
