@@ -21,6 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from ground.georeference import fit_similarity, georeference_poses
 from ground.poses import camera_rotations, frame_telemetry
+from ground.register_flight import apple_reprojection_errors
 from pomar.flight import FlightDir
 
 
@@ -54,9 +55,6 @@ def main() -> None:
     R_true_all, t_true_all = fl.truth_poses()
     R_true, t_true = R_true_all[frames], t_true_all[frames]
     C_true = -np.einsum("nji,nj->ni", R_true, t_true)
-    a = fl.truth_apples()
-    d = fl.truth_detections()
-    X = np.stack([a["x"], a["y"], a["z"]], 1)
     out = {"registered_frames": len(frames), "frames": meta.frame_count}
     for name, fit in (("gps_only", fit_similarity(c_m, gps, sigma)),
                       ("gps_and_axes", fit_similarity(c_m, gps, sigma, R_m, R_tel, np.radians(args.sigma_att_deg)))):
@@ -64,16 +62,9 @@ def main() -> None:
         C_e = -np.einsum("nji,nj->ni", R_e, t_e)
         pos = np.linalg.norm(C_e - C_true, axis=1)
         rot = np.degrees(np.linalg.norm(Rotation.from_matrix(np.einsum("nij,nkj->nik", R_e, R_true)).as_rotvec(), axis=1))
-        reproj = []
-        for k, f in enumerate(frames):
-            sel = (d["frame"] == f) & (d["visible_fraction"] >= 0.5)
-            if not sel.any():
-                continue
-            idx = np.searchsorted(a["apple_id"], d["apple_id"][sel])
-            uv_e, _ = cam.project(X[idx], R_e[k], t_e[k])
-            uv_t, _ = cam.project(X[idx], R_true[k], t_true[k])
-            reproj.append(np.linalg.norm(uv_e - uv_t, axis=1))
-        reproj = np.concatenate(reproj)
+        R_all, t_all = R_true_all.copy(), t_true_all.copy()
+        R_all[frames], t_all[frames] = R_e, t_e
+        reproj = apple_reprojection_errors(fl, R_all, t_all, R_true_all, t_true_all, frames=frames)
         out[name] = {"position_error_median_m": float(np.median(pos)), "position_error_p95_m": float(np.percentile(pos, 95)),
                      "rotation_error_median_deg": float(np.median(rot)), "rotation_error_p95_deg": float(np.percentile(rot, 95)),
                      "apple_reprojection_error_median_px": float(np.median(reproj)), "scale": fit.similarity.scale,

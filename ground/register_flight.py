@@ -174,7 +174,7 @@ def score_poses(fl: FlightDir, R: np.ndarray, t: np.ndarray, source: np.ndarray,
     C, C_true = -np.einsum("nji,nj->ni", R, t), -np.einsum("nji,nj->ni", R_true, t_true)
     pos = np.linalg.norm(C - C_true, axis=1)
     rot = np.degrees(np.linalg.norm(Rotation.from_matrix(np.einsum("nij,nkj->nik", R, R_true)).as_rotvec(), axis=1))
-    e = _apple_reprojection_errors(fl, R, t, R_true, t_true)
+    e = apple_reprojection_errors(fl, R, t, R_true, t_true)
     reg = source == "registered"
     out = {
         "position_error_median_m": float(np.median(pos[reg])) if reg.any() else float("nan"),
@@ -197,12 +197,12 @@ def score_poses(fl: FlightDir, R: np.ndarray, t: np.ndarray, source: np.ndarray,
         R_s, t_s = georeference_poses(R[reg], t[reg], fit.similarity)
         R_a, t_a = R.copy(), t.copy()
         R_a[reg], t_a[reg] = R_s, t_s
-        e = _apple_reprojection_errors(fl, R_a, t_a, R_true, t_true, frames=np.flatnonzero(reg))
+        e = apple_reprojection_errors(fl, R_a, t_a, R_true, t_true, frames=np.flatnonzero(reg))
         out["apple_reprojection_error_after_similarity_median_px"] = float(np.median(e)) if len(e) else float("nan")
     return out
 
 
-def _apple_reprojection_errors(fl: FlightDir, R, t, R_true, t_true, frames=None) -> np.ndarray:
+def apple_reprojection_errors(fl: FlightDir, R, t, R_true, t_true, frames=None) -> np.ndarray:
     """Pixel distances between the true apples (at least half visible) projected through (R, t) and
     through the true poses, over ``frames`` (default all)."""
     cam = fl.camera()
