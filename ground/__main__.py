@@ -126,6 +126,8 @@ def _registration_options(p):
 def _registration_settings(args, **extra):
     from ground.registration import RegistrationSettings
 
+    if args.upright and args.sift != "colmap":
+        raise SystemExit("ground: --upright applies to pycolmap's SIFT only (--sift colmap)")
     return RegistrationSettings(max_num_features=args.max_features, match_window=args.match_window, sift=args.sift,
                                 upright=args.upright, **extra)
 

@@ -105,6 +105,8 @@ class IncrementalRegistrar:
         ext.sift.upright = self.s.upright
         if self.s.sift not in ("colmap", "opencv"):
             raise ValueError(f"RegistrationSettings.sift must be 'colmap' or 'opencv', got {self.s.sift!r}")
+        if self.s.upright and self.s.sift != "colmap":
+            raise ValueError("RegistrationSettings.upright applies to pycolmap's SIFT only (sift='colmap')")
         # kept alive for the whole flight: pycolmap's extract_features would rebuild it and re-read the image.
         # The mapper only reads keypoints and verified matches, so either SIFT serves (see RegistrationSettings)
         colmap = self.s.sift == "colmap"
