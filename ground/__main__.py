@@ -56,7 +56,8 @@ def _settings(args):
     return GroundSettings(association=AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom,
                                                         min_inliers=args.min_inliers),
                           registration=_registration_settings(args),
-                          max_wait_s=args.max_wait_s, min_score=args.min_score)
+                          max_wait_s=args.max_wait_s, min_score=args.min_score,
+                          confirm_score=args.confirm_score, confirm_views=args.confirm_views)
 
 
 def _cmd_run(args) -> int:
@@ -82,7 +83,8 @@ def _cmd_replay(args) -> int:
                    "--min-inliers", str(args.min_inliers),
                    "--max-features", str(args.max_features), "--match-window", str(args.match_window),
                    "--sift", args.sift, "--max-wait-s", str(args.max_wait_s),
-                   "--min-score", str(args.min_score)] + (["--upright"] if args.upright else [])
+                   "--min-score", str(args.min_score), "--confirm-score", str(args.confirm_score),
+                   "--confirm-views", str(args.confirm_views)] + (["--upright"] if args.upright else [])
     rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
                  keyframe_every=args.keyframe_every, keyframe_width=args.keyframe_width, every=args.every,
                  ground_args=ground_args, quiet=args.quiet,
@@ -135,7 +137,8 @@ def _registration_settings(args, **extra):
 def _ground_options(p):
     from ground.pipeline import GroundSettings
 
-    a = GroundSettings().association
+    g = GroundSettings()
+    a = g.association
     p.add_argument("--k", type=int, default=a.k, help="association: frames ahead linked")
     p.add_argument("--tau-epipolar", type=float, default=a.tau_epipolar, help="association: epipolar gate, px")
     p.add_argument("--tau-geom", type=float, default=a.tau_geom, help="association: RANSAC inlier threshold, px")
@@ -144,6 +147,9 @@ def _ground_options(p):
     p.add_argument("--max-wait-s", type=float, default=5.0,
                    help="frames wait for the keyframe after them unless no keyframe came for this long (s)")
     p.add_argument("--min-score", type=float, default=0.0, help="ignore detections scored below this")
+    p.add_argument("--confirm-score", type=float, default=g.confirm_score,
+                   help="an apple counts once --confirm-views of its views scored this much")
+    p.add_argument("--confirm-views", type=int, default=g.confirm_views, help="see --confirm-score")
 
 
 def main(argv=None) -> int:
@@ -186,7 +192,9 @@ def main(argv=None) -> int:
     rp.add_argument("--realtime", action="store_true", help="frames at the video's rate, newest first (drops counted)")
     rp.add_argument("--detector", choices=["onnx", "truth-replay"], default="onnx")
     rp.add_argument("--model", help="ONNX model (default: the shipped one)")
-    rp.add_argument("--detector-score-thresh", type=float, help="the detector's score threshold (default: the model's)")
+    rp.add_argument("--detector-score-thresh", type=float, default=0.7,
+                    help="the onboard detector's score threshold: weaker detections extend tracks, "
+                         "--confirm-score decides which apples count")
     rp.add_argument("--keyframe-every", type=int, default=2)
     rp.add_argument("--keyframe-width", type=int, default=960)
     rp.add_argument("--every", type=int, default=1, help="onboard processes every Nth frame")

@@ -172,3 +172,22 @@ def test_harvest_correlation(tmp_path):
     bad.write_text("row,weight\n0,1\n")
     with pytest.raises(ValueError, match="bad.csv"):
         read_harvest(bad)
+
+
+def test_an_apple_counts_once_enough_views_are_strong(tmp_path):
+    """Weak detections extend a track; the apple enters the map once confirm_views views scored
+    confirm_score, and a merge that brings forgotten views never takes it back out."""
+    import numpy as np
+
+    from ground.association import Apple
+    from ground.pipeline import GroundPipeline, GroundSettings
+
+    pipe = GroundPipeline(tmp_path / "work", GroundSettings(confirm_score=0.9, confirm_views=3))
+    pipe._scores = {0: np.array([0.95, 0.2]), 1: np.array([0.8]), 2: np.array([0.93]), 3: np.array([0.75]),
+                    4: np.array([0.91])}
+    a = Apple(7, np.zeros(3), [(0, 0), (1, 0), (2, 0), (3, 0)], 0.5)
+    assert pipe._confirm([a]) == [] and 7 not in pipe.apples  # two strong views of four
+    a.observations.append((4, 0))
+    assert pipe._confirm([a]) == [a] and pipe.apples[7] is a  # a third strong view
+    del pipe._scores[0], pipe._scores[2]  # forgotten: the count stays
+    assert pipe._confirm([a]) == [a]
