@@ -2,7 +2,8 @@
 
 For building and testing the pipeline before (or besides) the real ONNX detector: a diagnostic
 source, never the default. Boxes are the true apple discs (centre +- r_px), for apples at least
-``min_visible`` visible.
+``min_visible`` visible, each with score 1 (a detector that is sure: the ground counts an apple on
+views scored at least its confirm score).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ class TruthReplayDetector:
         order = np.argsort(d["frame"][keep], kind="stable")
         self._frame = d["frame"][keep][order]
         self._uvr = np.stack([d["u"], d["v"], d["r_px"]], 1)[keep][order]
-        self._score = d["visible_fraction"][keep][order]
+        self._score = np.ones(int(keep.sum()), np.float32)
 
     def detect(self, frame: int, image: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(boxes (N, 4) x1 y1 x2 y2, OpenCV pixels; scores (N,)) of a frame."""
