@@ -128,10 +128,11 @@ def _registration_options(p):
 def _registration_settings(args, **extra):
     from ground.registration import RegistrationSettings
 
-    if args.upright and args.sift != "colmap":
-        raise SystemExit("ground: --upright applies to pycolmap's SIFT only (--sift colmap)")
-    return RegistrationSettings(max_num_features=args.max_features, match_window=args.match_window, sift=args.sift,
-                                upright=args.upright, **extra)
+    try:
+        return RegistrationSettings(max_num_features=args.max_features, match_window=args.match_window, sift=args.sift,
+                                    upright=args.upright, **extra)
+    except ValueError as exc:  # a bad combination of options: say so, without a traceback
+        raise SystemExit(f"ground: {exc}") from None
 
 
 def _ground_options(p):

@@ -28,7 +28,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ground.geometry import (camera_centre, epipolar_distances, fundamental_from_projections, reprojection_errors, skew,
-                             triangulate, triangulate_nonlinear)
+                             triangulate, triangulate_nonlinear, triangulation_rows)
 
 log = logging.getLogger(__name__)
 
@@ -363,13 +363,6 @@ def _sample_index(length: int, n: int) -> np.ndarray:
     return _SAMPLE_CACHE[key]
 
 
-def _shifted_rows(rows: np.ndarray, origin: np.ndarray) -> np.ndarray:
-    """Triangulation rows (..., 2, 4) of world points re-expressed about origin (..., 3), unit length."""
-    rows = rows.copy()
-    rows[..., 3] += np.einsum("...ri,...i->...r", rows[..., :3], origin)
-    return rows / np.linalg.norm(rows, axis=-1, keepdims=True)
-
-
 class _Track:
     __slots__ = ("obs", "Ps", "xs", "M", "_X", "_views", "root", "last", "mature", "origin")
 
@@ -394,7 +387,7 @@ class _Track:
         self.Ps.append(P)
         self.xs.append(x)
         if rows is None:
-            rows = _shifted_rows(np.stack([x[0] * P[2] - P[0], x[1] * P[2] - P[1]]), self.origin)
+            rows = triangulation_rows(P, x, self.origin)
         self.M = self.M + rows.T @ rows
         self.last = frame
         self._X = None
@@ -515,7 +508,7 @@ class WindowedAssociation:
             return pt, pd, np.zeros(0), np.zeros((0, 2, 4))
         # verify every pair at once: X' from the track's normal matrix plus the candidate's rows
         origin = np.stack([self.tracks[ti].origin for ti in pt])
-        rows = _shifted_rows(np.stack([xy[pd, 0:1] * P[2] - P[0], xy[pd, 1:2] * P[2] - P[1]], axis=1), origin)  # (n, 2, 4)
+        rows = triangulation_rows(P, xy[pd], origin)  # (n, 2, 4)
         M = np.stack([self.tracks[ti].M for ti in pt]) + np.einsum("nri,nrj->nij", rows, rows)
         h = np.linalg.eigh(M)[1][..., 0]
         with np.errstate(divide="ignore", invalid="ignore"):

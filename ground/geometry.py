@@ -52,28 +52,29 @@ def triangulate(Ps: np.ndarray, xs: np.ndarray) -> np.ndarray:
     biased (on the bundled flight, 0.11 m median error for apples seen in 5-9 frames against 0.04 m).
     """
     Ps, xs = np.asarray(Ps, float), np.asarray(xs, float)
-    Ps, c = _centred(Ps)
-    r1 = xs[..., 0:1] * Ps[..., 2, :] - Ps[..., 0, :]
-    r2 = xs[..., 1:2] * Ps[..., 2, :] - Ps[..., 1, :]
-    A = np.concatenate([r1, r2], axis=-2)  # (..., 2n, 4)
-    A = A / np.linalg.norm(A, axis=-1, keepdims=True)
+    c = _first_centre(Ps)
+    A = triangulation_rows(Ps, xs, c[..., None, :])  # (..., n, 2, 4)
+    A = A.reshape(A.shape[:-3] + (-1, 4))  # (..., 2n, 4)
     _, _, vt = np.linalg.svd(A)
     X = vt[..., -1, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         return X[..., :3] / X[..., 3:4] + c
 
 
-def _centred(Ps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Ps (..., n, 3, 4) re-expressed about the first view's camera centre c: (Ps', c) with
-    Ps' [X - c; 1] = Ps [X; 1]."""
-    M = Ps[..., 0, :, :3]
+def triangulation_rows(Ps: np.ndarray, xs: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """The two rows (x P3 - P1, y P3 - P2) each view (..., 3, 4) with pixel (..., 2) gives for the
+    homogeneous point [X - origin; 1], unit length: (..., 2, 4). origin (..., 3) broadcasts."""
+    rows = np.stack([xs[..., 0:1] * Ps[..., 2, :] - Ps[..., 0, :], xs[..., 1:2] * Ps[..., 2, :] - Ps[..., 1, :]], axis=-2)
+    rows[..., 3] += np.einsum("...ri,...i->...r", rows[..., :3], np.asarray(origin, float))
+    return rows / np.linalg.norm(rows, axis=-1, keepdims=True)
+
+
+def _first_centre(Ps: np.ndarray) -> np.ndarray:
+    """Camera centre (..., 3) of the first view of Ps (..., n, 3, 4); zeros for a camera at infinity."""
     try:
-        c = -np.linalg.solve(M, Ps[..., 0, :, 3:4])[..., 0]
-    except np.linalg.LinAlgError:  # a camera at infinity: no centre to move to
-        return Ps, np.zeros(Ps.shape[:-3] + (3,))
-    out = Ps.copy()
-    out[..., 3] = np.einsum("...nij,...j->...ni", Ps[..., :3], c) + Ps[..., 3]
-    return out, c
+        return -np.linalg.solve(Ps[..., 0, :, :3], Ps[..., 0, :, 3:4])[..., 0]
+    except np.linalg.LinAlgError:
+        return np.zeros(Ps.shape[:-3] + (3,))
 
 
 def project(Ps: np.ndarray, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -97,9 +98,9 @@ def triangulate_nonlinear(Ps: np.ndarray, xs: np.ndarray, X0: np.ndarray | None 
     """The point minimising the reprojection error over n >= 2 views (Levenberg-Marquardt from the
     linear solution, or from X0). Ps: (n, 3, 4), xs: (n, 2); returns (3,).
 
-    The linear method minimises an algebraic error; over the short baselines of a track seen in a
-    few consecutive frames its depth is biased (a perfect association of the bundled flight's
-    jittered detections, triangulated linearly, scores F1 0.86 against 0.93 with this).
+    The linear method minimises an algebraic error, not the pixel error; over the short baselines
+    of a track seen in a few consecutive frames the two differ in depth (a perfect association of
+    the bundled flight's jittered detections scores F1 0.915 triangulated linearly, 0.926 with this).
     """
     from scipy.optimize import least_squares
 

@@ -56,6 +56,12 @@ class RegistrationSettings:
     # more than a local adjustment of 6 keyframes has): at 1,000 the local adjustment takes two cores
     ba_threads_min_residuals: int = 1000
 
+    def __post_init__(self):
+        if self.sift not in ("colmap", "opencv"):
+            raise ValueError(f"RegistrationSettings.sift must be 'colmap' or 'opencv', got {self.sift!r}")
+        if self.upright and self.sift != "colmap":
+            raise ValueError("RegistrationSettings.upright applies to pycolmap's SIFT only (sift='colmap')")
+
 
 @dataclass
 class Submodel:
@@ -103,10 +109,6 @@ class IncrementalRegistrar:
         ext.sift.first_octave = self.s.first_octave
         ext.sift.max_num_features = self.s.max_num_features
         ext.sift.upright = self.s.upright
-        if self.s.sift not in ("colmap", "opencv"):
-            raise ValueError(f"RegistrationSettings.sift must be 'colmap' or 'opencv', got {self.s.sift!r}")
-        if self.s.upright and self.s.sift != "colmap":
-            raise ValueError("RegistrationSettings.upright applies to pycolmap's SIFT only (sift='colmap')")
         # kept alive for the whole flight: pycolmap's extract_features would rebuild it and re-read the image.
         # The mapper only reads keypoints and verified matches, so either SIFT serves (see RegistrationSettings)
         colmap = self.s.sift == "colmap"
