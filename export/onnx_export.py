@@ -27,6 +27,7 @@ import torch
 from torch import nn
 
 from export.model import load_checkpoint
+from export.onnx_weights import weights_to_fp16
 
 log = logging.getLogger(__name__)
 
@@ -43,30 +44,6 @@ class SingleImage(nn.Module):
     def forward(self, image):
         out = self.model([image])[0]
         return out["boxes"], out["scores"]
-
-
-def weights_to_fp16(model_proto, min_elements: int = 1024):
-    """Store large float32 initializers as float16, each followed by a Cast back to float32."""
-    import onnx
-    from onnx import helper, numpy_helper
-
-    graph = model_proto.graph
-    casts, new_inits = [], []
-    for init in graph.initializer:
-        if init.data_type == onnx.TensorProto.FLOAT and np.prod(init.dims) >= min_elements:
-            arr = numpy_helper.to_array(init).astype(np.float16)
-            half = numpy_helper.from_array(arr, init.name + "_fp16")
-            new_inits.append(half)
-            casts.append(helper.make_node("Cast", [half.name], [init.name], to=onnx.TensorProto.FLOAT,
-                                          name=init.name + "_cast"))
-        else:
-            new_inits.append(init)
-    del graph.initializer[:]
-    graph.initializer.extend(new_inits)
-    nodes = list(graph.node)
-    del graph.node[:]
-    graph.node.extend(casts + nodes)
-    return model_proto
 
 
 def fp16_agreement(boxes, scores, hboxes, hscores, score_thresh: float) -> dict:
@@ -162,12 +139,13 @@ def export_onnx(model, path: Path, opset: int = 17, fp16: bool = False, check: t
 
 def run(args) -> int:
     model, ckpt = load_checkpoint(args.checkpoint)
+    model.rpn._post_nms_top_n["testing"] = args.proposals
     check = None
     if args.check_image:
         from export.data import read_rgb
 
         check = torch.from_numpy(read_rgb(args.check_image).transpose(2, 0, 1).copy()).float() / 255
-    meta = {"model": ckpt["config"], "training": {**ckpt.get("run", {}), "iteration": ckpt["iteration"],
+    meta = {"model": {**ckpt["config"], "proposals": args.proposals}, "training": {**ckpt.get("run", {}), "iteration": ckpt["iteration"],
                                                   "checkpoint": str(args.checkpoint)},
             "training_history": ckpt.get("history", [])}
     export_onnx(model, args.out, args.opset, args.fp16, check, meta, args.score_thresh)

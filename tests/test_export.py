@@ -96,3 +96,42 @@ def test_fp16_weights_halve_the_file_and_keep_boxes(tiny_onnx, tmp_path):
     assert half.stat().st_size < 0.6 * path.stat().st_size
     assert report["max_box_diff_px"] <= 1e-3  # the float32 graph, before the weights are halved
     assert report["fp16"]["boxes"] > 0
+
+
+def test_int8_quantization_keeps_the_float_models_boxes(tiny_onnx, tmp_path):
+    from export.data import load_sim_frames
+    from export.metrics import iou
+    from export.quantize import quantize
+    from onboard.detector import OnnxDetector
+    from tests.conftest import BUNDLED
+
+    _, path, _, img = tiny_onnx
+    calib = [s.image[:256, :384] for s in load_sim_frames(BUNDLED, 0.5, every=40)]
+    out = tmp_path / "int8.onnx"
+    meta = quantize(path, out, calib, fp16=True)
+    assert out.stat().st_size < 0.5 * path.stat().st_size
+    assert meta["quantization"]["calibration_images"] == len(calib) and "metrics" not in meta
+    assert json.loads(out.with_suffix(".json").read_text())["file"] == "int8.onnx"
+    rgb = (img.numpy().transpose(1, 2, 0) * 255).round().astype(np.uint8)
+    bgr = rgb[..., ::-1].copy()
+    fb, fs = OnnxDetector(path, score_thresh=0.0).detect(0, bgr)
+    qb, qs = OnnxDetector(out, score_thresh=0.0).detect(0, bgr)
+    top = fb[np.argsort(-fs)[:20]]
+    assert len(top) and len(qb)
+    found = iou(top, qb).max(1) >= 0.5
+    assert found.mean() >= 0.6, f"only {found.mean():.0%} of the float model's top boxes found again"
+    with pytest.raises(ValueError, match="float32 export"):
+        quantize(_half(path, tmp_path), out, calib)
+
+
+def _half(path, tmp_path):
+    """A float16-weight copy of ``path`` with its metadata saying so."""
+    import onnx
+
+    from export.onnx_weights import weights_to_fp16
+
+    half = tmp_path / "half-weights.onnx"
+    onnx.save(weights_to_fp16(onnx.load(str(path))), str(half))
+    meta = json.loads(path.with_suffix(".json").read_text())
+    half.with_suffix(".json").write_text(json.dumps({**meta, "weights": "float16 (cast to float32 in the graph)"}))
+    return half
