@@ -56,7 +56,8 @@ def _settings(args):
     return GroundSettings(association=AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom,
                                                         min_inliers=args.min_inliers),
                           registration=_registration_settings(args),
-                          max_wait_s=args.max_wait_s, min_score=args.min_score,
+                          max_wait_s=args.max_wait_s, max_lag_s=args.max_lag_s, max_keyframe_gap=args.max_keyframe_gap,
+                          min_score=args.min_score,
                           confirm_score=args.confirm_score, confirm_views=args.confirm_views)
 
 
@@ -83,10 +84,12 @@ def _cmd_replay(args) -> int:
                    "--min-inliers", str(args.min_inliers),
                    "--max-features", str(args.max_features), "--match-window", str(args.match_window),
                    "--sift", args.sift, "--max-wait-s", str(args.max_wait_s),
+                   "--max-keyframe-gap", str(args.max_keyframe_gap),
                    "--min-score", str(args.min_score), "--confirm-score", str(args.confirm_score),
-                   "--confirm-views", str(args.confirm_views)] + (["--upright"] if args.upright else [])
+                   "--confirm-views", str(args.confirm_views)] + (["--upright"] if args.upright else []) \
+        + (["--max-lag-s", str(args.max_lag_s)] if args.realtime else [])  # lock-step: replay() sets 0
     rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
-                 keyframe_every=args.keyframe_every, keyframe_width=args.keyframe_width, every=args.every,
+                 keyframe_every=args.keyframe_every or (1 if args.realtime else 2), keyframe_width=args.keyframe_width, every=args.every,
                  ground_args=ground_args, quiet=args.quiet,
                  onboard_args=["--score-thresh", str(args.detector_score_thresh)] if args.detector_score_thresh else None)
     print()
@@ -99,6 +102,11 @@ def _cmd_replay(args) -> int:
     print(f"wall {rep['wall_seconds']:.1f} s for a {rep['flight_seconds']:.1f} s flight: real-time factor "
           f"{rep['realtime_factor']:.2f}; peak memory: ground {rep['timings']['peak_rss_mb']:.0f} MB, "
           f"onboard {ob.get('peak_rss_mb', float('nan')):.0f} MB")
+    tm, fr = rep["timings"], rep["frames"]
+    if tm.get("frame_delay_median_s") is not None:
+        print(f"ground: frames mapped {tm['frame_delay_median_s']:.1f} s after they arrived (median; p95 "
+              f"{tm['frame_delay_p95_s']:.1f} s, max {tm['frame_delay_max_s']:.1f} s); {fr['registered']} of "
+              f"{fr['keyframes']} keyframes registered, {fr.get('skipped_keyframes', 0)} skipped to keep up")
     if ob:
         print(f"onboard: {ob['frames_processed']} frames processed, {ob['frames_dropped']} dropped, detector "
               f"{ob['detector_latency_s']:.3f} s/frame, read-to-publish median {ob['read_to_publish_median_s']:.3f} s, "
@@ -147,6 +155,12 @@ def _ground_options(p):
     _registration_options(p)
     p.add_argument("--max-wait-s", type=float, default=5.0,
                    help="frames wait for the keyframe after them unless no keyframe came for this long (s)")
+    p.add_argument("--max-lag-s", type=float, default=g.max_lag_s,
+                   help="when the keyframes waiting for registration lag the newest frame by more than this (flight "
+                        "seconds), skip those not needed to keep --max-keyframe-gap; 0 = never skip (replay sets 0 "
+                        "in lock-step)")
+    p.add_argument("--max-keyframe-gap", type=int, default=g.max_keyframe_gap,
+                   help="frames between registered keyframes when some are skipped")
     p.add_argument("--min-score", type=float, default=0.0, help="ignore detections scored below this")
     p.add_argument("--confirm-score", type=float, default=g.confirm_score,
                    help="an apple counts once --confirm-views of its views scored this much")
@@ -196,7 +210,10 @@ def main(argv=None) -> int:
     rp.add_argument("--detector-score-thresh", type=float, default=0.7,
                     help="the onboard detector's score threshold: weaker detections extend tracks, "
                          "--confirm-score decides which apples count")
-    rp.add_argument("--keyframe-every", type=int, default=2)
+    rp.add_argument("--keyframe-every", type=int,
+                    help="every Nth processed frame also goes as a keyframe (default: 2 in lock-step; 1 with "
+                         "--realtime, where processed frames are further apart and the ground skips what it cannot "
+                         "keep up with)")
     rp.add_argument("--keyframe-width", type=int, default=960)
     rp.add_argument("--every", type=int, default=1, help="onboard processes every Nth frame")
     rp.add_argument("--quiet", action="store_true", help="no progress lines")

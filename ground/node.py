@@ -27,6 +27,14 @@ from pomar import wire
 log = logging.getLogger(__name__)
 
 
+def delay_stats(delays: list[float]) -> dict:
+    d = np.asarray(delays, float)
+    if not len(d):
+        return {"frame_delay_median_s": None, "frame_delay_p95_s": None, "frame_delay_max_s": None}
+    return {"frame_delay_median_s": float(np.median(d)), "frame_delay_p95_s": float(np.percentile(d, 95)),
+            "frame_delay_max_s": float(d.max())}
+
+
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
@@ -60,16 +68,30 @@ class GroundNode:
             self.rr = RerunLog(self.pipe.flight_id, rrd, serve, viewer)
         return self.rr
 
-    def handle(self, msg) -> None:
+    def handle(self, msg, step: bool = True) -> None:
+        """Take one message and, unless ``step=False`` (more are queued: call :meth:`step` after them), process
+        what it makes ready."""
         if self.t_first_msg is None:
             self.t_first_msg = time.monotonic()
         self.messages += 1
         try:
-            events = self.pipe.feed(msg)
+            events = self.pipe.feed(msg, step)
         except Exception as exc:  # never stop on one bad message: log it, keep the state
             log.exception("message %s failed: %s", type(msg).__name__, exc)
             self.errors.append(f"{type(msg).__name__}: {exc}")
             return
+        self._after(events)
+
+    def step(self) -> None:
+        try:
+            events = self.pipe.step()
+        except Exception as exc:
+            log.exception("processing failed: %s", exc)
+            self.errors.append(f"step: {exc}")
+            return
+        self._after(events)
+
+    def _after(self, events) -> None:
         self._log_events(events)
         if time.monotonic() - self._last_refresh > self.refresh_s:
             self.refresh()
@@ -131,6 +153,8 @@ class GroundNode:
                         "registration_seconds": p.seconds["registration"],
                         "association_seconds": p.seconds["association"],
                         "ground_latency_median_s": float(np.median(self.latency)) if self.latency else None,
+                        # how long frames waited on the ground, from their message's arrival to being mapped
+                        **delay_stats(self.pipe.frame_delays),
                         "peak_rss_mb": peak_rss_mb()},
             "onboard_status": vars(st).copy() if st else None,
             "errors": self.errors[-50:],
@@ -207,10 +231,17 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
             now = time.monotonic()
             if msg is not None:
                 last_msg = now
-                node.handle(msg)
-                if isinstance(msg, wire.StatusMessage) and msg.state in ("finished", "error") and finished_at is None:
-                    finished_at = now
-                    log.info("the drone says the flight is %s (%d frames processed)", msg.state, msg.frames_processed)
+                # take everything queued up meanwhile, then process once: a ground that lags sees all the
+                # keyframes waiting and can skip some (GroundSettings.max_lag_s)
+                batch = [msg]
+                while len(batch) < 1000 and (more := sub.recv(timeout=0)) is not None:
+                    batch.append(more)
+                for m in batch:
+                    node.handle(m, step=False)
+                    if isinstance(m, wire.StatusMessage) and m.state in ("finished", "error") and finished_at is None:
+                        finished_at = now
+                        log.info("the drone says the flight is %s (%d frames processed)", m.state, m.frames_processed)
+                node.step()
             st = node.pipe.status
             if finished_at is not None:
                 have = node.pipe.counters["frames"] + node.pipe.counters["late_frames"]

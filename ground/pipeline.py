@@ -47,6 +47,15 @@ class GroundSettings:
     #: with interpolated or telemetry poses.
     max_wait_s: float = 5.0
     max_interp_gap: int = 10
+    #: Live, the ground must not fall ever further behind the drone. When the keyframes waiting for
+    #: registration lag the newest frame by more than max_lag_s (flight time), only as many are
+    #: registered as keep registered keyframes at most max_keyframe_gap frames apart (the others' frames
+    #: get interpolated poses). 0 = register every keyframe, however late (lock-step replays). Slerp
+    #: between keyframes 4 frames apart misses the bundled flight's camera by 0.04 deg (median; 0.15 deg
+    #: at 8 apart, where tracks break: 0.17 deg of attitude wobble per frame, which the telemetry's
+    #: 0.3 deg noise cannot follow).
+    max_lag_s: float = 2.0
+    max_keyframe_gap: int = 4
     min_score: float = 0.0  # detections below this score are not used
     #: An apple is counted once at least confirm_views of its views scored confirm_score or more (the
     #: shipped detector's operating threshold). Weaker detections still extend and place it: an
@@ -83,19 +92,24 @@ class GroundPipeline:
         self._kf_for_event: dict[int, bytes] = {}
         self._kf_seen: set[int] = set()
         self._last_kf_t = time.monotonic()
+        self._last_kf: int | None = None  # the last keyframe given to registration
         self.released = -1
         self.status: wire.StatusMessage | None = None
         self.counters = {"frames": 0, "keyframes": 0, "late_frames": 0, "gaps": 0, "missing_frames": 0,
-                         "bad_keyframes": 0, "frames_without_pose": 0, "detections": 0,
+                         "bad_keyframes": 0, "skipped_keyframes": 0, "frames_without_pose": 0, "detections": 0,
                          "registered": 0, "interpolated": 0, "telemetry": 0}
         self.seconds = {"registration": 0.0, "association": 0.0}
         self.gaps: list[tuple[int, int]] = []
         self.frame_times: dict[int, float] = {}
+        self._arrived: dict[int, float] = {}  # frame -> when its message came (monotonic clock)
+        self.frame_delays: list[float] = []  # per mapped frame: seconds from its message's arrival to its release
         self.frame_poses: dict[int, Pose] = {}  # every released frame's pose (association frame)
         self._seq_frame: list[int] = []  # association frame number -> frame index
 
     # -- inputs
-    def feed(self, msg) -> list[FrameEvent]:
+    def feed(self, msg, step: bool = True) -> list[FrameEvent]:
+        """Take one message; ``step=False`` only stores it (the node feeds what has queued up, then steps once,
+        so that the keyframes waiting can be thinned out when the ground lags)."""
         if isinstance(msg, wire.CameraMessage):
             self.on_camera(msg)
         elif isinstance(msg, wire.FrameMessage):
@@ -104,7 +118,7 @@ class GroundPipeline:
             self.on_keyframe(msg)
         elif isinstance(msg, wire.StatusMessage):
             self.status = msg
-        return self.step()
+        return self.step() if step else []
 
     def on_camera(self, msg: wire.CameraMessage):
         if self.camera is not None:
@@ -129,6 +143,7 @@ class GroundPipeline:
             return
         self.pending[msg.frame] = msg
         self.frame_times[msg.frame] = msg.t_capture
+        self._arrived[msg.frame] = time.monotonic()
         if self.counters["frames"] == 1 and not self._kf_seen:
             self._last_kf_t = time.monotonic()  # the wait for keyframes starts with the first frame
         self.counters["frames"] += 1
@@ -154,6 +169,7 @@ class GroundPipeline:
                 return []
             self._make_poses(self._first_keyframe_width())
         events = []
+        self._thin_keyframes()
         # keyframes in order, but never ahead of the frames: a frame needs the keyframe after it
         for f in sorted(self.keyframes):
             jpeg = self.keyframes.pop(f)
@@ -161,6 +177,31 @@ class GroundPipeline:
             events += self._release(final=False)
         events += self._release(final)
         return events
+
+    def _thin_keyframes(self) -> None:
+        """When the waiting keyframes lag the newest frame by more than max_lag_s, drop those not needed to keep
+        the registered ones at most max_keyframe_gap frames apart (greedily: the furthest reachable each time;
+        the newest is always kept)."""
+        waiting = sorted(self.keyframes)
+        if not self.s.max_lag_s or len(waiting) < 2 or not self.frame_times:
+            return
+        t_first = self.frame_times.get(waiting[0])
+        if t_first is None or max(self.frame_times.values()) - t_first <= self.s.max_lag_s:
+            return
+        keep, cur, i = [], self._last_kf, 0
+        while i < len(waiting):
+            j = i
+            while cur is not None and j + 1 < len(waiting) and waiting[j + 1] - cur <= self.s.max_keyframe_gap:
+                j += 1
+            keep.append(waiting[j])
+            cur, i = waiting[j], j + 1
+        skipped = [f for f in waiting if f not in keep]
+        for f in skipped:
+            del self.keyframes[f]
+        if skipped:
+            self.counters["skipped_keyframes"] += len(skipped)
+            log.info("the ground lags the drone by %.1f s: %d of %d waiting keyframes skipped",
+                     max(self.frame_times.values()) - t_first, len(skipped), len(waiting))
 
     def _stalled(self) -> bool:
         return time.monotonic() - self._last_kf_t > self.s.max_wait_s
@@ -180,6 +221,7 @@ class GroundPipeline:
             return
         t0 = time.perf_counter()
         self.poses.add_keyframe(frame, img)
+        self._last_kf = frame
         self.seconds["registration"] += time.perf_counter() - t0
         self._last_kf_t = time.monotonic()  # the wait is counted from when registration is free again
         self._kf_for_event[frame] = jpeg
@@ -194,6 +236,9 @@ class GroundPipeline:
             if not self.poses.ready(f, final, self._stalled()):
                 break
             msg = self.pending.pop(f)
+            arrived = self._arrived.pop(f, None)
+            if arrived is not None:
+                self.frame_delays.append(time.monotonic() - arrived)
             if f > self.released + 1 and self.released >= 0:
                 self.gaps.append((self.released + 1, f - 1))
                 self.counters["gaps"] += 1

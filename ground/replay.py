@@ -131,7 +131,7 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
     onboard_cmd += onboard_args or []
     ground_cmd = [py, "-m", "ground", "run", "--flight-id", meta.flight_id, "--connect", endpoint, "--out", str(out),
                   "--fresh", "--expected-frames", str(-(-meta.frame_count // every))] + ([] if rrd else ["--no-rrd"]) \
-        + (ground_args or [])
+        + ([] if realtime else ["--max-lag-s", "0"]) + (ground_args or [])  # lock-step: every keyframe registered
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     t0 = time.monotonic()
     logs = {name: open(out / f"{name}.log", "w") for name in ("onboard", "ground")}

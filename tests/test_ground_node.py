@@ -130,23 +130,9 @@ def test_pipeline_survives_bad_keyframes_and_late_frames(replay_test_flight, tmp
     """Messages made by the onboard node (no zenoh here): a keyframe that does not decode, a frame that comes
     after a later one was mapped, repeats; every other frame still gets a pose and nothing stops."""
     from ground.pipeline import GroundPipeline, GroundSettings
-    from onboard.node import NodeSettings, OnboardNode
-    from onboard.replay_detector import TruthReplayDetector
     from pomar import wire
 
-    class Collect:
-        def __init__(self):
-            self.msgs = []
-            self.sent = {k: 0 for k in wire.KINDS}
-            self.bytes = {k: 0 for k in wire.KINDS}
-
-        def publish(self, msg):
-            self.msgs.append(msg)
-
-    sink = Collect()
-    OnboardNode(replay_test_flight.path, sink, TruthReplayDetector(replay_test_flight.path),
-                NodeSettings(keyframe_every=1)).run()
-    msgs = [m for m in sink.msgs if not isinstance(m, wire.StatusMessage)]
+    msgs = _onboard_messages(replay_test_flight, keyframe_every=1)
     for m in msgs:
         if isinstance(m, wire.KeyframeMessage) and m.frame == 9:
             m.jpeg = b"\xff\xd8" + b"not a jpeg" * 10
@@ -164,6 +150,54 @@ def test_pipeline_survives_bad_keyframes_and_late_frames(replay_test_flight, tmp
     assert pipe.counters["registered"] >= 10
     t = pipe.table()
     assert len(t["id"]) == len(pipe.apples) > 0 and np.isfinite(t["lat"]).all()
+
+
+def _onboard_messages(flight, **settings):
+    """The messages the onboard node publishes for ``flight`` (truth-replay detector), status left out."""
+    from onboard.node import NodeSettings, OnboardNode
+    from onboard.replay_detector import TruthReplayDetector
+    from pomar import wire
+
+    class Collect:
+        def __init__(self):
+            self.msgs = []
+            self.sent = {k: 0 for k in wire.KINDS}
+            self.bytes = {k: 0 for k in wire.KINDS}
+
+        def publish(self, msg):
+            self.msgs.append(msg)
+
+    sink = Collect()
+    OnboardNode(flight.path, sink, TruthReplayDetector(flight.path), NodeSettings(**settings)).run()
+    return [m for m in sink.msgs if not isinstance(m, wire.StatusMessage)]
+
+
+def test_a_lagging_ground_skips_keyframes_but_maps_every_frame(replay_test_flight, tmp_path):
+    """What queued up while the ground was busy is fed at once (as the node does) and stepped once: keyframes
+    lagging the newest frame are thinned to max_keyframe_gap apart; with max_lag_s = 0 none are skipped."""
+    from ground.pipeline import GroundPipeline, GroundSettings
+    from pomar import wire
+
+    msgs = _onboard_messages(replay_test_flight, keyframe_every=1)
+    first = [m for m in msgs if not isinstance(m, (wire.FrameMessage, wire.KeyframeMessage)) or m.frame < 8]
+    backlog = [m for m in msgs if m not in first]
+    for lag, gap in ((0.3, 3), (0.0, 3)):
+        pipe = GroundPipeline(tmp_path / f"work-{lag}", GroundSettings(max_lag_s=lag, max_keyframe_gap=gap))
+        events = []
+        for m in first:  # one at a time: the ground keeps up
+            events += pipe.feed(m)
+        for m in backlog:
+            events += pipe.feed(m, step=False)
+        events += pipe.step()
+        events += pipe.finish()
+        assert [e.frame for e in events] == list(range(20)) and all(e.pose is not None for e in events)
+        registered = sorted(f for f in pipe.poses.model_pose if f >= 7)
+        if lag:
+            assert pipe.counters["skipped_keyframes"] >= 6
+            assert registered[-1] == 19 and max(np.diff(registered)) <= gap
+            assert {e.pose.source for e in events if e.frame >= 8} == {"registered", "interpolated"}
+        else:
+            assert pipe.counters["skipped_keyframes"] == 0 and registered == list(range(7, 20))
 
 
 def test_harvest_correlation(tmp_path):
