@@ -200,6 +200,19 @@ def test_a_lagging_ground_skips_keyframes_but_maps_every_frame(replay_test_fligh
             assert pipe.counters["skipped_keyframes"] == 0 and registered == list(range(7, 20))
 
 
+def test_apples_need_fewer_strong_views_when_frames_come_sparser(replay_test_flight, tmp_path):
+    from ground.pipeline import GroundPipeline, GroundSettings
+
+    needed = {}
+    for every in (1, 2, 4):
+        pipe = GroundPipeline(tmp_path / f"work-{every}", GroundSettings(confirm_views=3))
+        for m in _onboard_messages(replay_test_flight, every=every, keyframe_every=0):
+            pipe.feed(m)
+        pipe.finish()
+        needed[every] = pipe.views_needed()
+    assert needed == {1: 3, 2: 2, 4: 2}
+
+
 def test_harvest_correlation(tmp_path):
     p = tmp_path / "harvest.csv"
     p.write_text("row,kg\n0,10\n1,20\n2,31\n")
