@@ -65,7 +65,12 @@ def quantize(model_path, out_path, images, ops=("Conv",), fp16: bool = False) ->
     from onboard.detector import read_metadata
 
     model_path, out_path = Path(model_path), Path(out_path)
+    if not model_path.is_file():
+        raise ValueError(f"{model_path}: model file not found")
     meta = read_metadata(model_path)
+    if "quantization" in meta:
+        raise ValueError(f"{model_path}: already quantized (from {meta['quantization'].get('from')}); quantize the "
+                         "float32 export")
     if "float16" in str(meta.get("weights", "")):
         # the fp16 file casts its weights to float32 inside the graph: the quantizer sees no weight initialisers
         raise ValueError(f"{model_path}: quantize a float32 export (python -m export onnx without --fp16)")
@@ -120,6 +125,12 @@ def quantize(model_path, out_path, images, ops=("Conv",), fp16: bool = False) ->
 
 
 def run(args) -> int:
-    images = calibration_images(args.add256, args.sim_flight, args.add256_images, args.sim_frames, args.seed)
-    quantize(args.model, args.out, images, tuple(args.ops.split(",")), args.fp16)
+    from export.data import DataError
+    from onboard.detector import ModelError
+
+    try:
+        images = calibration_images(args.add256, args.sim_flight, args.add256_images, args.sim_frames, args.seed)
+        quantize(args.model, args.out, images, tuple(args.ops.split(",")), args.fp16)
+    except (ValueError, ModelError, DataError) as exc:  # a bad input file: say which, without a traceback
+        raise SystemExit(f"export quantize: {exc}") from None
     return 0

@@ -88,8 +88,9 @@ def _cmd_replay(args) -> int:
                    "--min-score", str(args.min_score), "--confirm-score", str(args.confirm_score),
                    "--confirm-views", str(args.confirm_views)] + (["--upright"] if args.upright else []) \
         + (["--max-lag-s", str(args.max_lag_s)] if args.realtime else [])  # lock-step: replay() sets 0
+    keyframe_every = args.keyframe_every or (1 if args.realtime else 2)
     rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
-                 keyframe_every=args.keyframe_every or (1 if args.realtime else 2), keyframe_width=args.keyframe_width, every=args.every,
+                 keyframe_every=keyframe_every, keyframe_width=args.keyframe_width, every=args.every,
                  ground_args=ground_args, quiet=args.quiet,
                  onboard_args=["--score-thresh", str(args.detector_score_thresh)] if args.detector_score_thresh else None)
     print()
