@@ -106,6 +106,7 @@ class GroundPipeline:
         self.seconds = {"registration": 0.0, "association": 0.0}
         self.gaps: list[tuple[int, int]] = []
         self.frame_times: dict[int, float] = {}
+        self._newest_t = float("-inf")  # the latest capture time of any frame received
         self._arrived: dict[int, float] = {}  # frame -> when its message came (monotonic clock)
         self._steps: deque[int] = deque(maxlen=20)  # frame-index steps between the last frames mapped
         self.frame_delays: list[float] = []  # per mapped frame: seconds from its message's arrival to its release
@@ -149,6 +150,7 @@ class GroundPipeline:
             return
         self.pending[msg.frame] = msg
         self.frame_times[msg.frame] = msg.t_capture
+        self._newest_t = max(self._newest_t, msg.t_capture)
         self._arrived[msg.frame] = time.monotonic()
         if self.counters["frames"] == 1 and not self._kf_seen:
             self._last_kf_t = time.monotonic()  # the wait for keyframes starts with the first frame
@@ -189,10 +191,11 @@ class GroundPipeline:
         the registered ones at most max_keyframe_gap frames apart (greedily: the furthest reachable each time;
         the newest is always kept)."""
         waiting = sorted(self.keyframes)
-        if not self.s.max_lag_s or len(waiting) < 2 or not self.frame_times:
+        if not self.s.max_lag_s or len(waiting) < 2:
             return
         t_first = self.frame_times.get(waiting[0])
-        if t_first is None or max(self.frame_times.values()) - t_first <= self.s.max_lag_s:
+        lag = self._newest_t - t_first if t_first is not None else float("nan")
+        if not lag > self.s.max_lag_s:  # NaN (a frame without a capture time) never thins
             return
         keep, cur, i = [], self._last_kf, 0
         while i < len(waiting):
@@ -207,7 +210,7 @@ class GroundPipeline:
         if skipped:
             self.counters["skipped_keyframes"] += len(skipped)
             log.info("the ground lags the drone by %.1f s: %d of %d waiting keyframes skipped",
-                     max(self.frame_times.values()) - t_first, len(skipped), len(waiting))
+                     lag, len(skipped), len(waiting))
 
     def _stalled(self) -> bool:
         return time.monotonic() - self._last_kf_t > self.s.max_wait_s
