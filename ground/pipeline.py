@@ -204,7 +204,8 @@ class GroundPipeline:
                 j += 1
             keep.append(waiting[j])
             cur, i = waiting[j], j + 1
-        skipped = [f for f in waiting if f not in keep]
+        kept = set(keep)
+        skipped = [f for f in waiting if f not in kept]
         for f in skipped:
             del self.keyframes[f]
         if skipped:
@@ -301,11 +302,12 @@ class GroundPipeline:
     def _confirm(self, apples: list[Apple]) -> list[Apple]:
         """Put the apples (new, or updated by a merge) with enough strong views into the map; returns them."""
         out = []
+        need = self.views_needed() if apples else 0
         for a in apples:
             strong = sum(int(self._scores[f][d] >= self.s.confirm_score) for f, d in a.observations if f in self._scores)
             # a merge may bring views whose scores were already forgotten: never count down
             strong = self._confirmed[a.id] = max(strong, self._confirmed.get(a.id, 0))
-            if strong >= self.views_needed():
+            if strong >= need:
                 self.apples[a.id] = a
                 out.append(a)
         return out
