@@ -145,8 +145,8 @@ def run(args) -> int:
         from export.data import read_rgb
 
         check = torch.from_numpy(read_rgb(args.check_image).transpose(2, 0, 1).copy()).float() / 255
-    meta = {"model": {**ckpt["config"], "proposals": args.proposals}, "training": {**ckpt.get("run", {}), "iteration": ckpt["iteration"],
-                                                  "checkpoint": str(args.checkpoint)},
+    meta = {"model": {**ckpt["config"], "proposals": args.proposals},
+            "training": {**ckpt.get("run", {}), "iteration": ckpt["iteration"], "checkpoint": str(args.checkpoint)},
             "training_history": ckpt.get("history", [])}
     export_onnx(model, args.out, args.opset, args.fp16, check, meta, args.score_thresh)
     return 0
