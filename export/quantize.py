@@ -54,17 +54,12 @@ def calibration_images(add256=None, sim_flights=(), add256_count: int = 24, sim_
     return images
 
 
-def quantize(model_path, out_path, images, ops=("Conv",), fp16: bool = False) -> dict:
-    """Write the int8 model ``out_path`` (+ its ``.json`` metadata) calibrated on ``images`` (RGB uint8);
-    ``fp16``: the weights left in float32 (the box head's, when only Conv is quantized) are stored as
-    float16 with a Cast back, as ``python -m export onnx --fp16`` does."""
-    from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType,
-                                          quantize_static)
-    from onnxruntime.quantization.shape_inference import quant_pre_process
-
+def float_model_metadata(model_path) -> dict:
+    """The metadata of the float32 export at ``model_path``; ValueError naming the file if it is missing,
+    already quantized, or an fp16 export (checked before any calibration image is read)."""
     from onboard.detector import read_metadata
 
-    model_path, out_path = Path(model_path), Path(out_path)
+    model_path = Path(model_path)
     if not model_path.is_file():
         raise ValueError(f"{model_path}: model file not found")
     meta = read_metadata(model_path)
@@ -74,6 +69,19 @@ def quantize(model_path, out_path, images, ops=("Conv",), fp16: bool = False) ->
     if "float16" in str(meta.get("weights", "")):
         # the fp16 file casts its weights to float32 inside the graph: the quantizer sees no weight initialisers
         raise ValueError(f"{model_path}: quantize a float32 export (python -m export onnx without --fp16)")
+    return meta
+
+
+def quantize(model_path, out_path, images, ops=("Conv",), fp16: bool = False) -> dict:
+    """Write the int8 model ``out_path`` (+ its ``.json`` metadata) calibrated on ``images`` (RGB uint8);
+    ``fp16``: the weights left in float32 (the box head's, when only Conv is quantized) are stored as
+    float16 with a Cast back, as ``python -m export onnx --fp16`` does."""
+    from onnxruntime.quantization import (CalibrationDataReader, CalibrationMethod, QuantFormat, QuantType,
+                                          quantize_static)
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    model_path, out_path = Path(model_path), Path(out_path)
+    meta = float_model_metadata(model_path)
     input_name = meta["input"]["name"]
 
     class Reader(CalibrationDataReader):
@@ -129,6 +137,7 @@ def run(args) -> int:
     from onboard.detector import ModelError
 
     try:
+        float_model_metadata(args.model)  # a wrong model is refused before the images are read
         images = calibration_images(args.add256, args.sim_flight, args.add256_images, args.sim_frames, args.seed)
         quantize(args.model, args.out, images, tuple(args.ops.split(",")), args.fp16)
     except (ValueError, ModelError, DataError) as exc:  # a bad input file: say which, without a traceback

@@ -135,3 +135,19 @@ def _half(path, tmp_path):
     meta = json.loads(path.with_suffix(".json").read_text())
     half.with_suffix(".json").write_text(json.dumps({**meta, "weights": "float16 (cast to float32 in the graph)"}))
     return half
+
+
+def test_quantize_refuses_a_quantized_model_before_reading_calibration_data(tmp_path):
+    """The shipped model is already 8-bit: the CLI names it and says so, even with a calibration
+    dataset that does not exist (the model is checked first, without torch)."""
+    import subprocess
+    import sys
+
+    from onboard.detector import default_model_path
+
+    out = tmp_path / "again.onnx"
+    r = subprocess.run([sys.executable, "-m", "export", "quantize", str(default_model_path()), "--out", str(out),
+                        "--add256", str(tmp_path / "no-such-dataset")], capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0
+    assert "already quantized" in r.stderr and default_model_path().name in r.stderr
+    assert "Traceback" not in r.stderr and not out.exists()
