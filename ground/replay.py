@@ -46,6 +46,27 @@ def _enu(flight: FlightDir, path: Path) -> np.ndarray:
     return flight.origin().to_enu(geo[:, 0], geo[:, 1], geo[:, 2]).reshape(-1, 3)
 
 
+def replay_cameras(flight: FlightDir, out: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A run's camera poses (poses.csv): frames (n,), centres (n, 3) in the flight's truth ENU frame and
+    world-to-camera rotations (n, 3, 3)."""
+    from pomar.flight import read_csv
+    from pomar.rotations import quat_wxyz_to_rotation
+
+    d = read_csv(out / "poses.csv", ["frame", "qw", "qx", "qy", "qz"])
+    R = quat_wxyz_to_rotation(np.stack([d[k] for k in ("qw", "qx", "qy", "qz")], 1)).as_matrix().reshape(-1, 3, 3)
+    return d["frame"].astype(int), _enu(flight, out / "poses.csv"), R
+
+
+def shape_fit(flight: FlightDir, frames: np.ndarray, centres: np.ndarray, R: np.ndarray):
+    """The similarity fit that best takes these camera poses onto the true ones (the georeferencing
+    error, which only the GPS sets); ``.similarity`` maps a run's ENU points into the truth's."""
+    from ground.georeference import fit_similarity
+
+    R_true, t_true = flight.truth_poses()
+    C_true = -np.einsum("nji,nj->ni", R_true, t_true)[frames]
+    return fit_similarity(centres, C_true, 0.05, R, R_true[frames], np.radians(0.05))
+
+
 def evaluate_map(flight: FlightDir, out: Path, min_visible: float = 0.5, match_m: float = 0.10) -> dict:
     """Score the written apples.csv against the flight's truth (in the truth's ENU frame).
 
@@ -55,23 +76,16 @@ def evaluate_map(flight: FlightDir, out: Path, min_visible: float = 0.5, match_m
     flight, and the scale it gives over a short straight line), which no image processing can see;
     its size is reported as ``georeference_error``."""
     from ground.evaluate import score_map
-    from ground.georeference import fit_similarity
-    from pomar.flight import read_csv
-    from pomar.rotations import quat_wxyz_to_rotation
 
     keys = ("precision", "recall", "f1", "count", "truth_count", "count_error_pct", "median_error_m", "p95_error_m",
             "recall_all_apples_in_rows_seen", "rows")
     apples = _enu(flight, out / "apples.csv")
-    cams = _enu(flight, out / "poses.csv")
-    d = read_csv(out / "poses.csv", ["frame", "qw", "qx", "qy", "qz"])
-    frames = d["frame"].astype(int)
-    R_true, t_true = flight.truth_poses()
-    C_true = -np.einsum("nji,nj->ni", R_true, t_true)[frames]
+    frames, cams, R_ours = replay_cameras(flight, out)
     res = {}
     if len(frames) >= 3:
-        R_ours = quat_wxyz_to_rotation(np.stack([d[k] for k in ("qw", "qx", "qy", "qz")], 1)).as_matrix()
-        # ENU of the map's origin -> ENU of the truth's origin is a translation; the fit takes care of it
-        fit = fit_similarity(cams, C_true, 0.05, R_ours, R_true[frames], np.radians(0.05))
+        R_true, t_true = flight.truth_poses()
+        C_true = -np.einsum("nji,nj->ni", R_true, t_true)[frames]
+        fit = shape_fit(flight, frames, cams, R_ours)
         S = fit.similarity
         shape = score_map(flight, S.apply(apples), min_visible=min_visible, match_m=match_m)
         res = {k: shape[k] for k in keys}
