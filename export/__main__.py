@@ -30,6 +30,9 @@ def train_arguments(p: argparse.ArgumentParser):
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--init", type=Path, metavar="CKPT",
                    help="start from this checkpoint's weights with a fresh optimiser and schedule (a second cycle)")
+    p.add_argument("--add256-scale", type=float, nargs=2, default=(0.45, 1.3), metavar=("LO", "HI"),
+                   help="random scale range of ADD256 patches (default 0.45 1.3: down to the simulated flights' "
+                        "apple sizes; 0.8 1.25 to train for ADD256-like imagery alone)")
 
 
 

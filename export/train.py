@@ -81,7 +81,7 @@ def save_atomic(obj, path: Path):
 
 def train(out: Path, add256=None, sim_flights=(), backbone="resnet18", fpn_channels=128, epochs=8, batch=4,
           lr=0.01, sim_crops=400, seed=0, threads=None, checkpoint_every=100, resume=False, log_every=10,
-          max_minutes=None, init=None):
+          max_minutes=None, init=None, add256_scale=(0.45, 1.3)):
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if threads:
@@ -117,7 +117,7 @@ def train(out: Path, add256=None, sim_flights=(), backbone="resnet18", fpn_chann
     run_info = dict(backbone=backbone, fpn_channels=fpn_channels, epochs=epochs, batch=batch, lr=lr,
                     sim_crops=sim_crops, seed=seed, sim_flights=[str(f) for f in sim_flights],
                     add256_train=len(add), sim_frames=len(sim), iterations=total,
-                    init=str(init) if init is not None else None)
+                    init=str(init) if init is not None else None, add256_scale=list(add256_scale))
 
     def checkpoint(path):
         save_atomic({"config": config, "model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it,
@@ -134,7 +134,7 @@ def train(out: Path, add256=None, sim_flights=(), backbone="resnet18", fpn_chann
         imgs, tgts = [], []
         for kind, i in batch_items:
             if kind == "add256":
-                img, b = aug(add[i].image, add[i].boxes)
+                img, b = aug(add[i].image, add[i].boxes, scale=add256_scale)
             else:
                 img, b = aug(sim[i].image, sim[i].boxes, scale=(0.8, 1.25))
             imgs.append(to_tensor(img))
@@ -179,5 +179,5 @@ def train(out: Path, add256=None, sim_flights=(), backbone="resnet18", fpn_chann
 def run(args) -> int:
     train(args.out, args.add256, args.sim_flight, args.backbone, args.fpn_channels, args.epochs, args.batch, args.lr,
           args.sim_crops, args.seed, args.threads, args.checkpoint_every, args.resume, max_minutes=args.max_minutes,
-          init=args.init)
+          init=args.init, add256_scale=tuple(args.add256_scale))
     return 0
