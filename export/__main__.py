@@ -76,6 +76,8 @@ def evaluate_arguments(p: argparse.ArgumentParser):
     p.add_argument("--score-thresh", type=float, help="operating threshold (default: the model's metadata)")
     p.add_argument("--val-flight", type=Path, help="choose the operating threshold as the best F1 on this simulated "
                    "flight (held out from training and from the scored flights)")
+    p.add_argument("--val-add256", type=int, metavar="N", help="choose the operating threshold as the best F1 on N "
+                   "ADD256 *training* patches instead (for a model meant for ADD256-like imagery; never the test split)")
     p.add_argument("--json", type=Path, help="write the metrics here")
     p.add_argument("--write-metadata", action="store_true",
                    help="also store the metrics (and the score threshold used) in the model's metadata file")

@@ -67,25 +67,42 @@ def print_table(res: dict):
                   f"{m['recall']:>7.3f}{m['f1']:>7.3f}{m['seconds_per_image']:>8.3f}")
 
 
-def choose_threshold(model, val_flight, every: int, min_visible: float) -> float:
+def choose_threshold(model, samples, name: str) -> float:
+    """The operating threshold: the best F1 over ``samples`` (image, boxes, ignore), on a 0.05 grid."""
     from export.metrics import best_f1_threshold
     from onboard.detector import OnnxDetector
 
     det = OnnxDetector(model)
-    frames = load_sim_frames(val_flight, min_visible, every=every)
-    preds = [det.detect_rgb(s.image, score_thresh=0.05) for s in frames]
-    t = best_f1_threshold(preds, [(s.boxes, s.ignore) for s in frames], np.round(np.arange(0.3, 0.96, 0.05), 2))
-    log.info("operating threshold %.2f: the best F1 on %d frames of %s", t, len(frames), val_flight)
+    preds, truths = [], []
+    for img, boxes, ignore in samples:
+        preds.append(det.detect_rgb(img, score_thresh=0.05))
+        truths.append((boxes, ignore))
+    t = best_f1_threshold(preds, truths, np.round(np.arange(0.3, 0.96, 0.05), 2))
+    log.info("operating threshold %.2f: the best F1 on %d images of %s", t, len(preds), name)
     return t
 
 
+def validation_samples(args):
+    """The images the threshold is chosen on, and their name: a held-out simulated flight, or ADD256
+    training patches (a fixed sample)."""
+    if args.val_flight:
+        frames = load_sim_frames(args.val_flight, args.min_visible, every=args.sim_every)
+        return ((s.image, s.boxes, s.ignore) for s in frames), str(args.val_flight)
+    items = add256_split(args.add256, "training")
+    items = [items[i] for i in np.random.default_rng(0).permutation(len(items))[:args.val_add256]]
+    return ((read_rgb(p), b, None) for p, b in items), f"{len(items)} ADD256 training patches"
+
+
 def run(args) -> int:
-    thresh = args.score_thresh
-    if args.val_flight:
-        thresh = choose_threshold(args.model, args.val_flight, args.sim_every, args.min_visible)
+    thresh, chosen_on = args.score_thresh, None
+    if args.val_flight and args.val_add256:
+        raise SystemExit("export evaluate: --val-flight or --val-add256, not both")
+    if args.val_flight or args.val_add256:
+        samples, chosen_on = validation_samples(args)
+        thresh = choose_threshold(args.model, samples, chosen_on)
     res = evaluate(args.model, args.add256, args.sim_flight, args.sim_every, args.min_visible, thresh)
-    if args.val_flight:
-        res["score_thresh_chosen_on"] = str(args.val_flight)
+    if chosen_on:
+        res["score_thresh_chosen_on"] = chosen_on
     print_table(res)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
