@@ -53,6 +53,28 @@ def test_shipped_model_finds_apples_on_add256_and_a_simulated_frame(detector, bu
     assert found > 0.5 and len(boxes) < 3 * len(truth), (found, len(boxes), len(truth))
 
 
+ADD256_MODEL = DEFAULT_MODEL.with_name("apple-detector-add256.onnx")
+
+
+def test_the_add256_model_finds_the_papers_apples():
+    """The model for real imagery like ADD256 loads with its metadata (threshold chosen on training
+    patches) and, where ADD256 is at hand, finds most apples of some test patches."""
+    from export.data import add256_split, find_add256, read_rgb
+    from export.metrics import evaluate_detections
+
+    det = OnnxDetector(ADD256_MODEL)
+    m = det.meta
+    assert "ADD256 training patches" in m["score_thresh_chosen_on"] and m["training"]["sim_frames"] == 0
+    assert m["metrics"]["add256_test"]["ap50"] >= 0.80
+    try:
+        test = add256_split(find_add256(), "test")[:20]
+    except Exception:
+        pytest.skip("ADD256 is not available here")
+    preds = [det.detect_rgb(read_rgb(p)) for p, _ in test]
+    r = evaluate_detections(preds, [(b, None) for _, b in test], det.score_thresh)
+    assert r["recall"] > 0.6 and r["precision"] > 0.6, r
+
+
 def test_tiling_reports_an_apple_cut_by_a_tile_border_once(detector, bundled_flight):
     from pomar.video import read_frame
 
