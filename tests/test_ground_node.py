@@ -25,7 +25,8 @@ def test_replay_end_to_end(replay_test_flight, tmp_path):
     out = tmp_path / "out"
     rep = replay(replay_test_flight.path, out, detector="onnx", keyframe_every=1, keyframe_width=0, quiet=True)
     # every frame went through, most with registered poses
-    assert rep["frames"]["frames"] == 20 and rep["frames"]["missing_frames"] == 0
+    log_tail = "\n".join((out / "ground.log").read_text().splitlines()[-15:])
+    assert rep["frames"]["frames"] == 20 and rep["frames"]["missing_frames"] == 0, (rep["frames"], log_tail)
     assert rep["frames"]["registered"] >= 10
     assert rep["final"] and rep["wall_seconds"] > 0 and rep["realtime_factor"] > 0
     # apples found, within a loose bound of the truth (the shipped detector, a tiny flight)
