@@ -29,16 +29,22 @@ def test_default_model_is_found_with_its_metadata(detector):
     assert m["metrics"]["add256_test"]["ap50"] > 0 and "training" in m
 
 
-def test_shipped_model_finds_apples_on_add256_and_a_simulated_frame(detector, bundled_flight):
+def _add256_smoke(det, n: int = 20) -> dict:
+    """Precision and recall of ``det`` at its threshold on the first n ADD256 test patches; skips the test
+    where ADD256 is not at hand (CI)."""
     from export.data import add256_split, find_add256, read_rgb
     from export.metrics import evaluate_detections
 
     try:
-        test = add256_split(find_add256(), "test")[:20]
+        test = add256_split(find_add256(), "test")[:n]
     except Exception:
         pytest.skip("ADD256 is not available here")
-    preds = [detector.detect_rgb(read_rgb(p)) for p, _ in test]
-    m = evaluate_detections(preds, [(b, None) for _, b in test], detector.score_thresh)
+    preds = [det.detect_rgb(read_rgb(p)) for p, _ in test]
+    return evaluate_detections(preds, [(b, None) for _, b in test], det.score_thresh)
+
+
+def test_shipped_model_finds_apples_on_add256_and_a_simulated_frame(detector, bundled_flight):
+    m = _add256_smoke(detector)
     assert m["recall"] > 0.5 and m["precision"] > 0.5, m
     # a frame of the bundled flight (1280x720, apples of 6-12 px)
     from pomar.video import read_frame
@@ -59,19 +65,11 @@ ADD256_MODEL = DEFAULT_MODEL.with_name("apple-detector-add256.onnx")
 def test_the_add256_model_finds_the_papers_apples():
     """The model for real imagery like ADD256 loads with its metadata (threshold chosen on training
     patches) and, where ADD256 is at hand, finds most apples of some test patches."""
-    from export.data import add256_split, find_add256, read_rgb
-    from export.metrics import evaluate_detections
-
     det = OnnxDetector(ADD256_MODEL)
     m = det.meta
     assert "ADD256 training patches" in m["score_thresh_chosen_on"] and m["training"]["sim_frames"] == 0
     assert m["metrics"]["add256_test"]["ap50"] >= 0.80
-    try:
-        test = add256_split(find_add256(), "test")[:20]
-    except Exception:
-        pytest.skip("ADD256 is not available here")
-    preds = [det.detect_rgb(read_rgb(p)) for p, _ in test]
-    r = evaluate_detections(preds, [(b, None) for _, b in test], det.score_thresh)
+    r = _add256_smoke(det)
     assert r["recall"] > 0.6 and r["precision"] > 0.6, r
 
 
