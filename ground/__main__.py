@@ -67,16 +67,16 @@ def _cmd_run(args) -> int:
 
     connect = args.connect or (None if args.listen or args.zenoh_config else [DEFAULT_ENDPOINT])
     report = run_ground(args.flight_id, args.out, connect=connect, listen=args.listen, zenoh_config=args.zenoh_config,
-                        drone_id=args.drone_id, settings=_settings(args), rrd=not args.no_rrd, serve=args.serve,
+                        drone_ids=args.drone_id, settings=_settings(args), rrd=not args.no_rrd, serve=args.serve,
                         viewer=args.viewer, harvest=args.harvest, idle_timeout_s=args.idle_timeout,
-                        resume=not args.fresh, expected_frames=args.expected_frames)
+                        resume=not args.fresh, expected_frames=args.expected_frames, max_ahead_s=args.max_ahead_s)
     rows = ", ".join(f"row {r['row']}: {r['count']}" for r in report["rows"])
     print(f"{report['apples']} apples ({rows}); outputs in {args.out}/")
     return 0
 
 
 def _cmd_replay(args) -> int:
-    from ground.replay import BUNDLED, format_evaluation, replay
+    from ground.replay import BUNDLED, ReplayError, format_evaluation, replay
 
     flight = args.flight_dir or BUNDLED
     out = Path(args.out or f"out/replay/{Path(flight).name}")
@@ -89,10 +89,14 @@ def _cmd_replay(args) -> int:
                    "--confirm-views", str(args.confirm_views)] + (["--upright"] if args.upright else []) \
         + (["--max-lag-s", str(args.max_lag_s)] if args.realtime else [])  # lock-step: replay() sets 0
     keyframe_every = args.keyframe_every or (1 if args.realtime else 2)
-    rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
-                 keyframe_every=keyframe_every, keyframe_width=args.keyframe_width, every=args.every,
-                 ground_args=ground_args, quiet=args.quiet,
-                 onboard_args=["--score-thresh", str(args.detector_score_thresh)] if args.detector_score_thresh else None)
+    try:
+        rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
+                     keyframe_every=keyframe_every, keyframe_width=args.keyframe_width, every=args.every,
+                     ground_args=ground_args, quiet=args.quiet,
+                     onboard_args=["--score-thresh", str(args.detector_score_thresh)] if args.detector_score_thresh else None)
+    except ReplayError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     print()
     print(f"flight {rep['flight_id']}: {rep['apples']} apples in {len(rep['rows'])} rows; "
           f"{rep['frames']['frames']} frames ({rep['frames']['registered']} registered, "
@@ -118,6 +122,10 @@ def _cmd_replay(args) -> int:
     print(f"map: {out}/apples.csv, apples.geojson (open in any GIS, e.g. QGIS or geojson.io), apples.ply, rows.csv")
     print(f"rerun recording: {out}/flight.rrd  (open it with: rerun {out}/flight.rrd)")
     print(f"report: {out}/report.json")
+    if rep.get("onboard_error"):
+        print(f"error: the onboard node stopped early: {rep['onboard_error']} (the map holds the frames before)",
+              file=sys.stderr)
+        return 1
     return 0
 
 
@@ -170,6 +178,7 @@ def _ground_options(p):
 
 def main(argv=None) -> int:
     from ground.evaluate import __doc__ as evaluate_doc
+    from pomar.flight import id_argument
 
     p = argparse.ArgumentParser(prog="python -m ground", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -221,12 +230,20 @@ def main(argv=None) -> int:
     _ground_options(rp)
     rp.set_defaults(func=_cmd_replay)
     g = sub.add_parser("run", help="the ground node: subscribe to a flight over zenoh and map its apples live")
-    g.add_argument("--flight-id", required=True)
-    g.add_argument("--drone-id", default="*")
+    g.add_argument("--flight-id", required=True, type=id_argument("flight id"))
+    g.add_argument("--drone-id", action="append", type=id_argument("drone id"),
+                   help="map this drone's messages (repeatable); others are counted and ignored (default: the first "
+                        "drone heard)")
     g.add_argument("--out", default="out/ground")
     g.add_argument("--connect", action="append", help="zenoh endpoint of the onboard node (default tcp/127.0.0.1:7447)")
-    g.add_argument("--listen", action="append", help="zenoh endpoint to listen on")
-    g.add_argument("--zenoh-config", help="a zenoh JSON5 config file for real links")
+    g.add_argument("--listen", action="append",
+                   help="zenoh endpoint to listen on (default: none, the ground only connects; never every interface "
+                        "unless given, e.g. tcp/0.0.0.0:7448)")
+    g.add_argument("--zenoh-config", help="a zenoh JSON5 config file for real links: TLS and user/password "
+                                          "authentication (docs/zenoh/)")
+    g.add_argument("--max-ahead-s", type=float, default=60.0,
+                   help="refuse frames more than this many seconds of video ahead of the newest one (plus the time "
+                        "since it came)")
     g.add_argument("--no-rrd", action="store_true", help="no OUT/flight.rrd")
     g.add_argument("--serve", action="store_true", help="serve the rerun stream over gRPC for a viewer elsewhere")
     g.add_argument("--viewer", help="send the rerun stream to a running viewer at this URL")
@@ -249,11 +266,13 @@ def main(argv=None) -> int:
     r.set_defaults(func=_cmd_register)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
+    from ground.journal import JournalError
     from pomar.flight import FlightFormatError
+    from pomar.transport import TransportError
 
     try:
         return args.func(args)
-    except FlightFormatError as exc:
+    except (FlightFormatError, JournalError, TransportError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ground.journal import Journal, read_journal
+from ground.journal import Journal, read_journal_report
 from ground.outputs import harvest_correlation, poses_csv, read_harvest, write_atomic, write_json, write_map
 from ground.pipeline import GroundPipeline, GroundSettings
 from pomar import wire
@@ -59,6 +59,9 @@ class GroundNode:
         self.errors: list[str] = []
         self._fps_t: list[float] = []
         self.latency: list[float] = []
+        self.stream: wire.StreamFilter | None = None  # what the subscriber let in and refused
+        self.ignored_end_claims = 0  # "finished" statuses contradicted by the stream
+        self.journal_damage: dict | None = None
 
     def _rerun(self):
         if self.rr is None and self.pipe.flight_id is not None and any(self._rr_args):
@@ -105,11 +108,22 @@ class GroundNode:
                 self.latency.append(now - e.t_capture)
             if rr is not None:
                 st = self.pipe.status
+                rejected = self.stream.rejected if self.stream else {}
                 rr.frame(e, self.pipe.camera, {
                     "frames_per_s": self.ground_fps(),
                     "drops": float(st.frames_dropped) if st else None,
                     "detector_latency_s": float(st.detector_latency_s) if st else None,
+                    **{f"rejected/{reason}": float(n) for reason, n in rejected.items()},
                 })
+
+    def link_stats(self) -> dict:
+        """What the stream filter refused, by reason, and the repeats it dropped."""
+        sf = self.stream
+        return {"drone_ids": sorted(sf.drone_ids) if sf else [],
+                "rejected": dict(sorted(sf.rejected.items())) if sf else {},
+                "rejected_total": sum(sf.rejected.values()) if sf else 0,
+                "duplicates": sf.duplicates if sf else 0, "last_rejections": sf.errors[-10:] if sf else [],
+                "ignored_end_claims": self.ignored_end_claims, "journal": self.journal_damage}
 
     def ground_fps(self) -> float:
         t = self._fps_t[-20:]
@@ -158,6 +172,7 @@ class GroundNode:
                         **delay_stats(self.pipe.frame_delays),
                         "peak_rss_mb": peak_rss_mb()},
             "onboard_status": vars(st).copy() if st else None,
+            "link": self.link_stats(),
             "errors": self.errors[-50:],
         }
         if self.harvest is not None:
@@ -194,41 +209,54 @@ class GroundNode:
             rec.write_text(str(d))
 
 
-def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=None, drone_id: str = "*",
+def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=None, drone_ids=None,
                settings: GroundSettings | None = None, rrd=True, serve=False, viewer=None, harvest=None,
-               idle_timeout_s: float = 60.0, end_grace_s: float = 10.0, resume: bool = True,
-               progress_s: float = 5.0, expected_frames: int | None = None) -> dict:
+               idle_timeout_s: float = 60.0, end_quiet_s: float = 1.0, resume: bool = True,
+               progress_s: float = 5.0, expected_frames: int | None = None, max_ahead_s: float = 60.0) -> dict:
+    """Map one flight from its zenoh stream until the drone says it is finished, or idle_timeout_s passes.
+
+    Only what :class:`pomar.wire.StreamFilter` lets in reaches the pipeline: this flight, its drones
+    (``drone_ids``; default the first heard), valid messages; the rest is counted by reason in report.json
+    (``rejected``) and the rerun log. A "finished" (or "error") status ends the flight only when exactly the
+    frames it says were sent have arrived and no frame came for end_quiet_s: a drone still flying sends
+    more, which contradicts it; it is then logged and ignored, and the flight ends at the idle timeout.
+    """
     from pomar import transport
 
     out = Path(out_dir)
     journal_path = out / "journal.bin"
-    node = GroundNode(out, settings, rrd, serve, viewer, harvest)
-    seen: dict = {}
+    stream = wire.StreamFilter(flight_id, drone_ids, max_ahead_s=max_ahead_s)
     if resume and journal_path.is_file():
-        records = read_journal(journal_path)
-        log.info("resuming from %s: %d messages", journal_path, len(records))
-        for payload in records:
+        read = read_journal_report(journal_path)  # an unreadable journal raises before anything is overwritten
+    else:
+        read = None
+        journal_path.unlink(missing_ok=True)
+    node = GroundNode(out, settings, rrd, serve, viewer, harvest)
+    node.stream = stream
+    if read is not None:
+        log.info("resuming from %s: %d messages%s", journal_path, len(read.records),
+                 f", {read.damaged_bytes} damaged bytes skipped" if read.damaged else "")
+        node.journal_damage = {"records_read": len(read.records), "damaged_bytes": read.damaged_bytes,
+                               "damaged_at": [o for o, _ in read.damaged], "side_files": [str(p) for p in read.side_files]}
+        for payload in read.records:
             try:
-                msg = wire.decode(payload)
+                msg = stream.accept(payload, check_window=False)
             except wire.WireError as exc:
                 log.warning("journal record skipped: %s", exc)
                 continue
-            if isinstance(msg, (wire.FrameMessage, wire.KeyframeMessage)):
-                kind = "frame" if isinstance(msg, wire.FrameMessage) else "keyframe"
-                seen.setdefault((kind, msg.drone_id), set()).add(msg.frame)
-            node.handle(msg)
-    elif journal_path.exists():
-        journal_path.unlink()
+            if msg is not None:
+                node.handle(msg)
     journal = Journal(journal_path)
     session = transport.open_session(listen=listen, connect=connect, config_file=zenoh_config)
-    sub = transport.FlightSubscriber(session, flight_id, drone_id, on_accept=journal.append, seen=seen)
+    sub = transport.FlightSubscriber(session, flight_id, stream, on_accept=journal.append)
     last_msg = time.monotonic()
     last_progress = time.monotonic()
-    finished_at = None
+    claim = None  # (the status saying the flight ended, when it came)
+    last_frame = 0.0  # when the last frame message came
     report = None
     try:
         while True:
-            msg = sub.recv(timeout=0.5)
+            msg = sub.recv(timeout=0.2)
             now = time.monotonic()
             if msg is not None:
                 last_msg = now
@@ -239,16 +267,24 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
                     batch.append(more)
                 for m in batch:
                     node.handle(m, step=False)
-                    if isinstance(m, wire.StatusMessage) and m.state in ("finished", "error") and finished_at is None:
-                        finished_at = now
+                    if isinstance(m, wire.FrameMessage):
+                        last_frame = now
+                    if isinstance(m, wire.StatusMessage) and m.state in ("finished", "error"):
                         log.info("the drone says the flight is %s (%d frames processed)", m.state, m.frames_processed)
+                        claim = (m, now)
                 node.step()
-            st = node.pipe.status
-            if finished_at is not None:
+            if claim is not None:
                 have = node.pipe.counters["frames"] + node.pipe.counters["late_frames"]
-                if have >= st.frames_processed or now - finished_at > end_grace_s:
-                    if have < st.frames_processed:
-                        log.warning("%d of %d frames arrived; finishing anyway", have, st.frames_processed)
+                said = claim[0].frames_processed
+                if have == said and now - max(claim[1], last_frame) >= end_quiet_s:
+                    break
+                if have > said:
+                    node.ignored_end_claims += 1
+                    log.warning("a %r status says %d frames were sent, but %d arrived: ignored; the flight ends "
+                                "at the idle timeout", claim[0].state, said, have)
+                    claim = None
+                elif have < said and now - claim[1] > idle_timeout_s:
+                    log.warning("%d of the %d frames the drone sent arrived; finishing", have, said)
                     break
             if now - last_msg > idle_timeout_s:
                 log.warning("no message for %.0f s: finishing the flight", idle_timeout_s)
@@ -259,9 +295,11 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
                 mapped, fps = node.pipe.released + 1, node.ground_fps()
                 eta = (f", ETA {(expected_frames - mapped) / fps:.0f} s" if expected_frames and fps == fps and fps > 0
                        else "")
-                log.info("frames %d received, %d%s mapped (%.1f fps%s), keyframes %d, apples %d, wall %.0f s",
+                rejected = sum(stream.rejected.values())
+                log.info("frames %d received, %d%s mapped (%.1f fps%s), keyframes %d, apples %d, wall %.0f s%s",
                          c["frames"], mapped, f"/{expected_frames}" if expected_frames else "", fps, eta,
-                         c["keyframes"], len(node.pipe.apples), now - node.t_start)
+                         c["keyframes"], len(node.pipe.apples), now - node.t_start,
+                         f", {rejected} messages rejected" if rejected else "")
     except KeyboardInterrupt:
         log.warning("interrupted: writing what there is")
     finally:
@@ -269,6 +307,4 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
         session.close()
         journal.close()
         report = node.finish()
-    report["subscriber"] = {"duplicates": sub.duplicates, "decode_errors": len(sub.errors)}
-    write_json(out / "report.json", report)
     return report

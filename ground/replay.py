@@ -20,6 +20,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -30,6 +31,25 @@ from pomar.flight import FlightDir
 log = logging.getLogger(__name__)
 
 BUNDLED = Path(__file__).resolve().parents[1] / "replay_data" / "demo-flight"
+
+
+class ReplayError(RuntimeError):
+    """A replay whose onboard or ground node failed; the message carries the node's own error."""
+
+
+def _onboard_error(out: Path) -> str:
+    """The onboard node's error: its summary's, else its log's error lines, else its log's last lines."""
+    summary = out / "onboard.json"
+    if summary.is_file():
+        try:
+            err = json.loads(summary.read_text()).get("error")
+        except (ValueError, AttributeError):
+            err = None
+        if err:
+            return err
+    lines = (out / "onboard.log").read_text(errors="replace").splitlines() if (out / "onboard.log").is_file() else []
+    errors = [ln for ln in lines if ln.startswith("error:")]
+    return " / ".join(errors[-3:]) if errors else " / ".join(lines[-5:]) or "no output"
 
 
 def free_port() -> int:
@@ -149,20 +169,38 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     t0 = time.monotonic()
     logs = {name: open(out / f"{name}.log", "w") for name in ("onboard", "ground")}
+    (out / "onboard.json").unlink(missing_ok=True)
     onboard = subprocess.Popen(onboard_cmd, stdout=logs["onboard"], stderr=subprocess.STDOUT, env=env)
-    ground = None
+    procs: dict[str, subprocess.Popen] = {}
+    failed = threading.Event()
+
+    def watch_onboard():
+        # an onboard node that exits by itself has failed (it lingers until stopped otherwise): stop the ground,
+        # which then writes what it has
+        if onboard.wait() != 0 and not stopping.is_set():
+            failed.set()
+            if "ground" in procs and procs["ground"].poll() is None:
+                procs["ground"].send_signal(signal.SIGINT)
+
+    stopping = threading.Event()
+    threading.Thread(target=watch_onboard, daemon=True).start()
     try:
         time.sleep(0.5)
-        ground = subprocess.Popen(ground_cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, text=True)
-        for line in ground.stdout:  # the ground's progress, shown and kept
-            logs["ground"].write(line)
-            if not quiet:
-                sys.stderr.write(line)
-            if time.monotonic() - t0 > timeout_s:
-                raise TimeoutError(f"replay of {flight.path} ran past {timeout_s:.0f} s")
-        ground.wait()
+        if not failed.is_set():
+            procs["ground"] = ground = subprocess.Popen(ground_cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                                        env=env, text=True)
+            if failed.is_set():
+                ground.send_signal(signal.SIGINT)
+            for line in ground.stdout:  # the ground's progress, shown and kept
+                logs["ground"].write(line)
+                if not quiet:
+                    sys.stderr.write(line)
+                if time.monotonic() - t0 > timeout_s:
+                    raise TimeoutError(f"replay of {flight.path} ran past {timeout_s:.0f} s")
+            ground.wait()
     finally:
-        for name, proc in (("ground", ground), ("onboard", onboard)):
+        stopping.set()
+        for name, proc in (("ground", procs.get("ground")), ("onboard", onboard)):
             if proc is not None and proc.poll() is None:
                 proc.send_signal(signal.SIGINT)
                 try:
@@ -173,16 +211,24 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
         for f in logs.values():
             f.close()
     wall = time.monotonic() - t0
-    if ground.returncode != 0:
-        raise RuntimeError(f"the ground node failed (exit {ground.returncode}); see {out / 'ground.log'}")
+    onboard_error = _onboard_error(out) if failed.is_set() or onboard.returncode not in (0, -signal.SIGINT) else None
+    onboard_json = out / "onboard.json"
+    summary = json.loads(onboard_json.read_text()) if onboard_json.is_file() else {}
+    onboard_error = onboard_error or summary.get("error")
+    if onboard_error and not summary.get("frames_processed"):
+        raise ReplayError(f"the onboard node failed before it sent a frame: {onboard_error} (log: {out / 'onboard.log'})")
+    ground = procs.get("ground")
+    if ground is None or ground.returncode != 0:
+        raise ReplayError(f"the ground node failed (exit {ground.returncode if ground else None}); see {out / 'ground.log'}")
     report = json.loads((out / "report.json").read_text())
     flight_s = meta.frame_count / meta.fps
     report.update(wall_seconds=wall, flight_seconds=flight_s, realtime_factor=flight_s / wall,
                   replay={"flight": str(flight.path), "realtime": realtime, "detector": detector,
                           "keyframe_every": keyframe_every, "keyframe_width": keyframe_width, "every": every})
-    onboard_json = out / "onboard.json"
-    if onboard_json.is_file():
-        report["onboard"] = json.loads(onboard_json.read_text())
+    if summary:
+        report["onboard"] = summary
+    if onboard_error:  # the map holds what came before the onboard node stopped
+        report["onboard_error"] = onboard_error
     if flight.has_truth:
         report["evaluation"] = evaluate_map(flight, out)
     from ground.outputs import write_json

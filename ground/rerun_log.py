@@ -13,6 +13,7 @@ Entity tree::
     map/apples, map/drone       GeoPoints (WGS84) for the map view
     stats/rows/<r>              Scalars: apples per row
     stats/apples, stats/frames_per_s, stats/drops, stats/detector_latency_s, stats/ground_latency_s
+    stats/rejected/<reason>     Scalars: messages the ground refused, by pomar.wire.WireError reason
 
 Timelines: ``frame`` (sequence) and ``capture_time`` (timestamp). Sinks: an .rrd file, a gRPC server
 for a viewer elsewhere (``serve``), or a running viewer (``connect``).

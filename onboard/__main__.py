@@ -17,9 +17,13 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 def _cmd_telemetry(args) -> int:
     import numpy as np
 
-    from onboard.telemetry import Flags, read_tlog
+    from onboard.telemetry import Flags, TelemetryError, read_tlog
     from pomar.flight import FlightDir
 
+    from pathlib import Path
+
+    if Path(args.tlog).is_dir():
+        raise TelemetryError(f"{args.tlog}: is a directory; give the log file (e.g. {Path(args.tlog) / 'telemetry.tlog'})")
     tl = read_tlog(args.tlog, max_gap_s=args.max_gap_s)
     print(tl.summary())
     if args.flight:
@@ -45,22 +49,37 @@ def _cmd_run(args) -> int:
     from onboard.node import NodeSettings, OnboardNode
     from pomar.flight import FlightDir
 
-    detector = _detector(args, args.flight_dir)
+    from pathlib import Path
+
+    def write_summary(summary: dict) -> None:
+        if args.summary:
+            Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
+
     settings = NodeSettings(lockstep=not args.realtime, every=args.every, keyframe_every=args.keyframe_every,
                             keyframe_every_s=args.keyframe_every_s, keyframe_every_m=args.keyframe_every_m,
                             keyframe_width=args.keyframe_width, jpeg_quality=args.jpeg_quality)
-    meta = FlightDir(args.flight_dir).meta()
-    session, pub = _publisher(args, meta.flight_id, meta.drone_id)
     try:
-        summary = OnboardNode(args.flight_dir, pub, detector, settings).run()
+        # every input is read and cross-checked before anything is published or any port is opened
+        node = OnboardNode(args.flight_dir, None, None, settings)
+        meta = node.check_inputs()[0]
+        node.detector = _detector(args, args.flight_dir)
+    except SystemExit as exc:  # the detector's own message, already printed
+        write_summary({"error": f"the detector could not be loaded (exit {exc.code})"})
+        raise
+    except Exception as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        write_summary({"error": str(exc)})
+        return 2
+    session, pub = _publisher(args, meta.flight_id, meta.drone_id)
+    node.pub = pub
+    try:
+        summary = node.run()
         print(json.dumps(summary, indent=2))
-        if args.summary:
-            from pathlib import Path
-
-            Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
+        write_summary(summary)
         code = 0
     except Exception as exc:
         print(f"error: {exc}", file=sys.stderr)
+        write_summary({**getattr(exc, "summary", {}), "error": str(exc)})
         code = 1
     _linger_and_close(args, session, pub)
     return code
@@ -152,6 +171,8 @@ def _link_options(r, keyframe_every=2):
 
 
 def main(argv=None) -> int:
+    from pomar.flight import id_argument
+
     p = argparse.ArgumentParser(prog="python -m onboard", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -170,8 +191,8 @@ def main(argv=None) -> int:
     lv.add_argument("--camera", required=True, help="OpenCV camera index, stream URL or video file")
     lv.add_argument("--mavlink", default="udpin:127.0.0.1:14550", help="pymavlink connection string (udpin:..., serial)")
     lv.add_argument("--camera-json", required=True, help="the camera's intrinsics (camera.json, COLMAP convention)")
-    lv.add_argument("--flight-id", required=True)
-    lv.add_argument("--drone-id", default="drone-1")
+    lv.add_argument("--flight-id", required=True, type=id_argument("flight id"))
+    lv.add_argument("--drone-id", default="drone-1", type=id_argument("drone id"))
     lv.add_argument("--detector", choices=["onnx", "truth-replay"], default="onnx")
     lv.add_argument("--truth-flight", help="for --detector truth-replay: the simulated flight whose truth to replay")
     _detector_options(lv)
@@ -192,11 +213,14 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     from onboard.telemetry import TelemetryError
+    from pomar.camera import CameraFileError
     from pomar.flight import FlightFormatError
+    from pomar.transport import TransportError
+    from pomar.video import VideoError
 
     try:
         return args.func(args)
-    except (TelemetryError, FlightFormatError) as exc:
+    except (TelemetryError, FlightFormatError, CameraFileError, VideoError, TransportError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

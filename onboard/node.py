@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from onboard.sources import LatestFrame, SourceError, VideoSource
-from onboard.telemetry import read_tlog
+from onboard.telemetry import Flags, TelemetryError, read_tlog
 from pomar import wire
 from pomar.flight import FlightDir
 
@@ -94,6 +94,7 @@ class OnboardNode:
         self.pub = publisher
         self.detector = detector
         self.s = settings or NodeSettings()
+        self.inputs = None  # check_inputs()'s result
         self.stats = {"frames_read": 0, "frames_processed": 0, "frames_dropped": 0, "keyframes": 0,
                       "detections": 0, "detector_seconds": 0.0, "read_to_publish_seconds": []}
 
@@ -105,12 +106,34 @@ class OnboardNode:
                                             st["frames_processed"], st["frames_dropped"],
                                             st["frames_processed"] / elapsed, lat, state, message))
 
-    def run(self) -> dict:
+    def check_inputs(self):
+        """Read and cross-check the flight's files before anything is published: flight.json, camera.json against
+        the video's size, and a telemetry log with positions over the video. Raises FlightFormatError,
+        CameraFileError, VideoError or TelemetryError naming the file."""
+        from pomar.flight import FlightFormatError
+        from pomar.video import video_size
+
         meta, cam = self.flight.meta(), self.flight.camera()
+        w, h = video_size(self.flight.video)
+        if (cam.width, cam.height) != (w, h):
+            raise FlightFormatError(f"{self.flight.path / 'camera.json'} is for {cam.width}x{cam.height} images, but "
+                                    f"{self.flight.video} is {w}x{h}")
         tl = read_tlog(self.flight.tlog)
+        if not len(tl.position):
+            raise TelemetryError(f"{self.flight.tlog}: no position in the log (no GLOBAL_POSITION_INT with a fix); "
+                                 f"frames cannot be placed")
         t_frames, cap_flags = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps, self.s.clock_offset_s)
         tel = tl.at(t_frames)
         tel["flags"] = tel["flags"] | cap_flags
+        if meta.frame_count and (tel["flags"] & Flags.NO_POSITION).all():
+            raise TelemetryError(f"{self.flight.tlog}: its positions span {tl.position.t[0]:.1f}-{tl.position.t[-1]:.1f} "
+                                 f"(unix s), the video's frames {t_frames[0]:.1f}-{t_frames[-1]:.1f}: no frame falls "
+                                 f"within the log")
+        self.inputs = (meta, cam, t_frames, tel)
+        return self.inputs
+
+    def run(self) -> dict:
+        meta, cam, t_frames, tel = self.inputs or self.check_inputs()
         self.pub.publish(wire.CameraMessage(meta.flight_id, meta.drone_id, cam.to_dict(), meta.fps, meta.video_start_utc))
         source = VideoSource(self.flight.video, self.s.every, expected_frames=meta.frame_count)
         frames = source if self.s.lockstep else LatestFrame(source, fps=meta.fps)
@@ -165,5 +188,7 @@ class OnboardNode:
         per_frame = summary["bytes_per_message"]["frames"] + summary["bytes_per_message"]["keyframes"] * kf_share
         summary["link_bytes_per_s_at_video_fps"] = per_frame * meta.fps / self.s.every
         if error:
-            raise SourceError(f"{error} — summary: {summary}")
+            exc = SourceError(f"{error} (after {processed} frames)")
+            exc.summary = summary
+            raise exc
         return summary

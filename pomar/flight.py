@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +31,29 @@ DETECTIONS_COLUMNS = ["frame", "apple_id", "u", "v", "r_px", "visible_fraction"]
 
 class FlightFormatError(ValueError):
     """A flight directory or one of its files is missing or malformed."""
+
+
+ID_PATTERN = re.compile(r"^[A-Za-z0-9_.\-]{1,128}$")
+
+
+def check_id(name: str, value) -> str:
+    """A flight or drone id: 1-128 letters, digits, '_', '-', '.' (ids name zenoh key expressions, which forbid
+    '/', '*', '$', '?', '#' and spaces)."""
+    if not isinstance(value, str) or not ID_PATTERN.match(value):
+        raise ValueError(f"{name} {value!r} may hold only letters, digits, '_', '-', '.' (1 to 128 of them)")
+    return value
+
+
+def id_argument(name: str):
+    """An argparse ``type`` for a flight or drone id: a bad one is a usage error, not a traceback."""
+    import argparse
+
+    def parse(value: str) -> str:
+        try:
+            return check_id(name, value)
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+    return parse
 
 
 def write_csv(path: Path, columns: list[str], rows: dict[str, np.ndarray], formats: dict[str, str] | None = None) -> None:
@@ -117,12 +141,15 @@ def _parse_meta(d: dict, source: str) -> FlightMeta:
         raise FlightFormatError(f"{source}: missing key(s) {missing}")
     extra = {k: v for k, v in d.items() if k not in required and k != "video_start_utc"}
     try:
-        return FlightMeta(
-            str(d["flight_id"]), str(d["drone_id"]), float(d["video_start_unix"]), float(d["fps"]),
-            int(d["frame_count"]), int(d["width"]), int(d["height"]), extra,
+        meta = FlightMeta(
+            check_id("flight_id", d["flight_id"]), check_id("drone_id", d["drone_id"]), float(d["video_start_unix"]),
+            float(d["fps"]), int(d["frame_count"]), int(d["width"]), int(d["height"]), extra,
         )
     except (TypeError, ValueError) as exc:
         raise FlightFormatError(f"{source}: {exc}") from None
+    if not (meta.fps > 0 and np.isfinite(meta.fps)) or meta.frame_count < 0 or meta.width <= 0 or meta.height <= 0:
+        raise FlightFormatError(f"{source}: fps must be > 0, frame_count >= 0, width and height > 0")
+    return meta
 
 
 class FlightDir:

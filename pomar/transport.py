@@ -1,8 +1,11 @@
 """Zenoh transport of the wire format (eclipse-zenoh >= 1.0, advanced publisher/subscriber).
 
 Defaults: peer mode, multicast and gossip scouting off, so a session talks only to the endpoints it
-is given: the onboard node listens on ``tcp/127.0.0.1:7447`` and the ground connects to it. Real
-links (drone <-> laptop over a radio) pass their own ``listen`` / ``connect`` endpoints.
+is given: the onboard node listens on ``tcp/127.0.0.1:7447`` and the ground connects to it. A session
+given no listen endpoint (by argument or in its config file) listens on none, never on zenoh's default
+of a random port on every interface. Real links (drone <-> laptop over a radio) pass their own
+``listen`` / ``connect`` endpoints, and a config file with TLS and user/password authentication
+(``docs/zenoh/``, README's "On a real link").
 
 The publisher keeps a cache of its samples and announces them (sample-miss detection, publisher
 detection); the subscriber asks for that history, also from publishers that appear later, and
@@ -26,9 +29,16 @@ log = logging.getLogger(__name__)
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 
+class TransportError(RuntimeError):
+    """A zenoh session that cannot be set up: its config file or endpoints."""
+
+
 def session_config(listen: list[str] | None = None, connect: list[str] | None = None, mode: str = "peer",
                    config_file: str | None = None) -> zenoh.Config:
-    cfg = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    try:
+        cfg = zenoh.Config.from_file(str(config_file)) if config_file else zenoh.Config()
+    except Exception as exc:  # zenoh raises its own error type for a missing or malformed file
+        raise TransportError(f"{config_file}: not a usable zenoh config ({exc})") from None
     if not config_file:
         cfg.insert_json5("mode", json.dumps(mode))
         cfg.insert_json5("scouting/multicast/enabled", "false")
@@ -36,13 +46,22 @@ def session_config(listen: list[str] | None = None, connect: list[str] | None = 
         cfg.insert_json5("timestamping/enabled", "true")
     if listen is not None:
         cfg.insert_json5("listen/endpoints", json.dumps(listen))
+    elif isinstance(json.loads(cfg.get_json("listen/endpoints")), dict):
+        # zenoh's default would listen on a random port on every interface: a session told nothing listens
+        # nowhere (it connects); one that must listen says where (--listen, or listen/endpoints in its config)
+        cfg.insert_json5("listen/endpoints", "[]")
     if connect is not None:
         cfg.insert_json5("connect/endpoints", json.dumps(connect))
     return cfg
 
 
 def open_session(listen=None, connect=None, mode="peer", config_file=None) -> zenoh.Session:
-    return zenoh.open(session_config(listen, connect, mode, config_file))
+    cfg = session_config(listen, connect, mode, config_file)
+    try:
+        return zenoh.open(cfg)
+    except Exception as exc:  # a port in use, a certificate that does not load, ...
+        where = f" (config {config_file})" if config_file else ""
+        raise TransportError(f"zenoh session could not open{where}: listen {listen}, connect {connect}: {exc}") from None
 
 
 class FlightPublisher:
@@ -79,42 +98,37 @@ class FlightPublisher:
 
 
 class FlightSubscriber:
-    """Receives a flight's messages (all drones by default), decoded, frames and keyframes de-duplicated.
+    """Receives one flight's messages through a :class:`pomar.wire.StreamFilter`: decoded, validated, from the
+    flight's drones only, frames and keyframes de-duplicated.
 
-    Messages that fail to decode are counted and logged, never raised: one bad message does not
-    stop the ground.
+    A message the filter refuses is counted by reason and logged, never raised: one bad message does not
+    stop the ground. ``on_accept`` gets the raw bytes of each message let in (e.g. a journal).
     """
 
-    def __init__(self, session: zenoh.Session, flight_id: str, drone_id: str = "*", capacity: int = 1_000_000,
-                 on_accept=None, seen: dict | None = None):
+    def __init__(self, session: zenoh.Session, flight_id: str, stream: wire.StreamFilter | None = None,
+                 capacity: int = 100_000, on_accept=None):
+        self.stream = stream or wire.StreamFilter(flight_id)
+        # every drone of the flight: those not the flight's are counted as they are refused
         self._sub = zext.declare_advanced_subscriber(
-            session, wire.key(flight_id, drone_id, "**"), zenoh.handlers.FifoChannel(capacity),
+            session, wire.key(flight_id, "*", "**"), zenoh.handlers.FifoChannel(capacity),
             history=zext.HistoryConfig(detect_late_publishers=True),
             recovery=zext.RecoveryConfig(heartbeat=True),
             subscriber_detection=True,
         )
-        # (kind, drone) -> frame indices already accepted; a restarted ground passes what its journal holds
-        self._seen: dict[tuple[str, str], set[int]] = seen if seen is not None else {}
-        self.duplicates = 0
-        self.errors: list[str] = []
-        self.on_accept = on_accept  # called with the raw bytes of each accepted message (e.g. a journal)
+        self.on_accept = on_accept
+
+    duplicates = property(lambda self: self.stream.duplicates)
+    errors = property(lambda self: self.stream.errors)
+    rejected = property(lambda self: self.stream.rejected)
 
     def _accept(self, sample) -> object | None:
         payload = bytes(sample.payload.to_bytes())
         try:
-            msg = wire.decode(payload)
+            msg = self.stream.accept(payload, str(sample.key_expr))
         except wire.WireError as exc:
-            self.errors.append(f"{sample.key_expr}: {exc}")
-            log.warning("dropped a message on %s: %s", sample.key_expr, exc)
+            log.warning("dropped a message on %s (%s): %s", sample.key_expr, exc.reason, exc)
             return None
-        if isinstance(msg, (wire.FrameMessage, wire.KeyframeMessage)):
-            k = ("frame" if isinstance(msg, wire.FrameMessage) else "keyframe", msg.drone_id)
-            seen = self._seen.setdefault(k, set())
-            if msg.frame in seen:
-                self.duplicates += 1
-                return None
-            seen.add(msg.frame)
-        if self.on_accept is not None:
+        if msg is not None and self.on_accept is not None:
             self.on_accept(payload)
         return msg
 

@@ -23,6 +23,18 @@ def _open(path):
     return cap
 
 
+def video_size(path) -> tuple[int, int]:
+    """(width, height) of the video's first frame; VideoError when none decodes."""
+    cap = _open(path)
+    try:
+        ok, img = cap.read()
+    finally:
+        cap.release()
+    if not ok or img is None:
+        raise VideoError(f"{path}: OpenCV opens it, but no frame decodes")
+    return img.shape[1], img.shape[0]
+
+
 def count_frames(path) -> int:
     """Number of frames that actually decode (not the container's claim)."""
     cap = _open(path)

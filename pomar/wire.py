@@ -8,27 +8,56 @@ Key expressions, under ``pomar/<flight_id>/<drone_id>/``:
 - ``camera``    :class:`CameraMessage`: the flight's camera.json, so the ground needs no file from the drone
 
 Payloads are msgpack maps with ``"v"`` (schema version) and ``"type"``; zenoh carries them with the
-encoding :data:`ENCODING`. Decoding rejects an unknown version or a malformed message with
-:class:`WireError`. Detection boxes are ``x1, y1, x2, y2`` in pixels, OpenCV convention (top-left
-pixel centre at (0, 0)); centres are the boxes' centres.
+encoding :data:`ENCODING`. Detection boxes are ``x1, y1, x2, y2`` in pixels, OpenCV convention
+(top-left pixel centre at (0, 0)); centres are the boxes' centres.
+
+Every decoder validates every field: its type, a finite value and a plausible range (see the limits
+below). Anything else raises :class:`WireError`, whose ``reason`` is one of :data:`REASONS`; no other
+exception type leaves a decoder. What a message can only be judged by against the stream so far
+(its flight and drone, its frame index against the newest frame, its size against the camera's) is
+checked by :class:`StreamFilter`, which the ground puts in front of everything it receives.
 """
 
 from __future__ import annotations
 
+import math
 import re
+import struct
+import time
 from dataclasses import dataclass, field
 
 import msgpack
 import numpy as np
 
+from pomar.flight import ID_PATTERN, check_id
+
 SCHEMA_VERSION = 1
 ENCODING = "application/msgpack"
 KINDS = ("frames", "keyframes", "status", "camera")
-_ID = re.compile(r"^[A-Za-z0-9_.\-]+$")
+
+#: Limits of a valid message.
+MAX_BOXES = 5000  # detections in one frame message (the shipped detector keeps at most 300 proposals)
+MAX_FRAME = 10_000_000  # frame index (over 90 h of video at 30 fps)
+MAX_IMAGE_SIDE = 16384  # pixels
+MAX_JPEG_BYTES = 16 << 20
+MAX_TEXT = 1000  # characters in a status message's text
+QUAT_NORM_TOL = 1e-3  # |q| must be 1 within this
+# A box's centre (what the ground uses) lies in the image, [-0.5, w - 0.5] in OpenCV's pixel convention; the box
+# itself may reach past the edge (the whole apple's box, as the truth-replay stand-in gives), but not exceed the image.
+
+#: Why a message was refused (``WireError.reason``).
+REASONS = ("not_msgpack", "schema_version", "message_type", "malformed", "not_finite", "out_of_range",
+           "too_many_boxes", "box_outside_image", "bad_quaternion", "bad_jpeg", "image_size",
+           "frame_window", "wrong_flight", "other_drone", "drone_mismatch")
 
 
 class WireError(ValueError):
-    """A message that cannot be decoded: unknown schema version, wrong type, missing or malformed field."""
+    """A message refused: unknown schema version, wrong type, a missing, malformed or implausible field, or
+    (from :class:`StreamFilter`) a message that does not belong to the stream. ``reason`` says which."""
+
+    def __init__(self, message: str, reason: str = "malformed"):
+        super().__init__(message)
+        self.reason = reason
 
 
 def key(flight_id: str, drone_id: str, kind: str) -> str:
@@ -36,29 +65,121 @@ def key(flight_id: str, drone_id: str, kind: str) -> str:
     if kind not in KINDS and kind != "**":
         raise ValueError(f"unknown stream {kind!r} (one of {KINDS})")
     for name, value in (("flight_id", flight_id), ("drone_id", drone_id)):
-        if value != "*" and not _ID.match(value):
-            raise ValueError(f"{name} {value!r} may hold only letters, digits, '_', '-', '.'")
+        if value != "*":
+            check_id(name, value)
     return f"pomar/{flight_id}/{drone_id}/{kind}"
 
 
-def _check(d: dict, type_: str, fields: tuple[str, ...]) -> None:
+def parse_key(key_expr: str) -> tuple[str, str, str] | None:
+    """(flight_id, drone_id, kind) of a stream's key expression, or None."""
+    parts = str(key_expr).split("/")
+    if len(parts) != 4 or parts[0] != "pomar" or parts[3] not in KINDS:
+        return None
+    return parts[1], parts[2], parts[3]
+
+
+# -- field checks: each raises WireError naming the field
+def _check(d, type_: str, fields: tuple[str, ...]) -> None:
     if not isinstance(d, dict):
-        raise WireError(f"expected a msgpack map, got {type(d).__name__}")
+        raise WireError(f"expected a msgpack map, got {type(d).__name__}", "malformed")
     v = d.get("v")
     if v != SCHEMA_VERSION:
-        raise WireError(f"unknown schema version {v!r} (this build reads version {SCHEMA_VERSION})")
+        raise WireError(f"unknown schema version {v!r} (this build reads version {SCHEMA_VERSION})", "schema_version")
     if d.get("type") != type_:
-        raise WireError(f"expected a {type_!r} message, got {d.get('type')!r}")
+        raise WireError(f"expected a {type_!r} message, got {d.get('type')!r}", "message_type")
     missing = [f for f in fields if f not in d]
     if missing:
-        raise WireError(f"{type_} message lacks field(s) {missing}")
+        raise WireError(f"{type_} message lacks field(s) {missing}", "malformed")
+
+
+def _int(name: str, x, lo: int, hi: int) -> int:
+    if isinstance(x, bool) or not isinstance(x, int):
+        raise WireError(f"{name} must be an integer, got {type(x).__name__}", "malformed")
+    if not lo <= x <= hi:
+        raise WireError(f"{name} {x} is outside [{lo}, {hi}]", "out_of_range")
+    return int(x)
+
+
+def _float(name: str, x, lo: float = -math.inf, hi: float = math.inf, nan: bool = False) -> float:
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        raise WireError(f"{name} must be a number, got {type(x).__name__}", "malformed")
+    x = float(x)
+    if math.isnan(x) and nan:
+        return x
+    if not math.isfinite(x):
+        raise WireError(f"{name} is {x}, not a finite number", "not_finite")
+    if not lo <= x <= hi:
+        raise WireError(f"{name} {x} is outside [{lo}, {hi}]", "out_of_range")
+    return x
+
+
+def _str(name: str, x, pattern: re.Pattern | None = ID_PATTERN, max_len: int = 128) -> str:
+    if not isinstance(x, str) or len(x) > max_len or (pattern is not None and not pattern.match(x)):
+        raise WireError(f"{name} must be a string of at most {max_len} characters"
+                        + (" (letters, digits, '_', '-', '.')" if pattern is not None else "") + f", got {x!r:.60}",
+                        "malformed")
+    return x
+
+
+def _bytes(name: str, x, max_len: int) -> bytes:
+    if not isinstance(x, (bytes, bytearray)):
+        raise WireError(f"{name} must be bytes, got {type(x).__name__}", "malformed")
+    if len(x) > max_len:
+        raise WireError(f"{name} holds {len(x)} bytes, more than {max_len}", "out_of_range")
+    return bytes(x)
 
 
 def _unpack(payload: bytes) -> dict:
     try:
         return msgpack.unpackb(bytes(payload), raw=False)
     except Exception as exc:  # msgpack raises several types for bad bytes
-        raise WireError(f"not a msgpack message ({exc})") from None
+        raise WireError(f"not a msgpack message ({type(exc).__name__}: {exc})", "not_msgpack") from None
+
+
+def _quat(name: str, x) -> tuple[float, float, float, float]:
+    """A unit quaternion, or all NaN (unknown: the frame's flags say why)."""
+    if not isinstance(x, (list, tuple)) or len(x) != 4:
+        raise WireError(f"{name} must be a list of 4 numbers", "malformed")
+    q = tuple(_float(f"{name}[{i}]", v, nan=True) for i, v in enumerate(x))
+    nans = sum(math.isnan(v) for v in q)
+    if nans == 4:
+        return q
+    if nans:
+        raise WireError(f"{name} {q} is partly NaN", "not_finite")
+    if abs(math.sqrt(sum(v * v for v in q)) - 1.0) > QUAT_NORM_TOL:
+        raise WireError(f"{name} {q} is not a unit quaternion", "bad_quaternion")
+    return q
+
+
+def jpeg_size(data: bytes) -> tuple[int, int]:
+    """(width, height) from a JPEG's frame header; WireError when the bytes are no complete JPEG."""
+    if data[:2] != b"\xff\xd8":
+        raise WireError("payload is not a JPEG (no start-of-image marker)", "bad_jpeg")
+    if data.rstrip(b"\x00")[-2:] != b"\xff\xd9":
+        raise WireError("JPEG is cut short (no end-of-image marker)", "bad_jpeg")
+    pos, n = 2, len(data)
+    while pos + 4 <= n:
+        if data[pos] != 0xFF:
+            raise WireError(f"JPEG marker expected at byte {pos}", "bad_jpeg")
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if 0xD0 <= marker <= 0xD7 or marker == 0x01:  # markers without a length
+            pos += 2
+            continue
+        (length,) = struct.unpack_from(">H", data, pos + 2)
+        if marker in (0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF):
+            if pos + 9 > n:
+                break
+            h, w = struct.unpack_from(">HH", data, pos + 5)
+            if not (0 < w <= MAX_IMAGE_SIDE and 0 < h <= MAX_IMAGE_SIDE):
+                raise WireError(f"JPEG size {w}x{h} is implausible", "bad_jpeg")
+            return w, h
+        if marker == 0xDA:  # start of scan before any frame header
+            break
+        pos += 2 + length
+    raise WireError("JPEG has no frame header", "bad_jpeg")
 
 
 @dataclass
@@ -79,10 +200,17 @@ class Telemetry:
 
     @classmethod
     def from_list(cls, x: list) -> "Telemetry":
-        if not isinstance(x, list) or len(x) != 8:
-            raise WireError("telemetry must be a list of 8 fields")
-        return cls(float(x[0]), float(x[1]), float(x[2]), tuple(map(float, x[3])), tuple(map(float, x[4])),
-                   int(x[5]), float(x[6]), int(x[7]))
+        """Position in range or all NaN (unknown), unit quaternions or all NaN; never inf."""
+        if not isinstance(x, (list, tuple)) or len(x) != 8:
+            raise WireError("telemetry must be a list of 8 fields", "malformed")
+        lat = _float("telemetry lat", x[0], -90.0, 90.0, nan=True)
+        lon = _float("telemetry lon", x[1], -180.0, 180.0, nan=True)
+        alt = _float("telemetry alt", x[2], -1000.0, 20000.0, nan=True)
+        if 0 < sum(math.isnan(v) for v in (lat, lon, alt)) < 3:
+            raise WireError(f"telemetry position ({lat}, {lon}, {alt}) is partly NaN", "not_finite")
+        return cls(lat, lon, alt, _quat("telemetry q_attitude", x[3]), _quat("telemetry q_gimbal", x[4]),
+                   _int("telemetry gps_fix", x[5], 0, 255), _float("telemetry h_acc", x[6], 0.0, 1e6, nan=True),
+                   _int("telemetry flags", x[7], 0, 2**31 - 1))
 
 
 @dataclass
@@ -117,18 +245,38 @@ class FrameMessage:
 
     @classmethod
     def decode(cls, payload: bytes) -> "FrameMessage":
-        d = _unpack(payload)
+        return _decode(payload, cls._from_dict)
+
+    @classmethod
+    def _from_dict(cls, d: dict) -> "FrameMessage":
         _check(d, "frame", ("flight", "drone", "frame", "t", "tel", "w", "h", "n", "boxes", "scores"))
-        try:
-            n = int(d["n"])
-            boxes = np.frombuffer(d["boxes"], dtype="<f4").reshape(n, 4)
-            scores = np.frombuffer(d["scores"], dtype="<f4").reshape(n)
-            return cls(str(d["flight"]), str(d["drone"]), int(d["frame"]), float(d["t"]), Telemetry.from_list(d["tel"]),
-                       int(d["w"]), int(d["h"]), boxes, scores, str(d.get("cam", "cam0")))
-        except WireError:
-            raise
-        except (TypeError, ValueError) as exc:
-            raise WireError(f"malformed frame message ({exc})") from None
+        frame = _int("frame", d["frame"], 0, MAX_FRAME)
+        where = f"frame {frame}"
+        w = _int(f"{where}: width", d["w"], 1, MAX_IMAGE_SIDE)
+        h = _int(f"{where}: height", d["h"], 1, MAX_IMAGE_SIDE)
+        n = _int(f"{where}: box count", d["n"], 0, 2**31)
+        if n > MAX_BOXES:
+            raise WireError(f"{where}: {n} boxes, more than the {MAX_BOXES} a frame may carry", "too_many_boxes")
+        raw_b, raw_s = _bytes(f"{where}: boxes", d["boxes"], 16 * n), _bytes(f"{where}: scores", d["scores"], 4 * n)
+        if len(raw_b) != 16 * n or len(raw_s) != 4 * n:
+            raise WireError(f"{where}: {n} boxes announced, {len(raw_b)} box and {len(raw_s)} score bytes sent",
+                            "malformed")
+        boxes = np.frombuffer(raw_b, dtype="<f4").reshape(n, 4)
+        scores = np.frombuffer(raw_s, dtype="<f4").reshape(n)
+        if not (np.isfinite(boxes).all() and np.isfinite(scores).all()):
+            raise WireError(f"{where}: a box or score is not finite", "not_finite")
+        if n and not ((scores >= 0).all() and (scores <= 1).all()):
+            raise WireError(f"{where}: a score is outside [0, 1]", "out_of_range")
+        if n:
+            cx, cy = (boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2
+            if not ((boxes[:, 0] <= boxes[:, 2]).all() and (boxes[:, 1] <= boxes[:, 3]).all()
+                    and (boxes[:, 2] - boxes[:, 0] <= w).all() and (boxes[:, 3] - boxes[:, 1] <= h).all()
+                    and (cx >= -0.5).all() and (cx <= w - 0.5).all() and (cy >= -0.5).all() and (cy <= h - 0.5).all()):
+                raise WireError(f"{where}: a box's centre lies outside the {w}x{h} image, or the box is inverted or "
+                                f"larger than the image", "box_outside_image")
+        return cls(_str("flight", d["flight"]), _str("drone", d["drone"]), frame,
+                   _float(f"{where}: capture time", d["t"], 0.0, 2.0**33), Telemetry.from_list(d["tel"]), w, h,
+                   boxes, scores, _str(f"{where}: camera id", d.get("cam", "cam0")))
 
 
 @dataclass
@@ -138,17 +286,32 @@ class KeyframeMessage:
     frame: int
     jpeg: bytes
 
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) from the JPEG's header."""
+        return jpeg_size(self.jpeg)
+
     def encode(self) -> bytes:
         return msgpack.packb({"v": SCHEMA_VERSION, "type": "keyframe", "flight": self.flight_id, "drone": self.drone_id,
                               "frame": int(self.frame), "jpeg": bytes(self.jpeg)}, use_bin_type=True)
 
     @classmethod
     def decode(cls, payload: bytes) -> "KeyframeMessage":
-        d = _unpack(payload)
+        return _decode(payload, cls._from_dict)
+
+    @classmethod
+    def _from_dict(cls, d: dict) -> "KeyframeMessage":
         _check(d, "keyframe", ("flight", "drone", "frame", "jpeg"))
-        if not isinstance(d["jpeg"], (bytes, bytearray)) or not bytes(d["jpeg"][:2]) == b"\xff\xd8":
-            raise WireError(f"keyframe {d.get('frame')}: payload is not a JPEG")
-        return cls(str(d["flight"]), str(d["drone"]), int(d["frame"]), bytes(d["jpeg"]))
+        frame = _int("keyframe frame", d["frame"], 0, MAX_FRAME)
+        jpeg = _bytes(f"keyframe {frame}: jpeg", d["jpeg"], MAX_JPEG_BYTES)
+        try:
+            jpeg_size(jpeg)
+        except WireError as exc:
+            raise WireError(f"keyframe {frame}: {exc}", exc.reason) from None
+        return cls(_str("flight", d["flight"]), _str("drone", d["drone"]), frame, jpeg)
+
+
+STATES = ("running", "finished", "error")
 
 
 @dataclass
@@ -161,7 +324,7 @@ class StatusMessage:
     frames_dropped: int = 0
     fps: float = 0.0
     detector_latency_s: float = 0.0
-    state: str = "running"  # "running", "finished", "error"
+    state: str = "running"  # one of STATES
     message: str = ""
 
     def encode(self) -> bytes:
@@ -170,10 +333,21 @@ class StatusMessage:
 
     @classmethod
     def decode(cls, payload: bytes) -> "StatusMessage":
-        d = _unpack(payload)
-        names = tuple(cls.__dataclass_fields__)
+        return _decode(payload, cls._from_dict)
+
+    @classmethod
+    def _from_dict(cls, d: dict) -> "StatusMessage":
         _check(d, "status", ("flight_id", "drone_id", "t"))
-        return cls(**{k: d[k] for k in names if k in d})
+        state = d.get("state", "running")
+        if state not in STATES:
+            raise WireError(f"status state {state!r:.40} is not one of {STATES}", "malformed")
+        return cls(_str("flight_id", d["flight_id"]), _str("drone_id", d["drone_id"]),
+                   _float("status t", d["t"], 0.0, 2.0**33),
+                   *(_int(f"status {k}", d.get(k, 0), 0, 2**31 - 1)
+                     for k in ("frames_read", "frames_processed", "frames_dropped")),
+                   _float("status fps", d.get("fps", 0.0), 0.0, 1e6),
+                   _float("status detector_latency_s", d.get("detector_latency_s", 0.0), 0.0, 1e6),
+                   state, _str("status message", d.get("message", ""), None, MAX_TEXT))
 
 
 @dataclass
@@ -188,22 +362,152 @@ class CameraMessage:
         return msgpack.packb({"v": SCHEMA_VERSION, "type": "camera", "flight": self.flight_id, "drone": self.drone_id,
                               "camera": self.camera, "fps": self.fps, "start": self.video_start_unix}, use_bin_type=True)
 
+    @property
+    def size(self) -> tuple[int, int]:
+        return int(self.camera["width"]), int(self.camera["height"])
+
     @classmethod
     def decode(cls, payload: bytes) -> "CameraMessage":
-        d = _unpack(payload)
-        _check(d, "camera", ("flight", "drone", "camera"))
-        return cls(str(d["flight"]), str(d["drone"]), dict(d["camera"]), float(d.get("fps", 0.0)), float(d.get("start", 0.0)))
+        return _decode(payload, cls._from_dict)
+
+    @classmethod
+    def _from_dict(cls, d: dict) -> "CameraMessage":
+        from pomar.camera import Camera, CameraFileError
+
+        _check(d, "camera", ("flight", "drone", "camera", "fps"))
+        if not isinstance(d["camera"], dict):
+            raise WireError("camera message: camera must be a map (camera.json's content)", "malformed")
+        try:
+            cam = Camera.from_dict(d["camera"], source="camera message")
+        except CameraFileError as exc:
+            raise WireError(str(exc), "malformed") from None
+        if not (0 < cam.width <= MAX_IMAGE_SIDE and 0 < cam.height <= MAX_IMAGE_SIDE
+                and np.isfinite(cam.params()).all()):
+            raise WireError(f"camera message: camera {cam.width}x{cam.height} {cam.params()} is implausible",
+                            "out_of_range")
+        fps = _float("camera message: fps", d["fps"], 0.0, 10000.0)
+        if not fps > 0:
+            raise WireError("camera message: fps must be > 0", "out_of_range")
+        return cls(_str("flight", d["flight"]), _str("drone", d["drone"]), dict(d["camera"]), fps,
+                   _float("camera message: start", d.get("start", 0.0), 0.0, 2.0**33))
+
+
+_TYPES = {"frame": FrameMessage, "keyframe": KeyframeMessage, "status": StatusMessage, "camera": CameraMessage}
+
+
+def _decode(payload: bytes, from_dict):
+    d = _unpack(payload)
+    try:
+        return from_dict(d)
+    except WireError:
+        raise
+    except Exception as exc:  # a decoder bug or a field shape not foreseen: still a refused message
+        raise WireError(f"malformed message ({type(exc).__name__}: {exc})", "malformed") from None
 
 
 def decode(payload: bytes):
-    """Decode any message by its type field."""
+    """Decode and validate any message by its type field."""
     d = _unpack(payload)
     if not isinstance(d, dict):
-        raise WireError(f"expected a msgpack map, got {type(d).__name__}")
-    types = {"frame": FrameMessage, "keyframe": KeyframeMessage, "status": StatusMessage, "camera": CameraMessage}
-    cls = types.get(d.get("type"))
+        raise WireError(f"expected a msgpack map, got {type(d).__name__}", "malformed")
+    cls = _TYPES.get(d.get("type")) if isinstance(d.get("type"), str) else None
     if cls is None:
         if d.get("v") != SCHEMA_VERSION:
-            raise WireError(f"unknown schema version {d.get('v')!r} (this build reads version {SCHEMA_VERSION})")
-        raise WireError(f"unknown message type {d.get('type')!r}")
-    return cls.decode(payload)
+            raise WireError(f"unknown schema version {d.get('v')!r:.40} (this build reads version {SCHEMA_VERSION})",
+                            "schema_version")
+        raise WireError(f"unknown message type {d.get('type')!r:.40}", "message_type")
+    return _decode(payload, cls._from_dict)
+
+
+class StreamFilter:
+    """What the ground lets in: decodes each payload, checks it against the flight so far, drops repeats.
+
+    - The flight: its flight id, from its key expression and its payload alike.
+    - The drones: those in ``drone_ids``; with none given, the first drone a valid message comes from.
+      Other drones' messages are refused (``other_drone``).
+    - A frame or keyframe index at most ``max_ahead_s`` of video ahead of the newest frame (plus the time
+      since that frame arrived, so that a stream resumes after a link outage): a message from far in the
+      future would hold back every real frame after it (``frame_window``).
+    - A frame's size is the camera's, and keyframes keep the camera's aspect and the first keyframe's size
+      (``image_size``).
+    - Frames and keyframes already accepted are repeats (zenoh's history and recovery resend them).
+
+    :meth:`accept` returns the message, or None for a repeat, or raises :class:`WireError`; ``rejected``
+    counts refusals by reason and ``errors`` keeps the last ones' texts.
+    """
+
+    def __init__(self, flight_id: str, drone_ids=None, max_ahead_s: float = 60.0, clock=time.monotonic):
+        self.flight_id = check_id("flight_id", flight_id)
+        self.drone_ids = {check_id("drone_id", d) for d in drone_ids} if drone_ids else set()
+        self.max_ahead_s = max_ahead_s
+        self.clock = clock
+        self.seen: dict[tuple[str, str], set[int]] = {}
+        self.duplicates = 0
+        self.rejected: dict[str, int] = {}
+        self.errors: list[str] = []
+        self.fps: float | None = None
+        self.camera_size: tuple[int, int] | None = None
+        self.keyframe_size: tuple[int, int] | None = None
+        self.newest: int | None = None
+        self._newest_at = 0.0
+
+    def accept(self, payload: bytes, key_expr: str | None = None, check_window: bool = True):
+        """The decoded message if it is new and belongs to the flight; None for a repeat; WireError otherwise.
+        ``check_window=False`` for a journal read back (its records passed the window when they came)."""
+        try:
+            msg = decode(payload)
+            self._check(msg, key_expr, check_window)
+        except WireError as exc:
+            self.rejected[exc.reason] = self.rejected.get(exc.reason, 0) + 1
+            self.errors = self.errors[-49:] + [f"{key_expr or 'journal'}: {exc}"]
+            raise
+        if isinstance(msg, (FrameMessage, KeyframeMessage)):
+            seen = self.seen.setdefault(("frame" if isinstance(msg, FrameMessage) else "keyframe", msg.drone_id), set())
+            if msg.frame in seen:
+                self.duplicates += 1
+                return None
+            seen.add(msg.frame)
+            if isinstance(msg, FrameMessage) and (self.newest is None or msg.frame > self.newest):
+                self.newest, self._newest_at = msg.frame, self.clock()
+        return msg
+
+    def _check(self, msg, key_expr, check_window) -> None:
+        flight, drone = (msg.flight_id, msg.drone_id)
+        if key_expr is not None:
+            parsed = parse_key(key_expr)
+            if parsed is None or parsed[0] != self.flight_id:
+                raise WireError(f"key {key_expr!r} is not a stream of flight {self.flight_id!r}", "wrong_flight")
+            if parsed[1] != drone:
+                raise WireError(f"key {key_expr!r} carries a message of drone {drone!r}", "drone_mismatch")
+        if flight != self.flight_id:
+            raise WireError(f"message of flight {flight!r}, not {self.flight_id!r}", "wrong_flight")
+        if not self.drone_ids:
+            self.drone_ids.add(drone)  # the first drone heard is the flight's
+        elif drone not in self.drone_ids:
+            raise WireError(f"message of drone {drone!r}, not of {sorted(self.drone_ids)}", "other_drone")
+        if isinstance(msg, CameraMessage):
+            if self.camera_size is not None and msg.size != self.camera_size:
+                raise WireError(f"camera message says {msg.size[0]}x{msg.size[1]}, the flight's camera is "
+                                f"{self.camera_size[0]}x{self.camera_size[1]}", "image_size")
+            self.camera_size, self.fps = msg.size, msg.fps
+        elif isinstance(msg, FrameMessage):
+            if self.camera_size is not None and (msg.width, msg.height) != self.camera_size:
+                raise WireError(f"frame {msg.frame} is {msg.width}x{msg.height}, the camera "
+                                f"{self.camera_size[0]}x{self.camera_size[1]}", "image_size")
+        if isinstance(msg, (FrameMessage, KeyframeMessage)) and check_window and self.newest is not None:
+            fps = self.fps or 60.0
+            ahead = fps * (self.max_ahead_s + max(self.clock() - self._newest_at, 0.0))
+            if msg.frame > self.newest + ahead:
+                raise WireError(f"{type(msg).__name__} {msg.frame} is {msg.frame - self.newest} frames ahead of the "
+                                f"newest frame {self.newest} (at most {ahead:.0f})", "frame_window")
+        if isinstance(msg, KeyframeMessage):
+            w, h = msg.size
+            if self.camera_size is not None:
+                cw, ch = self.camera_size
+                if w > cw or abs(h - ch * w / cw) > 1.0:
+                    raise WireError(f"keyframe {msg.frame} is {w}x{h}: not the camera's {cw}x{ch} nor a scaled copy",
+                                    "image_size")
+            if self.keyframe_size is not None and (w, h) != self.keyframe_size:
+                raise WireError(f"keyframe {msg.frame} is {w}x{h}, the flight's keyframes "
+                                f"{self.keyframe_size[0]}x{self.keyframe_size[1]}", "image_size")
+            self.keyframe_size = (w, h)

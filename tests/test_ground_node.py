@@ -115,16 +115,42 @@ def test_killed_ground_resumes_with_every_frame(replay_test_flight, tmp_path):
     assert rep["apples"] > 0
 
 
-def test_journal_cuts_a_truncated_tail(tmp_path):
-    j = Journal(tmp_path / "j.bin")
-    for i in range(5):
-        j.append(bytes([i]) * (i + 1))
+def test_journal_skips_damaged_records_and_keeps_every_intact_one(tmp_path):
+    from ground.journal import MARKER, JournalError, read_journal_report
+
+    path = tmp_path / "journal.bin"
+    payloads = [bytes([i % 251]) * (10 + i) + b"PJR" for i in range(100)]  # a marker's first bytes inside, too
+    j = Journal(path)
+    for p in payloads:
+        j.append(p)
     j.close()
-    with open(tmp_path / "j.bin", "ab") as f:
-        f.write(b"\x10\x00\x00\x00abc")  # a record announced 16 bytes long, cut after 3
-    recs = read_journal(tmp_path / "j.bin")
-    assert recs == [bytes([i]) * (i + 1) for i in range(5)]
-    assert read_journal(tmp_path / "j.bin") == recs  # the tail was cut off the file
+    data = bytearray(path.read_bytes())
+    starts = [i for i in range(len(data)) if data.startswith(MARKER, i)]
+    assert len(starts) == 100
+    data[starts[40] + 4] ^= 0x01  # one bit of record 40's length prefix
+    data[starts[60] + 20] ^= 0xFF  # a byte of record 60's payload
+    data[starts[61]:starts[61] + 4] = b"XXXX"  # record 61's marker
+    path.write_bytes(bytes(data))
+    size = len(data)
+    res = read_journal_report(path)
+    assert res.records == [p for i, p in enumerate(payloads) if i not in (40, 60, 61)]
+    assert len(res.damaged) == 2 and path.stat().st_size == size  # never truncated in place
+    assert all(f.is_file() and f.stat().st_size > 0 for f in res.side_files)
+    # a record cut short by a kill, then the resumed ground appends after it: both sides are read
+    with open(path, "ab") as f:
+        f.write(MARKER + b"\x10\x00\x00\x00abc")
+    j = Journal(path)
+    j.append(b"after the cut")
+    j.close()
+    res = read_journal_report(path)
+    assert res.records[-1] == b"after the cut" and len(res.records) == 98 and len(res.damaged) == 3
+    # a journal written before records had markers and checksums
+    old = tmp_path / "old.bin"
+    old.write_bytes(b"\x05\x00\x00\x00hello")
+    with pytest.raises(JournalError, match="old.bin.*--fresh"):
+        read_journal(old)
+    with pytest.raises(JournalError, match="old.bin"):
+        Journal(old)
 
 
 def test_pipeline_survives_bad_keyframes_and_late_frames(replay_test_flight, tmp_path):

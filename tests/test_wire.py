@@ -20,10 +20,17 @@ from pomar import wire
 def frame(i: int) -> wire.FrameMessage:
     rng = np.random.default_rng(i)
     n = i % 7
-    xy = rng.uniform(0, 600, (n, 2)).astype(np.float32)
+    xy = rng.uniform(4, 476, (n, 2)).astype(np.float32)
     boxes = np.concatenate([xy - 4, xy + 4], axis=1)
     tel = wire.Telemetry(-28.5 + i * 1e-6, -50.9, 972.0, (1.0, 0.0, 0.0, 0.0), (0.5, 0.5, -0.5, 0.5), 3, 0.5, i % 3)
     return wire.FrameMessage("flight-1", "drone-1", i, 1.5e9 + i / 10, tel, 640, 480, boxes, rng.random(n).astype(np.float32))
+
+
+def jpeg(w: int, h: int) -> bytes:
+    import cv2
+
+    img = np.random.default_rng(w * h).integers(0, 255, (h, w, 3), dtype=np.uint8)
+    return cv2.imencode(".jpg", img)[1].tobytes()
 
 
 def assert_same(a: wire.FrameMessage, b: wire.FrameMessage):
@@ -37,8 +44,8 @@ def test_round_trips():
     for i in range(10):
         assert_same(frame(i), wire.FrameMessage.decode(frame(i).encode()))
     np.testing.assert_allclose(frame(3).centres, (frame(3).boxes[:, :2] + frame(3).boxes[:, 2:]) / 2)
-    k = wire.KeyframeMessage("f", "d", 4, b"\xff\xd8\xff\xe0jpegdata")
-    assert wire.decode(k.encode()) == k
+    k = wire.KeyframeMessage("f", "d", 4, jpeg(64, 48))
+    assert wire.decode(k.encode()) == k and k.size == (64, 48)
     s = wire.StatusMessage("f", "d", 12.5, frames_read=10, frames_processed=8, frames_dropped=2, fps=3.0)
     assert wire.decode(s.encode()) == s
     c = wire.CameraMessage("f", "d", {"model": "PINHOLE", "width": 8, "height": 6, "params": [1, 1, 4, 3]}, 10.0, 5.0)
@@ -62,8 +69,126 @@ def test_unknown_version_and_malformed_messages_are_clear_errors():
         wire.decode(wire.KeyframeMessage("f", "d", 1, b"PNG....").encode())
     d = msgpack.unpackb(frame(3).encode(), raw=False)
     d["n"] = 5  # more boxes than the bytes hold
-    with pytest.raises(wire.WireError, match="malformed"):
+    with pytest.raises(wire.WireError, match="5 boxes announced") as e:
         wire.decode(msgpack.packb(d, use_bin_type=True))
+    assert e.value.reason == "malformed"
+
+
+def _mutated(msg, **fields) -> bytes:
+    d = msgpack.unpackb(msg.encode(), raw=False)
+    d.update(fields)
+    return msgpack.packb(d, use_bin_type=True)
+
+
+def _reason(payload: bytes) -> str:
+    with pytest.raises(wire.WireError) as e:
+        wire.decode(payload)
+    assert e.value.reason in wire.REASONS
+    return e.value.reason
+
+
+def test_every_field_is_validated_with_a_reason():
+    f = frame(6)  # 6 boxes
+    tel = f.telemetry.to_list()
+    million = np.zeros((1_000_000, 4), "<f4")
+    cases = {
+        "too_many_boxes": _mutated(f, n=1_000_000, boxes=million.tobytes(), scores=np.zeros(1_000_000, "<f4").tobytes()),
+        "not_finite": _mutated(f, boxes=np.full((6, 4), np.nan, "<f4").tobytes()),
+        "box_outside_image": _mutated(f, boxes=(f.boxes + 1000).astype("<f4").tobytes()),
+        "out_of_range": _mutated(f, frame=-1),
+    }
+    for reason, payload in cases.items():
+        assert _reason(payload) == reason, reason
+    for i, bad, reason in ((0, float("inf"), "not_finite"), (0, float("nan"), "not_finite"), (0, 91.0, "out_of_range"),
+                           (3, [1.0, 1.0, 0.0, 0.0], "bad_quaternion"), (4, [0.5, float("nan"), 0.5, 0.5], "not_finite"),
+                           (5, "3", "malformed"), (7, 1.5, "malformed")):
+        t = list(tel)
+        t[i] = bad
+        assert _reason(_mutated(f, tel=t)) == reason, (i, bad)
+    # unknown is NaN throughout, and allowed (the frame's flags say why)
+    t = list(tel)
+    t[0:3] = [float("nan")] * 3
+    t[4] = [float("nan")] * 4
+    assert np.isnan(wire.decode(_mutated(f, tel=t)).telemetry.lat)
+    k = wire.KeyframeMessage("f", "d", 4, jpeg(64, 48))
+    assert _reason(_mutated(k, frame="abc")) == "malformed"
+    assert _reason(_mutated(k, frame=True)) == "malformed"
+    assert _reason(_mutated(k, jpeg=jpeg(64, 48)[:-300])) == "bad_jpeg"  # cut short
+    assert _reason(_mutated(k, flight="a/b")) == "malformed"
+    c = wire.CameraMessage("f", "d", {"model": "PINHOLE", "width": 8, "height": 6, "params": [1, 1, 4, 3]}, 10.0, 5.0)
+    assert wire.decode(_mutated(c, fps=10)).fps == 10.0  # an int is a number
+    assert _reason(_mutated(c, fps="10")) == "malformed"
+    assert _reason(_mutated(c, fps=0)) == "out_of_range"
+    assert _reason(_mutated(c, camera={"model": "PINHOLE", "width": 8})) == "malformed"
+    st = wire.StatusMessage("f", "d", 12.5)
+    assert _reason(_mutated(st, state="landed")) == "malformed"
+    assert _reason(_mutated(st, frames_processed=-3)) == "out_of_range"
+    assert _reason(_mutated(st, fps=float("inf"))) == "not_finite"
+
+
+def test_no_decoder_exception_but_wire_error_on_garbled_messages():
+    """Random changes to valid messages: each decodes, or raises WireError, never anything else."""
+    rng = np.random.default_rng(0)
+    msgs = [frame(5), wire.KeyframeMessage("f", "d", 4, jpeg(32, 24)), wire.StatusMessage("f", "d", 1.0),
+            wire.CameraMessage("f", "d", {"model": "PINHOLE", "width": 8, "height": 6, "params": [1, 1, 4, 3]}, 10.0)]
+    junk = [None, True, -1, 2**63, 1e308, float("nan"), "x" * 3, b"\x00" * 5, [], [1, 2], {}, {"a": 1}, [[1]] * 8]
+    refused = 0
+    for _ in range(3000):
+        m = msgs[rng.integers(len(msgs))]
+        d = msgpack.unpackb(m.encode(), raw=False)
+        k = list(d)[rng.integers(len(d))]
+        if rng.random() < 0.5:
+            d[k] = junk[rng.integers(len(junk))]
+        else:
+            del d[k]
+        raw = msgpack.packb(d, use_bin_type=True)
+        if rng.random() < 0.3:  # flip a byte of the packed message too
+            i = int(rng.integers(len(raw)))
+            raw = raw[:i] + bytes([raw[i] ^ int(rng.integers(1, 256))]) + raw[i + 1:]
+        try:
+            wire.decode(raw)
+        except wire.WireError as exc:
+            assert exc.reason in wire.REASONS
+            refused += 1
+    assert refused > 1500
+
+
+def test_stream_filter_keeps_to_the_flight_and_its_drone():
+    clock = [100.0]
+    sf = wire.StreamFilter("flight-1", clock=lambda: clock[0], max_ahead_s=10.0)
+    cam = wire.CameraMessage("flight-1", "drone-1", {"model": "PINHOLE", "width": 640, "height": 480,
+                                                     "params": [500, 500, 320, 240]}, 10.0)
+
+    def reason(payload, key=None):
+        with pytest.raises(wire.WireError) as e:
+            sf.accept(payload, key)
+        return e.value.reason
+
+    assert sf.accept(cam.encode(), "pomar/flight-1/drone-1/camera") is not None
+    assert sf.drone_ids == {"drone-1"}  # the first drone heard
+    for i in range(5):
+        assert sf.accept(frame(i).encode(), "pomar/flight-1/drone-1/frames").frame == i
+    assert sf.accept(frame(2).encode()) is None and sf.duplicates == 1  # a repeat
+    far = wire.KeyframeMessage("flight-1", "drone-1", 99999, jpeg(640, 480))
+    assert reason(far.encode()) == "frame_window"
+    ahead = wire.KeyframeMessage("flight-1", "drone-1", 4 + 150, jpeg(640, 480))
+    assert reason(ahead.encode()) == "frame_window"  # 15 s of video ahead, 10 allowed
+    clock[0] += 6.0  # ... unless the stream was silent that long (a link outage)
+    assert sf.accept(ahead.encode()).frame == 154
+    evil = wire.FrameMessage("flight-1", "evil", 7, 1.5e9, frame(7).telemetry, 640, 480)
+    assert reason(evil.encode(), "pomar/flight-1/evil/frames") == "other_drone"
+    assert reason(frame(8).encode(), "pomar/flight-1/evil/frames") == "drone_mismatch"
+    assert reason(frame(8).encode(), "pomar/flight-2/drone-1/frames") == "wrong_flight"
+    small = frame(9)
+    small.width, small.height = 320, 240
+    small.boxes = small.boxes / 2
+    assert reason(small.encode()) == "image_size"
+    assert reason(wire.KeyframeMessage("flight-1", "drone-1", 9, jpeg(600, 480)).encode()) == "image_size"
+    assert reason(wire.KeyframeMessage("flight-1", "drone-1", 9, jpeg(320, 240)).encode()) == "image_size"  # not 640
+    assert sf.rejected == {"frame_window": 2, "other_drone": 1, "drone_mismatch": 1, "wrong_flight": 1, "image_size": 3}
+    told = wire.StreamFilter("flight-1", drone_ids=["drone-2"])
+    with pytest.raises(wire.WireError, match="not of"):
+        told.accept(cam.encode())
 
 
 def test_keys():
