@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import resource
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,15 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def rss_mb() -> float:
+    """The process's resident memory now (Linux; elsewhere its peak so far)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * resource.getpagesize() / 2**20
+    except OSError:
+        return peak_rss_mb()
+
+
 class GroundNode:
     """Feed it wire messages (decoded) with :meth:`handle`; it keeps the outputs and the rerun log current."""
 
@@ -57,7 +67,8 @@ class GroundNode:
         self.t_first_msg = None
         self.messages = 0
         self.errors: list[str] = []
-        self._fps_t: list[float] = []
+        self._fps_t: deque[float] = deque(maxlen=20)
+        self.memory: list[tuple[int, float]] = []  # (frames mapped, resident MB) at each refresh, thinned to 400
         self.latency: list[float] = []
         self.stream: wire.StreamFilter | None = None  # what the subscriber let in and refused
         self.ignored_end_claims = 0  # "finished" statuses contradicted by the stream
@@ -126,12 +137,15 @@ class GroundNode:
                 "ignored_end_claims": self.ignored_end_claims, "journal": self.journal_damage}
 
     def ground_fps(self) -> float:
-        t = self._fps_t[-20:]
+        t = self._fps_t
         return (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else float("nan")
 
     def refresh(self, final: bool = False) -> dict:
         """Write the map files and report.json (atomically) and log the map to rerun."""
         self._last_refresh = time.monotonic()
+        self.memory.append((self.pipe.released + 1, round(rss_mb(), 1)))
+        if len(self.memory) > 400:
+            self.memory = self.memory[::2]
         table = self.pipe.table()
         rows = write_map(self.out, table, getattr(self.pipe, "row_direction", 0.0))
         cams = self.pipe.pose_table()
@@ -170,7 +184,7 @@ class GroundNode:
                         "ground_latency_median_s": float(np.median(self.latency)) if self.latency else None,
                         # how long frames waited on the ground, from their message's arrival to being mapped
                         **delay_stats(self.pipe.frame_delays),
-                        "peak_rss_mb": peak_rss_mb()},
+                        "peak_rss_mb": peak_rss_mb(), "rss_mb_by_frames_mapped": self.memory},
             "onboard_status": vars(st).copy() if st else None,
             "link": self.link_stats(),
             "errors": self.errors[-50:],
@@ -200,7 +214,7 @@ class GroundNode:
         for k, sm in enumerate(poses.registrar.submodels):
             d = self.out / "model" / str(k)
             d.mkdir(parents=True, exist_ok=True)
-            rec = pycolmap.Reconstruction(sm.rec)
+            rec = pycolmap.Reconstruction(sm.reconstruction())
             if poses.fit is not None:
                 from ground.live_poses import compose
 

@@ -139,7 +139,7 @@ def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, set
     for k, sm in enumerate(reg.submodels):
         d = out / "model" / str(k)
         d.mkdir(parents=True, exist_ok=True)
-        rec = pycolmap.Reconstruction(sm.rec)
+        rec = pycolmap.Reconstruction(sm.reconstruction())
         if sim is not None:  # into ENU: first sub-model coordinates, then the georeferencing similarity
             to_first = sm.to_first
             S = (sim.scale * to_first.scale, sim.R @ to_first.R, sim.scale * sim.R @ to_first.t + sim.t)

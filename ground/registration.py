@@ -55,6 +55,9 @@ class RegistrationSettings:
     # Ceres solves a bundle adjustment on one thread below this many residuals (COLMAP's default is 50,000,
     # more than a local adjustment of 6 keyframes has): at 1,000 the local adjustment takes two cores
     ba_threads_min_residuals: int = 1000
+    # finished sub-models kept in memory (the newest is chained to the one before it); older ones are written to
+    # the work directory and read back only for the final model files
+    keep_submodels: int = 2
 
     def __post_init__(self):
         if self.sift not in ("colmap", "opencv"):
@@ -65,9 +68,29 @@ class RegistrationSettings:
 
 @dataclass
 class Submodel:
-    rec: pycolmap.Reconstruction
+    rec: pycolmap.Reconstruction | None  # None once the sub-model was written to ``path`` and left memory
     names: list[str] = field(default_factory=list)
     to_first: Similarity | None = None  # maps this sub-model's coordinates into the first sub-model's
+    path: Path | None = None
+    _frozen: np.ndarray | None = None  # (n, 3, 4) cam_from_world of ``names``, kept when ``rec`` left memory
+
+    def reconstruction(self) -> pycolmap.Reconstruction:
+        """The sub-model, read back from disk if it left memory."""
+        return self.rec if self.rec is not None else pycolmap.Reconstruction(str(self.path))
+
+    def cam_from_world(self) -> np.ndarray:
+        """(n, 3, 4) world-to-camera matrices of the registered keyframes, in ``names`` order."""
+        if self.rec is None:
+            return self._frozen
+        return np.array([self.rec.find_image_with_name(n).cam_from_world().matrix() for n in self.names])
+
+    def offload(self, path: Path) -> None:
+        """Write the sub-model to ``path`` (COLMAP binary) and drop it from memory, keeping its poses: a finished
+        sub-model holds every keyframe's features and 3-D points, and the flight's memory would grow with them."""
+        path.mkdir(parents=True, exist_ok=True)
+        self._frozen = self.cam_from_world()
+        self.rec.write_binary(str(path))
+        self.path, self.rec = path, None
 
 
 class IncrementalRegistrar:
@@ -270,6 +293,9 @@ class IncrementalRegistrar:
                     self._chain(new, sm)
                     self.submodels.append(new)
                     ok = name in new.names
+                    for k, old in enumerate(self.submodels[:-self.s.keep_submodels]):
+                        if old.rec is not None:
+                            old.offload(self.work / "submodels" / str(k))
                 else:
                     ok = self._register_into(sm, name, False)
             else:
@@ -289,7 +315,7 @@ class IncrementalRegistrar:
 
         out = {}
         for sm in self.submodels:
-            m = np.array([sm.rec.find_image_with_name(n).cam_from_world().matrix() for n in sm.names])
+            m = sm.cam_from_world()
             R, t = georeference_poses(m[:, :, :3], m[:, :, 3], sm.to_first)
             for name, Ri, ti in zip(sm.names, R, t):
                 out[self.frame_of[name]] = (Ri, ti)

@@ -13,6 +13,7 @@ import time
 import cv2
 import msgpack
 import numpy as np
+import zenoh
 
 from pomar import transport, wire
 
@@ -30,6 +31,10 @@ def main() -> int:
     session = transport.open_session(connect=[endpoint])
     print("ready", flush=True)
     sys.stdin.readline()
+    t0 = time.monotonic()  # a put before the link to the ground is up goes nowhere: wait for it
+    while not list(session.info.peers_zid()) and time.monotonic() - t0 < 30:
+        time.sleep(0.1)
+    time.sleep(0.5)  # and for the ground's subscription to be known here
     img = np.full((h, w, 3), 128, np.uint8)
     cv2.putText(img, "not this flight", (10, h // 2), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (0, 0, 255), 2)
     jpeg = cv2.imencode(".jpg", img)[1].tobytes()
@@ -58,7 +63,8 @@ def main() -> int:
                                   np.array([0.9], np.float32))
             sent[f"NaN frame {i} ({who})"] = ("frames", who, m.encode(), "not_finite")
     for name, (kind, who, payload, _) in sent.items():
-        session.put(f"pomar/{flight}/{who}/{kind}", payload)
+        # blocking: zenoh's default drops a message (the 20-MB one) when its queue is full
+        session.put(f"pomar/{flight}/{who}/{kind}", payload, congestion_control=zenoh.CongestionControl.BLOCK)
         time.sleep(0.05)
     print(json.dumps({name: v[3] for name, v in sent.items()}), flush=True)
     sys.stdin.readline()  # the test stops us once the ground is done

@@ -78,3 +78,23 @@ def test_colmap_sift_registers_too(reg_flight, tmp_path):
                           progress=False, frames_limit=12)
     assert res["registered_fraction"] > 0.9
     assert res["rotation_error_median_deg"] < 0.5
+
+
+def test_finished_submodels_leave_memory_and_come_back_for_the_model_files(reg_flight, tmp_path):
+    """Sub-models of 8 keyframes, one kept in memory: the older ones are written out, their poses kept, and the
+    final model files hold every sub-model, read back."""
+    from ground.register_flight import register_flight
+    from ground.registration import RegistrationSettings
+
+    s = RegistrationSettings(submodel_size=8, overlap=4, keep_submodels=1)
+    all_in = register_flight(reg_flight.path, tmp_path / "all", every=1, progress=False,
+                             settings=RegistrationSettings(submodel_size=8, overlap=4, keep_submodels=99))
+    res = register_flight(reg_flight.path, tmp_path / "d", every=1, settings=s, progress=False)
+    assert res["submodels"] >= 3
+    written = sorted((tmp_path / "d" / "work" / "submodels").iterdir())
+    assert len(written) == res["submodels"] - 1
+    # the poses as with every sub-model in memory (bundle adjustment on two threads is not bit-for-bit repeatable)
+    assert res["registered_fraction"] == all_in["registered_fraction"]
+    assert abs(res["rotation_error_median_deg"] - all_in["rotation_error_median_deg"]) < 0.05
+    for k in range(res["submodels"]):
+        assert (tmp_path / "d" / "model" / str(k) / "images.txt").exists()
