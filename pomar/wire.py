@@ -42,8 +42,8 @@ MAX_IMAGE_SIDE = 16384  # pixels
 MAX_JPEG_BYTES = 16 << 20
 MAX_TEXT = 1000  # characters in a status message's text
 QUAT_NORM_TOL = 1e-3  # |q| must be 1 within this
-# A box's centre (what the ground uses) lies in the image, [-0.5, w - 0.5] in OpenCV's pixel convention; the box
-# itself may reach past the edge (the whole apple's box, as the truth-replay stand-in gives), but not exceed the image.
+# A box overlaps the image, [-0.5, w - 0.5] in OpenCV's pixel convention, and is no larger than it: an apple cut by
+# the image's edge may have its whole box (its centre outside), as the truth-replay stand-in gives.
 
 #: Why a message was refused (``WireError.reason``).
 REASONS = ("not_msgpack", "schema_version", "message_type", "malformed", "not_finite", "out_of_range",
@@ -267,13 +267,12 @@ class FrameMessage:
             raise WireError(f"{where}: a box or score is not finite", "not_finite")
         if n and not ((scores >= 0).all() and (scores <= 1).all()):
             raise WireError(f"{where}: a score is outside [0, 1]", "out_of_range")
-        if n:
-            cx, cy = (boxes[:, 0] + boxes[:, 2]) / 2, (boxes[:, 1] + boxes[:, 3]) / 2
-            if not ((boxes[:, 0] <= boxes[:, 2]).all() and (boxes[:, 1] <= boxes[:, 3]).all()
-                    and (boxes[:, 2] - boxes[:, 0] <= w).all() and (boxes[:, 3] - boxes[:, 1] <= h).all()
-                    and (cx >= -0.5).all() and (cx <= w - 0.5).all() and (cy >= -0.5).all() and (cy <= h - 0.5).all()):
-                raise WireError(f"{where}: a box's centre lies outside the {w}x{h} image, or the box is inverted or "
-                                f"larger than the image", "box_outside_image")
+        if n and not ((boxes[:, 0] <= boxes[:, 2]).all() and (boxes[:, 1] <= boxes[:, 3]).all()
+                      and (boxes[:, 2] - boxes[:, 0] <= w).all() and (boxes[:, 3] - boxes[:, 1] <= h).all()
+                      and (boxes[:, 2] >= -0.5).all() and (boxes[:, 0] <= w - 0.5).all()
+                      and (boxes[:, 3] >= -0.5).all() and (boxes[:, 1] <= h - 0.5).all()):
+            raise WireError(f"{where}: a box lies outside the {w}x{h} image, or is inverted or larger than the image",
+                            "box_outside_image")
         return cls(_str("flight", d["flight"]), _str("drone", d["drone"]), frame,
                    _float(f"{where}: capture time", d["t"], 0.0, 2.0**33), Telemetry.from_list(d["tel"]), w, h,
                    boxes, scores, _str(f"{where}: camera id", d.get("cam", "cam0")))
