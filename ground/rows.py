@@ -25,11 +25,14 @@ def row_direction(xy: np.ndarray, step_deg: float = 0.25, bin_m: float = 0.25) -
     """Azimuth (radians, in ENU, from +x) of the rows: the direction that makes the histogram of the
     across-row coordinate sharpest (lowest entropy)."""
     xy = np.asarray(xy, float)
-    xy = xy - xy.mean(0)
+    xy = xy - np.median(xy, 0)
     best, best_h = 0.0, np.inf
     for a in np.radians(np.arange(0.0, 180.0, step_deg)):
         across = xy @ np.array([-np.sin(a), np.cos(a)])
-        hist, _ = np.histogram(across, bins=max(2, int(np.ptp(across) / bin_m) + 1))
+        # the histogram spans the central 99 % of the apples: one wild estimate far away would otherwise ask for
+        # millions of bins (gigabytes) and flatten the rest into one
+        lo, hi = np.percentile(across, [0.5, 99.5])
+        hist, _ = np.histogram(across, bins=max(2, int((hi - lo) / bin_m) + 1), range=(lo, hi + 1e-9))
         pr = hist[hist > 0] / len(across)
         h = -(pr * np.log(pr)).sum()
         if h < best_h:

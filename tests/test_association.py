@@ -139,3 +139,18 @@ def test_bad_frame_input_is_a_clear_error():
         FrameDetections(7, np.eye(3), np.zeros((0, 2)))
     with pytest.raises(ValueError, match="frame 3: detections must be"):
         FrameDetections(3, np.eye(3, 4), np.zeros((4, 3)))
+
+
+def test_rows_survive_a_wild_apple():
+    """One apple estimated kilometres away (a bad early pose) neither changes the rows nor costs gigabytes."""
+    import resource
+
+    from ground.rows import direction_rows
+
+    rng = np.random.default_rng(3)
+    xy = np.concatenate([np.stack([rng.uniform(-20, 20, 200), r * 4.0 + rng.normal(0, 0.2, 200)], 1) for r in range(3)])
+    labels, a = direction_rows(xy)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    wild, a2 = direction_rows(np.vstack([xy, [[3e7, -2e7]]]))
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 200_000  # KB: no giant histogram
+    assert abs(a2 - a) < np.radians(0.5) and (wild[:-1] == labels).all()
