@@ -4,8 +4,8 @@ the ground's work is measured) and prints its resident memory at each minute of 
     python benchmarks/ground_memory.py out/sim/long-flight [--out out/bench/memory] [--json FILE]
 
 Render the five-minute flight first: python -m sim flight --config sim/configs/long-flight.toml --out out/sim/long-flight
-The ground samples its resident memory (/proc/self/statm) each time it refreshes the map files (every 2 s);
-report.json keeps the samples under timings.rss_mb_by_frames_mapped.
+The ground samples its resident memory (/proc/self/statm) every second, from a thread; report.json keeps the
+samples (frames mapped, MB) under timings.rss_mb_by_frames_mapped.
 """
 
 from __future__ import annotations
@@ -35,10 +35,11 @@ def main() -> None:
     print(f"\n{flight.path}: {meta.frame_count} frames, {meta.frame_count / meta.fps:.0f} s of flight, "
           f"{meta.width}x{meta.height} at {meta.fps:g} fps; {rep['apples']} apples; wall {rep['wall_seconds']:.0f} s")
     print(f"{'flight s':>9}{'frames':>8}{'RSS MB':>9}")
-    rows = []
+    rows, last = [], -1
     for t in np.arange(0, meta.frame_count / meta.fps + 1e-9, args.every_s)[1:].tolist() + [meta.frame_count / meta.fps]:
         k = int(np.searchsorted(samples[:, 0], t * meta.fps, side="right")) - 1
-        if k >= 0:
+        if k > last:  # the last sample up to this much flight mapped
+            last = k
             rows.append({"flight_s": float(samples[k, 0] / meta.fps), "frames": int(samples[k, 0]),
                          "rss_mb": float(samples[k, 1])})
             print(f"{rows[-1]['flight_s']:>9.0f}{rows[-1]['frames']:>8}{rows[-1]['rss_mb']:>9.0f}")

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import resource
+import threading
 import time
 from collections import deque
 from pathlib import Path
@@ -68,7 +69,7 @@ class GroundNode:
         self.messages = 0
         self.errors: list[str] = []
         self._fps_t: deque[float] = deque(maxlen=20)
-        self.memory: list[tuple[int, float]] = []  # (frames mapped, resident MB) at each refresh, thinned to 400
+        self.memory: list[tuple[int, float]] = []  # (frames mapped, resident MB), see sample_memory
         self.latency: list[float] = []
         self.stream: wire.StreamFilter | None = None  # what the subscriber let in and refused
         self.ignored_end_claims = 0  # "finished" statuses contradicted by the stream
@@ -127,6 +128,15 @@ class GroundNode:
                     **{f"rejected/{reason}": float(n) for reason, n in rejected.items()},
                 })
 
+    def sample_memory(self, stop: threading.Event, period_s: float = 1.0) -> None:
+        """Record (frames mapped, resident MB) every period_s until ``stop`` (run it in a thread: a lock-step backlog
+        is mapped in one long step); at most 400 samples, thinned evenly."""
+        while not stop.wait(period_s):
+            self.memory.append((self.pipe.released + 1, round(rss_mb(), 1)))
+            if len(self.memory) > 400:
+                self.memory = self.memory[::2]
+                period_s *= 2
+
     def link_stats(self) -> dict:
         """What the stream filter refused, by reason, and the repeats it dropped."""
         sf = self.stream
@@ -143,9 +153,6 @@ class GroundNode:
     def refresh(self, final: bool = False) -> dict:
         """Write the map files and report.json (atomically) and log the map to rerun."""
         self._last_refresh = time.monotonic()
-        self.memory.append((self.pipe.released + 1, round(rss_mb(), 1)))
-        if len(self.memory) > 400:
-            self.memory = self.memory[::2]
         table = self.pipe.table()
         rows = write_map(self.out, table, getattr(self.pipe, "row_direction", 0.0))
         cams = self.pipe.pose_table()
@@ -261,6 +268,8 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
             if msg is not None:
                 node.handle(msg)
     journal = Journal(journal_path)
+    sampling = threading.Event()
+    threading.Thread(target=node.sample_memory, args=(sampling,), daemon=True, name="memory").start()
     session = transport.open_session(listen=listen, connect=connect, config_file=zenoh_config)
     sub = transport.FlightSubscriber(session, flight_id, stream, on_accept=journal.append)
     last_msg = time.monotonic()
@@ -320,5 +329,6 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
         sub.close()
         session.close()
         journal.close()
+        sampling.set()
         report = node.finish()
     return report
