@@ -79,7 +79,7 @@ class NodeSettings:
 def encode_jpeg(img: np.ndarray, width: int, quality: int) -> bytes:
     import cv2
 
-    if width and img.shape[1] != width:
+    if width and img.shape[1] > width:  # smaller, never larger: an enlarged JPEG costs link bytes and adds nothing
         h = int(round(img.shape[0] * width / img.shape[1]))
         img = cv2.resize(img, (width, h), interpolation=cv2.INTER_AREA)
     ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])

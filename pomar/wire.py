@@ -503,7 +503,7 @@ class StreamFilter:
             w, h = msg.size
             if self.camera_size is not None:
                 cw, ch = self.camera_size
-                if w > cw or abs(h - ch * w / cw) > 1.0:
+                if abs(h - ch * w / cw) > 1.0:
                     raise WireError(f"keyframe {msg.frame} is {w}x{h}: not the camera's {cw}x{ch} nor a scaled copy",
                                     "image_size")
             if self.keyframe_size is not None and (w, h) != self.keyframe_size:

@@ -116,4 +116,5 @@ def test_unopenable_video_is_a_clear_error(small_flight, tmp_path):
     port = free_port()
     p = start_node(FlightDir(tmp_path / "cut"), port, "--linger", "0")
     out, err = p.communicate(timeout=60)
-    assert p.returncode == 1 and "video.mp4" in err and "cannot open" in err
+    # found before anything is published: an input error (exit 2), like a bad flight.json or camera.json
+    assert p.returncode == 2 and "video.mp4" in err and "cannot open" in err

@@ -184,7 +184,7 @@ def test_stream_filter_keeps_to_the_flight_and_its_drone():
     small.boxes = small.boxes / 2
     assert reason(small.encode()) == "image_size"
     assert reason(wire.KeyframeMessage("flight-1", "drone-1", 9, jpeg(600, 480)).encode()) == "image_size"
-    assert reason(wire.KeyframeMessage("flight-1", "drone-1", 9, jpeg(320, 240)).encode()) == "image_size"  # not 640
+    assert reason(wire.KeyframeMessage("flight-1", "drone-1", 9, jpeg(320, 240)).encode()) == "image_size"  # not 640 wide
     assert sf.rejected == {"frame_window": 2, "other_drone": 1, "drone_mismatch": 1, "wrong_flight": 1, "image_size": 3}
     told = wire.StreamFilter("flight-1", drone_ids=["drone-2"])
     with pytest.raises(wire.WireError, match="not of"):
