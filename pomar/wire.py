@@ -418,6 +418,17 @@ def decode(payload: bytes):
     return _decode(payload, cls._from_dict)
 
 
+def decoded_size(msg: KeyframeMessage) -> tuple[int, int]:
+    """(width, height) of a keyframe's JPEG as OpenCV decodes it; WireError when it does not decode or its pixels
+    disagree with its header. (OpenCV is needed here, as on the ground that maps the keyframes.)"""
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(msg.jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
+    if img is None or (img.shape[1], img.shape[0]) != msg.size:
+        raise WireError(f"keyframe {msg.frame}: the JPEG does not decode", "bad_jpeg")
+    return img.shape[1], img.shape[0]
+
+
 class StreamFilter:
     """What the ground lets in: decodes each payload, checks it against the flight so far, drops repeats.
 
@@ -427,8 +438,8 @@ class StreamFilter:
     - A frame or keyframe index at most ``max_ahead_s`` of video ahead of the newest frame (plus the time
       since that frame arrived, so that a stream resumes after a link outage): a message from far in the
       future would hold back every real frame after it (``frame_window``).
-    - A frame's size is the camera's, and keyframes keep the camera's aspect and the first keyframe's size
-      (``image_size``).
+    - A frame's size is the camera's; a keyframe's JPEG decodes (``bad_jpeg``), keeps the camera's aspect and the
+      first keyframe's size (``image_size``).
     - Frames and keyframes already accepted are repeats (zenoh's history and recovery resend them).
 
     :meth:`accept` returns the message, or None for a repeat, or raises :class:`WireError`; ``rejected``
@@ -500,7 +511,7 @@ class StreamFilter:
                 raise WireError(f"{type(msg).__name__} {msg.frame} is {msg.frame - self.newest} frames ahead of the "
                                 f"newest frame {self.newest} (at most {ahead:.0f})", "frame_window")
         if isinstance(msg, KeyframeMessage):
-            w, h = msg.size
+            w, h = decoded_size(msg)
             if self.camera_size is not None:
                 cw, ch = self.camera_size
                 if abs(h - ch * w / cw) > 1.0:

@@ -183,9 +183,13 @@ def test_stream_filter_keeps_to_the_flight_and_its_drone():
     small.width, small.height = 320, 240
     small.boxes = small.boxes / 2
     assert reason(small.encode()) == "image_size"
+    broken = bytearray(jpeg(640, 480))
+    broken[broken.find(b"\xff\xda") + 1] = 0xFE  # header and end marker intact, no scan: no image
+    assert reason(wire.KeyframeMessage("flight-1", "drone-1", 9, bytes(broken)).encode()) == "bad_jpeg"
     assert reason(wire.KeyframeMessage("flight-1", "drone-1", 9, jpeg(600, 480)).encode()) == "image_size"
     assert reason(wire.KeyframeMessage("flight-1", "drone-1", 9, jpeg(320, 240)).encode()) == "image_size"  # not 640 wide
-    assert sf.rejected == {"frame_window": 2, "other_drone": 1, "drone_mismatch": 1, "wrong_flight": 1, "image_size": 3}
+    assert sf.rejected == {"frame_window": 2, "other_drone": 1, "drone_mismatch": 1, "wrong_flight": 1, "image_size": 3,
+                           "bad_jpeg": 1}
     told = wire.StreamFilter("flight-1", drone_ids=["drone-2"])
     with pytest.raises(wire.WireError, match="not of"):
         told.accept(cam.encode())
