@@ -52,6 +52,17 @@ def _onboard_error(out: Path) -> str:
     return " / ".join(errors[-3:]) if errors else " / ".join(lines[-5:]) or "no output"
 
 
+def stop_process(proc: subprocess.Popen, timeout_s: float = 10.0) -> None:
+    """Stop a node we started, by its PID: SIGINT (it writes what it has), then SIGKILL after timeout_s."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -200,14 +211,9 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
             ground.wait()
     finally:
         stopping.set()
-        for name, proc in (("ground", procs.get("ground")), ("onboard", onboard)):
-            if proc is not None and proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-                try:
-                    proc.wait(10)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
+        for proc in (procs.get("ground"), onboard):
+            if proc is not None:
+                stop_process(proc)
         for f in logs.values():
             f.close()
     wall = time.monotonic() - t0

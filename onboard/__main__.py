@@ -45,11 +45,9 @@ def _cmd_telemetry(args) -> int:
 
 def _cmd_run(args) -> int:
     import json
+    from pathlib import Path
 
     from onboard.node import NodeSettings, OnboardNode
-    from pomar.flight import FlightDir
-
-    from pathlib import Path
 
     def write_summary(summary: dict) -> None:
         if args.summary:

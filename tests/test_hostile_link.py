@@ -6,25 +6,15 @@ from __future__ import annotations
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 from ground.journal import read_journal
+from ground.replay import stop_process
 
 HERE = Path(__file__).resolve().parent
-
-
-def _stop(p: subprocess.Popen) -> None:
-    if p.poll() is None:
-        p.send_signal(signal.SIGINT)
-        try:
-            p.wait(10)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
 
 
 def _fly(flight, out: Path, inject: bool) -> tuple[dict, dict, dict | None]:
@@ -71,7 +61,7 @@ def _fly(flight, out: Path, inject: bool) -> tuple[dict, dict, dict | None]:
             injector.stdin.write("stop\n")
             injector.stdin.flush()
         for p in procs:
-            _stop(p)
+            stop_process(p)
     return json.loads((out / "report.json").read_text()), json.loads((out / "onboard.json").read_text()), sent
 
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -15,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ground.replay import stop_process
 from pomar import transport, wire
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -44,16 +44,6 @@ def listening_ports(pid: int) -> set[tuple[str, int]]:
     return out
 
 
-def _stop(p: subprocess.Popen) -> None:
-    if p.poll() is None:
-        p.send_signal(signal.SIGINT)
-        try:
-            p.wait(10)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
-
-
 def test_the_ground_listens_only_where_it_is_told(tmp_path):
     """Told nothing, the ground listens nowhere (zenoh's default is a random port on every interface)."""
     from ground.replay import free_port
@@ -73,8 +63,8 @@ def test_the_ground_listens_only_where_it_is_told(tmp_path):
         assert listening_ports(told.pid) == {("127.0.0.1", port)}
         assert listening_ports(quiet.pid) == set()
     finally:
-        _stop(quiet)
-        _stop(told)
+        stop_process(quiet)
+        stop_process(told)
 
 
 @pytest.fixture(scope="module")
