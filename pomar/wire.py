@@ -48,7 +48,7 @@ QUAT_NORM_TOL = 1e-3  # |q| must be 1 within this
 #: Why a message was refused (``WireError.reason``).
 REASONS = ("not_msgpack", "schema_version", "message_type", "malformed", "not_finite", "out_of_range",
            "too_many_boxes", "box_outside_image", "bad_quaternion", "bad_jpeg", "image_size",
-           "frame_window", "wrong_flight", "other_drone", "drone_mismatch")
+           "frame_window", "wrong_flight", "other_drone", "drone_mismatch", "camera_changed")
 
 
 class WireError(ValueError):
@@ -496,9 +496,12 @@ class StreamFilter:
         elif drone not in self.drone_ids:
             raise WireError(f"message of drone {drone!r}, not of {sorted(self.drone_ids)}", "other_drone")
         if isinstance(msg, CameraMessage):
-            if self.camera_size is not None and msg.size != self.camera_size:
-                raise WireError(f"camera message says {msg.size[0]}x{msg.size[1]}, the flight's camera is "
-                                f"{self.camera_size[0]}x{self.camera_size[1]}", "image_size")
+            # the first camera message is the flight's: a later one that differs (a smaller fps would narrow the
+            # frame window to nothing) is refused
+            if self.camera_size is not None and (msg.size != self.camera_size or msg.fps != self.fps):
+                raise WireError(f"camera message says {msg.size[0]}x{msg.size[1]} at {msg.fps:g} fps, the flight's "
+                                f"camera is {self.camera_size[0]}x{self.camera_size[1]} at {self.fps:g} fps",
+                                "camera_changed")
             self.camera_size, self.fps = msg.size, msg.fps
         elif isinstance(msg, FrameMessage):
             if self.camera_size is not None and (msg.width, msg.height) != self.camera_size:

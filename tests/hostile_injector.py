@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+from pathlib import Path
 
 import cv2
 import msgpack
@@ -27,6 +28,7 @@ def _packed(msg, **fields) -> bytes:
 def main() -> int:
     endpoint, flight, drone, camera_json = sys.argv[1:5]
     camera = json.loads(open(camera_json).read())
+    fps = json.loads((Path(camera_json).parent / "flight.json").read_text())["fps"]
     w, h = camera["width"], camera["height"]
     session = transport.open_session(connect=[endpoint])
     print("ready", flush=True)
@@ -52,7 +54,8 @@ def main() -> int:
         "keyframe frame 'abc'": ("keyframes", drone, _packed(wire.KeyframeMessage(flight, drone, 3, jpeg), frame="abc"),
                                  "malformed"),
         "camera fps string": ("camera", drone, wire.CameraMessage(flight, drone, camera, "10").encode(), "malformed"),
-        "camera fps int": ("camera", drone, wire.CameraMessage(flight, drone, camera, 10).encode(), "accepted"),
+        "camera fps int": ("camera", drone, wire.CameraMessage(flight, drone, camera, int(fps)).encode(), "accepted"),
+        "camera fps changed": ("camera", drone, wire.CameraMessage(flight, drone, camera, 0.01).encode(), "camera_changed"),
         "garbage": ("frames", drone, b"\xc1\x00garbage", "not_msgpack"),
         "valid frame, other drone": ("frames", "evil", wire.FrameMessage(flight, "evil", 6, 1.5e9, tel, w, h,
                                                                          *one_box).encode(), "other_drone"),

@@ -190,6 +190,8 @@ def test_stream_filter_keeps_to_the_flight_and_its_drone():
     assert reason(wire.KeyframeMessage("flight-1", "drone-1", 9, jpeg(320, 240)).encode()) == "image_size"  # not 640 wide
     assert sf.rejected == {"frame_window": 2, "other_drone": 1, "drone_mismatch": 1, "wrong_flight": 1, "image_size": 3,
                            "bad_jpeg": 1}
+    slow = wire.CameraMessage("flight-1", "drone-1", cam.camera, 0.01)  # would narrow the frame window to nothing
+    assert reason(slow.encode()) == "camera_changed" and sf.fps == 10.0
     told = wire.StreamFilter("flight-1", drone_ids=["drone-2"])
     with pytest.raises(wire.WireError, match="not of"):
         told.accept(cam.encode())
