@@ -70,6 +70,9 @@ def _cmd_run(args) -> int:
         return 2
     session, pub = _publisher(args, meta.flight_id, meta.drone_id)
     node.pub = pub
+    if not args.realtime and args.wait_for_ground > 0:
+        if not pub.wait_for_subscriber(args.wait_for_ground):
+            print(f"no ground subscribed within {args.wait_for_ground:g} s: publishing anyway", file=sys.stderr)
     try:
         summary = node.run()
         print(json.dumps(summary, indent=2))
@@ -183,6 +186,9 @@ def main(argv=None) -> int:
     r.add_argument("--realtime", action="store_true", help="play at the video's frame rate, newest frame first, count drops")
     r.add_argument("--every", type=int, default=1, help="process every Nth frame (lock-step)")
     _link_options(r)
+    r.add_argument("--wait-for-ground", type=float, default=30.0,
+                   help="lock-step: wait up to this many seconds for a ground to subscribe before the first frame "
+                        "(0 = do not wait)")
     r.add_argument("--summary", help="also write the run's summary (JSON) here")
     r.set_defaults(func=_cmd_run)
     lv = sub.add_parser("live", help="a camera or stream + a live MAVLink link -> detector -> zenoh")

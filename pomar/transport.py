@@ -69,6 +69,7 @@ class FlightPublisher:
 
     def __init__(self, session: zenoh.Session, flight_id: str, drone_id: str, history: int = 100_000):
         self.flight_id, self.drone_id = flight_id, drone_id
+        self._session = session
         enc = zenoh.Encoding(wire.ENCODING)
         self._pubs = {
             kind: zext.declare_advanced_publisher(
@@ -81,6 +82,25 @@ class FlightPublisher:
         }
         self.sent = {kind: 0 for kind in wire.KINDS}
         self.bytes = {kind: 0 for kind in wire.KINDS}
+
+    def wait_for_subscriber(self, timeout_s: float) -> bool:
+        """Wait until a subscriber matches every stream of the flight (at most timeout_s); whether one did.
+
+        A lock-step replay waits for its ground: the history of a publisher whose first samples go out while
+        a new subscriber's interest is still on its way can miss them (seen as a ground without the first few
+        frames), and a replay has no reason to start before its ground listens."""
+        session = self._session
+        probes = [session.declare_publisher(wire.key(self.flight_id, self.drone_id, kind)) for kind in wire.KINDS]
+        try:
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < timeout_s:
+                if all(p.matching_status.matching for p in probes):
+                    return True
+                time.sleep(0.05)
+            return False
+        finally:
+            for p in probes:
+                p.undeclare()
 
     def put(self, kind: str, payload: bytes) -> None:
         self._pubs[kind].put(payload)
