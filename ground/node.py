@@ -54,7 +54,8 @@ class GroundNode:
     """Feed it wire messages (decoded) with :meth:`handle`; it keeps the outputs and the rerun log current."""
 
     def __init__(self, out_dir, settings: GroundSettings | None = None, rrd: Path | None | bool = True,
-                 serve: bool = False, viewer: str | None = None, harvest: Path | None = None, refresh_s: float = 2.0):
+                 serve: bool = False, viewer: str | None = None, harvest: Path | None = None, refresh_s: float = 2.0,
+                 stream: wire.StreamFilter | None = None):
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
         self.settings = settings or GroundSettings()
@@ -71,7 +72,7 @@ class GroundNode:
         self._fps_t: deque[float] = deque(maxlen=20)
         self.memory: list[tuple[int, float]] = []  # (frames mapped, resident MB), see sample_memory
         self.latency: list[float] = []
-        self.stream: wire.StreamFilter | None = None  # what the subscriber let in and refused
+        self.stream = stream  # the filter in front of the pipeline: what it let in and refused
         self.ignored_end_claims = 0  # "finished" statuses contradicted by the stream
         self.journal_damage: dict | None = None
 
@@ -252,8 +253,7 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
     else:
         read = None
         journal_path.unlink(missing_ok=True)
-    node = GroundNode(out, settings, rrd, serve, viewer, harvest)
-    node.stream = stream
+    node = GroundNode(out, settings, rrd, serve, viewer, harvest, stream=stream)
     if read is not None:
         log.info("resuming from %s: %d messages%s", journal_path, len(read.records),
                  f", {read.damaged_bytes} damaged bytes skipped" if read.damaged else "")
