@@ -207,6 +207,25 @@ class LivePoses:
         R, t = georeference_poses(R_enu[None], (-R_enu @ enu)[None], e2a)
         return Pose(frame, R[0], t[0], "telemetry", h_acc, np.degrees(self.sigma_att))
 
+    def sparse_points(self, max_points: int = 4000, min_track: int = 3, max_error_px: float = 2.0,
+                      seed: int = 0) -> dict[int, np.ndarray]:
+        """The structure-from-motion points of the sub-models still in memory, in ENU: sub-model index -> (n, 3),
+        points seen in at least ``min_track`` keyframes within ``max_error_px``, at most ``max_points`` (an even
+        random sample) per sub-model."""
+        out: dict[int, np.ndarray] = {}
+        if self.fit is None:
+            return out
+        rng = np.random.default_rng(seed)
+        for k, sm in enumerate(self.registrar.submodels):
+            if sm.rec is None or sm.to_first is None:
+                continue
+            pts = [p for p in sm.rec.points3D.values() if p.track.length() >= min_track and p.error <= max_error_px]
+            if len(pts) > max_points:
+                pts = [pts[i] for i in np.sort(rng.choice(len(pts), max_points, replace=False))]
+            xyz = np.array([p.xyz for p in pts], float).reshape(-1, 3)
+            out[k] = compose(self.fit, sm.to_first).apply(xyz)
+        return out
+
     def forget_before(self, frame: int):
         """Drop telemetry older than ``frame`` (memory stays bounded over long flights)."""
         for f in [f for f in self.tel if f < frame]:

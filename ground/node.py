@@ -69,7 +69,9 @@ class GroundNode:
         self.t_first_msg = None
         self.messages = 0
         self.errors: list[str] = []
-        self._fps_t: deque[float] = deque(maxlen=20)
+        self._fps_t: deque[float] = deque()  # when each frame of the last FPS_WINDOW_S was mapped (monotonic)
+        self._first_mapped: float | None = None
+        self._live: dict = {}  # what the summary says of the frame being mapped
         self.memory: list[tuple[int, float]] = []  # (frames mapped, resident MB), see sample_memory
         self.latency: list[float] = []
         self.stream = stream  # the filter in front of the pipeline: what it let in and refused
@@ -116,18 +118,29 @@ class GroundNode:
         rr = self._rerun()
         now = time.time()
         for e in events:
-            self._fps_t.append(time.monotonic())
-            if abs(now - e.t_capture) < 3600:  # a live flight (a replay's capture times are the recording's)
-                self.latency.append(now - e.t_capture)
+            t = time.monotonic()
+            self._fps_t.append(t)
+            self._first_mapped = self._first_mapped or t
+            latency = now - e.t_capture if abs(now - e.t_capture) < 3600 else None  # None: a replay's recorded times
+            if latency is not None:
+                self.latency.append(latency)
+            behind = self.pipe._newest_t - e.t_capture
+            fps = self.ground_fps()
+            self._live = {"frame": e.frame, "behind_s": behind, "ground_fps": fps, "drone_fps": self.pipe.fps}
             if rr is not None:
                 st = self.pipe.status
                 rejected = self.stream.rejected if self.stream else {}
+                to_enu = self.pipe.poses.assoc_to_enu() if self.pipe.poses is not None else None
                 rr.frame(e, self.pipe.camera, {
-                    "frames_per_s": self.ground_fps(),
-                    "drops": float(st.frames_dropped) if st else None,
-                    "detector_latency_s": float(st.detector_latency_s) if st else None,
+                    "rate/ground": fps, "rate/drone": self.pipe.fps,
+                    "delay/behind_drone_s": behind, "delay/ground_latency_s": latency,
+                    "delay/detector_s": float(st.detector_latency_s) if st else None,
+                    "link/dropped_onboard": float(st.frames_dropped) if st else None,
+                    "link/missing_frames": float(self.pipe.counters["missing_frames"]),
                     **{f"rejected/{reason}": float(n) for reason, n in rejected.items()},
-                })
+                }, to_enu=to_enu)
+                for a in e.new_apples:
+                    rr.apple_views(a.id, self.pipe.apple_boxes(a))
 
     def sample_memory(self, stop: threading.Event, period_s: float = 1.0) -> None:
         """Record (frames mapped, resident MB) every period_s until ``stop`` (run it in a thread: a lock-step backlog
@@ -147,23 +160,38 @@ class GroundNode:
                 "duplicates": sf.duplicates if sf else 0, "last_rejections": sf.errors[-10:] if sf else [],
                 "ignored_end_claims": self.ignored_end_claims, "journal": self.journal_damage}
 
+    FPS_WINDOW_S = 5.0
+
     def ground_fps(self) -> float:
-        t = self._fps_t
-        return (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else float("nan")
+        """Frames mapped per second over the last FPS_WINDOW_S; NaN for the first FPS_WINDOW_S after the first frame
+        was mapped (a backlog released at once would read as hundreds of frames per second)."""
+        t, now = self._fps_t, time.monotonic()
+        while t and t[0] < now - self.FPS_WINDOW_S:
+            t.popleft()
+        if self._first_mapped is None or now - self._first_mapped < self.FPS_WINDOW_S:
+            return float("nan")
+        return len(t) / self.FPS_WINDOW_S
 
     def refresh(self, final: bool = False) -> dict:
         """Write the map files and report.json (atomically) and log the map to rerun."""
         self._last_refresh = time.monotonic()
         table = self.pipe.table()
-        rows = write_map(self.out, table, getattr(self.pipe, "row_direction", 0.0))
+        poses = self.pipe.poses
+        rows = write_map(self.out, table, getattr(self.pipe, "row_direction", 0.0),
+                         poses.origin if poses is not None else None)
         cams = self.pipe.pose_table()
         write_atomic(self.out / "poses.csv", poses_csv(cams))
+        report = self.report(table, rows, final)
         rr = self._rerun()
         if rr is not None and self.pipe.released >= 0:
+            from ground.rerun_log import summary_markdown
+
             drone = [cams["lat"][-1], cams["lon"][-1]] if len(cams["frame"]) else None
             rr.apples(self.pipe.released, self.pipe.frame_times.get(self.pipe.released, float("nan")), table,
-                      self.pipe.apples, rows, drone_latlon=drone, force=True)
-        report = self.report(table, rows, final)
+                      self.pipe.apples, rows, drone_latlon=drone, force=True,
+                      points=poses.sparse_points() if poses is not None else None,
+                      summary=summary_markdown(report, self._live),
+                      trajectory_latlon=np.stack([cams["lat"], cams["lon"]], 1)[::5] if len(cams["frame"]) else None)
         write_json(self.out / "report.json", report)
         return report
 

@@ -1,10 +1,11 @@
 """The apple map's files, written atomically (write to a temporary name, then rename).
 
-- ``apples.csv``: id, x, y, z (ENU m), lat, lon, alt (WGS84), row, observations, reprojection error,
-  first and last frame;
+- ``apples.csv``: id, x, y, z (ENU m), lat, lon, alt (WGS84), row (1..N), radius (m, from the boxes and
+  depths), observations, reprojection error, first and last frame;
 - ``apples.geojson``: a FeatureCollection of WGS84 points (lon, lat, alt) with the same properties;
 - ``apples.ply``: ASCII point cloud in ENU, coloured by row;
-- ``rows.csv``: row, count, length (m, along the row direction);
+- ``rows.csv``: row, count, length (m, along the row direction), apples per metre, and the row's line:
+  start and end in ENU and WGS84 (the span of its apples along the row, at their median across-row offset);
 - ``poses.csv``: every mapped frame's camera (centre in ENU and WGS84, rotation, pose source);
 - ``report.json``: counts, settings, timings (written by the caller through :func:`write_json`).
 """
@@ -19,18 +20,20 @@ from pathlib import Path
 
 import numpy as np
 
-APPLE_COLUMNS = ["id", "x", "y", "z", "lat", "lon", "alt", "row", "observations", "reprojection_error_px",
+APPLE_COLUMNS = ["id", "x", "y", "z", "lat", "lon", "alt", "row", "radius_m", "observations", "reprojection_error_px",
                  "first_frame", "last_frame"]
-ROW_COLUMNS = ["row", "count", "length_m"]
+ROW_COLUMNS = ["row", "count", "length_m", "apples_per_m", "start_x", "start_y", "end_x", "end_y",
+               "start_lat", "start_lon", "end_lat", "end_lon"]
 
-#: Row colours (RGB), cycled; also used by the rerun log.
-PALETTE = np.array([[230, 25, 75], [60, 180, 75], [255, 225, 25], [0, 130, 200], [245, 130, 48], [145, 30, 180],
-                    [70, 240, 240], [240, 50, 230], [210, 245, 60], [250, 190, 212], [0, 128, 128], [170, 110, 40]],
-                   np.uint8)
+#: Row colours (RGB), cycled by row number; also used by the rerun log. Okabe & Ito's colour-blind-safe
+#: palette without its black: blue, orange, bluish green, vermillion, sky blue, reddish purple, yellow.
+PALETTE = np.array([[0, 114, 178], [230, 159, 0], [0, 158, 115], [213, 94, 0], [86, 180, 233], [204, 121, 167],
+                    [240, 228, 66]], np.uint8)
 
 
 def row_colours(rows: np.ndarray) -> np.ndarray:
-    return PALETTE[np.asarray(rows, int) % len(PALETTE)]
+    """Rows are numbered from 1: row 1 takes the palette's first colour."""
+    return PALETTE[(np.asarray(rows, int) - 1) % len(PALETTE)]
 
 
 def write_atomic(path: Path, data: str | bytes) -> None:
@@ -54,7 +57,8 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
-FORMATS = {"x": ".4f", "y": ".4f", "z": ".4f", "lat": ".9f", "lon": ".9f", "alt": ".4f", "reprojection_error_px": ".3f"}
+FORMATS = {"x": ".4f", "y": ".4f", "z": ".4f", "lat": ".9f", "lon": ".9f", "alt": ".4f", "reprojection_error_px": ".3f",
+           "radius_m": ".4f"}
 
 
 def apples_csv(table: dict) -> str:
@@ -93,15 +97,35 @@ def apples_ply(table: dict) -> str:
     return "\n".join(head + lines) + "\n"
 
 
-def rows_summary(table: dict, direction: float) -> list[dict]:
+def rows_summary(table: dict, direction: float, origin=None) -> list[dict]:
+    """Per row: count, length along the row direction, apples per metre, and the row's line (ENU, and WGS84 when
+    ``origin`` is given): its apples' span along the row (1st to 99th percentile when it has 20 or more, so that a
+    stray estimate does not stretch it) at their median across-row offset and height."""
     out = []
     if not len(table["id"]):
         return out
-    along = np.stack([table["x"], table["y"]], 1) @ np.array([np.cos(direction), np.sin(direction)])
+    u = np.array([np.cos(direction), np.sin(direction)])
+    n = np.array([-u[1], u[0]])
+    xy = np.stack([table["x"], table["y"]], 1)
+    along, across = xy @ u, xy @ n
     for r in np.unique(table["row"]):
         sel = table["row"] == r
-        out.append({"row": int(r), "count": int(sel.sum()), "length_m": float(np.ptp(along[sel]))})
+        a = along[sel]
+        lo, hi = np.percentile(a, [1, 99]) if sel.sum() >= 20 else (a.min(), a.max())
+        c, z = np.median(across[sel]), np.median(table["z"][sel])
+        ends = np.array([[*(lo * u + c * n), z], [*(hi * u + c * n), z]])
+        geo = np.asarray(origin.to_geodetic(ends)) if origin is not None else np.full((2, 3), np.nan)
+        length = float(np.ptp(a))
+        out.append({"row": int(r), "count": int(sel.sum()), "length_m": length,
+                    "apples_per_m": float(sel.sum() / length) if length > 0 else float("nan"),
+                    "start_x": float(ends[0, 0]), "start_y": float(ends[0, 1]), "end_x": float(ends[1, 0]),
+                    "end_y": float(ends[1, 1]), "z": float(z), "start_lat": float(geo[0, 0]),
+                    "start_lon": float(geo[0, 1]), "end_lat": float(geo[1, 0]), "end_lon": float(geo[1, 1])})
     return out
+
+
+ROW_FORMATS = {"length_m": ".2f", "apples_per_m": ".2f", "start_x": ".3f", "start_y": ".3f", "end_x": ".3f",
+               "end_y": ".3f", "start_lat": ".9f", "start_lon": ".9f", "end_lat": ".9f", "end_lon": ".9f"}
 
 
 def rows_csv(rows: list[dict]) -> str:
@@ -109,7 +133,7 @@ def rows_csv(rows: list[dict]) -> str:
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(ROW_COLUMNS)
     for r in rows:
-        w.writerow([r["row"], r["count"], f"{r['length_m']:.2f}"])
+        w.writerow([format(r[c], ROW_FORMATS.get(c, "")) for c in ROW_COLUMNS])
     return buf.getvalue()
 
 
@@ -127,10 +151,10 @@ def poses_csv(poses: dict) -> str:
     return buf.getvalue()
 
 
-def write_map(out_dir: Path, table: dict, direction: float) -> list[dict]:
+def write_map(out_dir: Path, table: dict, direction: float, origin=None) -> list[dict]:
     """apples.csv, apples.geojson, apples.ply and rows.csv; returns the rows summary."""
     out = Path(out_dir)
-    rows = rows_summary(table, direction)
+    rows = rows_summary(table, direction, origin)
     write_atomic(out / "apples.csv", apples_csv(table))
     write_atomic(out / "apples.geojson", apples_geojson(table))
     write_atomic(out / "apples.ply", apples_ply(table))

@@ -86,11 +86,14 @@ class GroundPipeline:
         self.s = settings or GroundSettings()
         self.origin = origin
         self.camera: Camera | None = None
+        self.fps = float("nan")  # the drone's frame rate, from its camera message
         self.flight_id = self.drone_id = None
         self.poses: LivePoses | None = None
         self.assoc = WindowedAssociation(self.s.association)
         self.apples: dict[int, Apple] = {}  # confirmed apples, by id
         self._scores: dict[int, np.ndarray] = {}  # stream frame -> scores of the detections it fed
+        self._boxes: dict[int, np.ndarray] = {}  # stream frame -> (n, 4) boxes of those detections (xyxy, px)
+        self.radius_m: dict[int, float] = {}  # apple id -> radius estimated from its boxes and depths
         self._confirmed: dict[int, int] = {}  # apple id -> views scored confirm_score or more
         self.pending: dict[int, wire.FrameMessage] = {}
         self.keyframes: dict[int, bytes] = {}  # waiting for registration
@@ -131,6 +134,7 @@ class GroundPipeline:
         if self.camera is not None:
             return
         self.camera = Camera.from_dict(msg.camera, source=f"camera message of {msg.flight_id}/{msg.drone_id}")
+        self.fps = msg.fps
         self.flight_id, self.drone_id = msg.flight_id, msg.drone_id
         # the registration is made in step(), once the first keyframe tells the keyframes' width
 
@@ -274,8 +278,11 @@ class GroundPipeline:
                 seq = len(self._seq_frame)
                 self._seq_frame.append(f)
                 self._scores[seq] = np.asarray(msg.scores)[keep]
+                self._boxes[seq] = np.asarray(msg.boxes, float).reshape(-1, 4)[keep]
                 # scores are needed while a track or a merge can still reach back to them
-                self._scores.pop(seq - self.s.association.merge_window - 2 * self.s.association.k, None)
+                old = seq - self.s.association.merge_window - 2 * self.s.association.k
+                self._scores.pop(old, None)
+                self._boxes.pop(old, None)
                 new = self._confirm(self.assoc.add_frame(FrameDetections(seq, P, xy)))
                 self.seconds["association"] += time.perf_counter() - t0
             events.append(FrameEvent(f, msg.t_capture, pose, msg, new, self._kf_for_event.pop(f, None)))
@@ -309,8 +316,29 @@ class GroundPipeline:
             strong = self._confirmed[a.id] = max(strong, self._confirmed.get(a.id, 0))
             if strong >= need:
                 self.apples[a.id] = a
+                r = self._radius(a)
+                if np.isfinite(r):
+                    self.radius_m[a.id] = r
                 out.append(a)
         return out
+
+    def _radius(self, a: Apple) -> float:
+        """The apple's radius (m): the median over its views of the box's half-size times depth over focal length."""
+        r = []
+        for seq, d in a.observations:
+            pose = self.frame_poses.get(self._seq_frame[seq]) if seq < len(self._seq_frame) else None
+            if pose is None or seq not in self._boxes:
+                continue
+            depth = float((pose.R @ a.X + pose.t)[2])
+            x0, y0, x1, y1 = self._boxes[seq][d]
+            if depth > 0:
+                r.append((x1 - x0 + y1 - y0) / 4 * depth / self.camera.fx)
+        return float(np.median(r)) if r else float("nan")
+
+    def apple_boxes(self, a: Apple) -> list[tuple[int, np.ndarray]]:
+        """(frame, box xyxy in camera pixels) of the apple's detections that are still at hand, in frame order."""
+        return sorted(((self._seq_frame[seq], self._boxes[seq][d]) for seq, d in a.observations if seq in self._boxes),
+                      key=lambda fb: fb[0])
 
     # -- results
     def pose_table(self) -> dict[str, np.ndarray]:
@@ -334,7 +362,8 @@ class GroundPipeline:
                 "sigma_m": np.array([p.sigma_m for p in P])}
 
     def table(self) -> dict[str, np.ndarray]:
-        """Apples as columns: id, x y z (ENU), lat lon alt, row, observations, reprojection error, first/last frame."""
+        """Apples as columns: id, x y z (ENU), lat lon alt, row (1..N), radius, observations, reprojection error,
+        first/last frame."""
         ids = sorted(self.apples)
         A = [self.apples[i] for i in ids]
         X = np.array([a.X for a in A]).reshape(-1, 3)
@@ -344,7 +373,9 @@ class GroundPipeline:
         rows, direction = direction_rows(enu[:, :2]) if len(X) >= 2 else (np.zeros(len(X), int), 0.0)
         self.row_direction = direction
         return {"id": np.array(ids, int), "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
-                "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2], "row": np.asarray(rows, int),
+                "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
+                "row": np.asarray(rows, int) + 1,  # rows 1..N, left to right looking along the row direction
+                "radius_m": np.array([self.radius_m.get(i, np.nan) for i in ids], float),
                 "observations": np.array([a.n_observations for a in A], int),
                 "reprojection_error_px": np.array([a.reprojection_error for a in A], float),
                 "first_frame": np.array([self._seq_frame[a.first_frame] for a in A], int),

@@ -1,19 +1,34 @@
-"""The rerun log of a flight: one recording, in a ``world/`` ENU frame (z up).
+"""The rerun log of a flight: one recording, in a ``world/`` ENU frame (z up), laid out for a glance.
 
 Entity tree::
 
+    summary                     TextDocument (markdown): apples so far, per row, the frame being mapped, the
+                                ground's delay behind the drone, drops and registration health
     world                       ViewCoordinates RIGHT_HAND_Z_UP (static)
     world/camera                Transform3D (camera to world) + Pinhole, the current frame
-    world/camera/image          the keyframe's JPEG (when the frame carried one)
-    world/camera/image/detections   Boxes2D, the frame's detections
-    world/camera/image/epipolar     LineStrips2D, epipolar lines of the previous frame's detections
+    world/camera/image          the frame's image (frames that carried one)
+    world/camera/image/detections       Boxes2D, that image's detections (logged only with their image)
+    world/camera/image/epipolar/all     LineStrips2D: the previous image's detections' epipolar lines (hidden)
+    world/camera/image/epipolar/<id>    apple <id>'s box on each image it was seen in, and the epipolar line of
+                                        its previous view (hidden; show one to follow that apple)
     world/trajectory            LineStrips3D, the camera centres so far
-    world/apples                Points3D coloured by row, labelled "id (row)"
-    world/tracks/<id>           LineStrips3D from each observing camera to the apple (hidden in the blueprint)
-    map/apples, map/drone       GeoPoints (WGS84) for the map view
-    stats/rows/<r>              Scalars: apples per row
-    stats/apples, stats/frames_per_s, stats/drops, stats/detector_latency_s, stats/ground_latency_s
+    world/points/<k>            Points3D: sub-model k's sparse structure-from-motion points, coloured by
+                                height above the ground (ground grey-brown, canopy green)
+    world/apples                Points3D at each apple's estimated radius, coloured by row, labelled
+    world/rows                  LineStrips3D: each row's line, labelled "row N"
+    world/tracks/<id>           LineStrips3D from each observing camera to the apple (hidden)
+    map/apples, map/drone, map/trajectory, map/rows     GeoPoints and GeoLineStrings (WGS84)
+    stats/apples                Scalars: apples so far
+    stats/rows/row_<N>          Scalars: apples in row N, named "row N" in the row's colour
+    stats/rate/ground, stats/rate/drone             frames/s mapped by the ground, and the drone's frame rate
+    stats/delay/behind_drone_s  capture time of the newest frame received minus that of the frame being mapped
+    stats/delay/ground_latency_s   wall clock minus the mapped frame's capture time (live flights only)
+    stats/delay/detector_s      the onboard detector's time per frame
+    stats/link/dropped_onboard, stats/link/missing_frames   frames lost on board and on the link
     stats/rejected/<reason>     Scalars: messages the ground refused, by pomar.wire.WireError reason
+
+Rows are numbered 1..N, left to right looking along the row direction; the colour of row N is the same in the
+3-D view, the map and the plots (:data:`ground.outputs.PALETTE`, colour-blind safe).
 
 Timelines: ``frame`` (sequence) and ``capture_time`` (timestamp). Sinks: an .rrd file, a gRPC server
 for a viewer elsewhere (``serve``), or a running viewer (``connect``).
@@ -22,6 +37,7 @@ for a viewer elsewhere (``serve``), or a running viewer (``connect``).
 from __future__ import annotations
 
 import logging
+from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
@@ -34,21 +50,142 @@ from ground.outputs import row_colours
 log = logging.getLogger(__name__)
 
 APPLICATION_ID = "pomar"
+#: The panels of the default layout, by name (the tests and the README screenshot refer to them).
+PANELS = ("summary", "camera", "apple map", "map", "apples per row", "ground rate (frames/s)",
+          "delay behind the drone (s)")
+HIDDEN = ("world/camera/image/epipolar",)
+DEFAULT_RADIUS_M = 0.04
 
 
-def blueprint() -> rrb.Blueprint:
+def blueprint(ground_z: float | None = None, eye: tuple | None = None, map_zoom: float = 19.0) -> rrb.Blueprint:
+    """The layout: summary and camera | 3-D apple map | map and plots. With ``ground_z`` the 3-D grid lies on
+    the ground; with ``eye`` ((position, target)) the 3-D view starts there. The time panel follows the newest
+    data, as a live flight needs."""
+    grid = (rrb.LineGrid3D(visible=True, spacing=1.0, plane=rr.components.Plane3D((0.0, 0.0, 1.0), ground_z),
+                           color=[150, 150, 150, 90]) if ground_z is not None else rrb.LineGrid3D(visible=False))
+    eye_controls = (rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=eye[0], look_target=eye[1],
+                                      eye_up=(0.0, 0.0, 1.0)) if eye is not None else None)
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Spatial3DView(origin="world", name="apple map", contents=["+ world/**", "- world/tracks/**"]),
             rrb.Vertical(
-                rrb.Spatial2DView(origin="world/camera/image", name="camera"),
-                rrb.MapView(origin="map", name="map"),
-                rrb.TimeSeriesView(origin="stats", name="counts and rates"),
+                rrb.TextDocumentView(origin="summary", name="summary"),
+                rrb.Spatial2DView(origin="world/camera/image", name="camera",
+                                  overrides={p: rrb.EntityBehavior(visible=False) for p in HIDDEN}),
+                row_shares=[3, 2],
             ),
-            column_shares=[3, 2],
+            rrb.Spatial3DView(origin="world", name="apple map", contents=["+ world/**", "- world/tracks/**"],
+                              background=[24, 26, 32], line_grid=grid, eye_controls=eye_controls,
+                              overrides={p: rrb.EntityBehavior(visible=False) for p in HIDDEN}),
+            rrb.Vertical(
+                rrb.MapView(origin="map", name="map", zoom=map_zoom),
+                rrb.TimeSeriesView(origin="stats/rows", name="apples per row",
+                                   plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop)),
+                rrb.TimeSeriesView(origin="stats/rate", name="ground rate (frames/s)",
+                                   plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftBottom)),
+                rrb.TimeSeriesView(origin="stats/delay", name="delay behind the drone (s)",
+                                   plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop)),
+                row_shares=[4, 3, 2, 2],
+            ),
+            column_shares=[3, 5, 3],
         ),
-        collapse_panels=False,
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+        rrb.TimePanel(state="collapsed", play_state="following"),
     )
+
+
+def clip_segment(p: np.ndarray, q: np.ndarray, w: float, h: float) -> np.ndarray | None:
+    """The part of segment p-q inside the image [0, w] x [0, h] (Liang-Barsky), or None."""
+    d = q - p
+    t0, t1 = 0.0, 1.0
+    for num, den in ((p[0], -d[0]), (w - p[0], d[0]), (p[1], -d[1]), (h - p[1], d[1])):
+        if abs(den) < 1e-12:
+            if num < 0:
+                return None
+            continue
+        t = num / den
+        if den < 0:
+            t0 = max(t0, t)
+        else:
+            t1 = min(t1, t)
+        if t0 > t1:
+            return None
+    return np.array([p + t0 * d, p + t1 * d])
+
+
+def epipolar_segments(F: np.ndarray, xy: np.ndarray, w: float, h: float) -> list[np.ndarray]:
+    """Each point's epipolar line in the second image (l = F x), clipped to the image on all four sides; lines that
+    miss the image are left out."""
+    x = np.column_stack([np.asarray(xy, float).reshape(-1, 2), np.ones(len(xy))])
+    out = []
+    for a, b, c in x @ F.T:  # a u + b v + c = 0
+        n = np.hypot(a, b)
+        if n < 1e-12:
+            continue
+        # the line's foot from the image centre, then far along it both ways; the clip keeps what is inside
+        centre = np.array([w / 2, h / 2])
+        foot = centre - (a * centre[0] + b * centre[1] + c) / n ** 2 * np.array([a, b])
+        along = np.array([-b, a]) / n * (w + h)
+        seg = clip_segment(foot - along, foot + along, w, h)
+        if seg is not None:
+            out.append(seg)
+    return out
+
+
+def height_colours(z: np.ndarray, ground_z: float) -> np.ndarray:
+    """Sparse points by height above the ground: grey-brown at ground level, greener and lighter up the canopy."""
+    h = np.clip((np.asarray(z) - ground_z - 0.3) / 3.0, 0.0, 1.0)[:, None]
+    ground, low, high = np.array([120, 105, 85]), np.array([40, 120, 50]), np.array([150, 210, 110])
+    canopy = low + h * (high - low)
+    return np.where(h > 0, canopy, ground).astype(np.uint8)
+
+
+def ground_level(points: dict[int, np.ndarray], apples_z: np.ndarray) -> float | None:
+    """The ground's height: the 5th percentile of the sparse points (most of them lie on the ground between
+    rows), or 1.5 m below the lowest apples when there are too few points."""
+    pts = [p[:, 2] for p in points.values() if len(p)]
+    z = np.concatenate(pts) if pts else np.zeros(0)
+    if len(z) >= 200:
+        return float(np.percentile(z, 5))
+    if len(apples_z) >= 10:
+        return float(np.percentile(apples_z, 2) - 1.5)
+    return None
+
+
+def summary_markdown(report: dict, live: dict) -> str:
+    """The glanceable summary: total, per-row table, mapping progress, delay, link and registration health."""
+    head = "flight finished" if report.get("final") else "flying"
+    lines = [f"# {report['apples']} apples", f"*{report.get('flight_id')}, {head}*", ""]
+    rows = report.get("rows") or []
+    if rows:
+        lines += ["| row | apples | per m | length |", "|:---|---:|---:|---:|"]
+        for r in rows:
+            per_m = r.get("apples_per_m", float("nan"))
+            lines.append(f"| row {r['row']} | {r['count']} | {per_m:.1f} | {r['length_m']:.0f} m |")
+        lines.append("")
+    fr = report.get("frames", {})
+    behind, fps, drone_fps = live.get("behind_s"), live.get("ground_fps"), live.get("drone_fps")
+    keeping = f"{behind:.1f} s behind the drone" if behind is not None and np.isfinite(behind) else "delay unknown"
+    rate = (f", mapping {fps:.1f} frames/s" if fps is not None and np.isfinite(fps) else "")
+    rate += f" (drone: {drone_fps:g} fps)" if drone_fps is not None and np.isfinite(drone_fps) else ""
+    lines.append(f"**Mapping** frame {live.get('frame', '–')} ({fr.get('frames', 0)} frames received): {keeping}{rate}")
+    reg = report.get("registration", {})
+    gps = reg.get("georeference_gps_rms_m")
+    gps_txt = f", GPS fit {gps:.2f} m" if gps is not None and np.isfinite(gps) else ""
+    lines.append("")
+    lines.append(f"**Registration** {reg.get('registered', 0)} of {reg.get('keyframes_processed', 0)} keyframes, "
+                 f"{reg.get('failed', 0)} failed, {reg.get('submodels', 0)} sub-model(s){gps_txt}. Frame poses: "
+                 f"{fr.get('registered', 0)} registered, {fr.get('interpolated', 0)} interpolated, "
+                 f"{fr.get('telemetry', 0)} from telemetry alone, {fr.get('frames_without_pose', 0)} without")
+    link = report.get("link", {})
+    onboard = report.get("onboard_status") or {}
+    lines.append("")
+    lines.append(f"**Link** {onboard.get('frames_dropped', 0)} frames dropped on board, "
+                 f"{fr.get('missing_frames', 0)} missing, {fr.get('late_frames', 0)} late, "
+                 f"{link.get('rejected_total', 0)} messages refused")
+    if report.get("errors"):
+        lines += ["", f"**Errors** {len(report['errors'])}: {report['errors'][-1]}"]
+    return "\n".join(lines) + "\n"
 
 
 class RerunLog:
@@ -70,19 +207,28 @@ class RerunLog:
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.apples_every = max(1, apples_every)
         self._centres: list[np.ndarray] = []
-        self._prev: tuple[np.ndarray, np.ndarray] | None = None  # previous frame's (P, centres)
-        self._frames = 0
+        # recent frames: frame -> (capture time, P (ENU, image pixels) or None, whether its image was logged)
+        self._frames: OrderedDict[int, tuple[float, np.ndarray | None, bool]] = OrderedDict()
+        self._prev_image: tuple[np.ndarray, np.ndarray] | None = None  # last image frame's (P, centres)
         self._tracks_logged: set[int] = set()
+        self._series: set[int] = set()
+        self._framed = False  # whether the blueprint with the ground grid and the eye was sent
+        self._view_data = None  # what the last framing would use: apples (ENU), rows, latitude
+        self.ground_z: float | None = None
         self.scale: float | None = None
+        self.camera = None
 
     def _time(self, frame: int, t_capture: float):
         self.rec.set_time("frame", sequence=int(frame))
         if np.isfinite(t_capture):
             self.rec.set_time("capture_time", timestamp=float(t_capture))
 
-    def frame(self, event, camera, stats: dict | None = None):
-        """A frame through the association: camera, image, detections, epipolar lines, trajectory."""
+    def frame(self, event, camera, stats: dict | None = None, to_enu=None):
+        """A frame through the association: camera pose, and, on frames with an image, the image, its detections
+        and the epipolar lines of the previous image's detections. ``stats``: entity path under ``stats/`` ->
+        value; ``to_enu``: the association frame -> ENU similarity (None: they are the same)."""
         self._time(event.frame, event.t_capture)
+        self.camera = camera
         msg = event.msg
         if event.keyframe is not None and self.scale is None:
             import cv2
@@ -90,72 +236,150 @@ class RerunLog:
             img = cv2.imdecode(np.frombuffer(event.keyframe, np.uint8), cv2.IMREAD_REDUCED_GRAYSCALE_8)
             if img is not None:  # the reduced decode is 1/8 of the width, rounded up
                 self.scale = min(1.0, img.shape[1] * 8 / camera.width)
-        # The image plane is in keyframe pixels (keyframes are often smaller than the camera's frames).
+        # The image plane is in image pixels (images are often smaller than the camera's frames).
         s = self.scale or 1.0
         S = np.diag([s, s, 1.0])
-        boxes = np.asarray(msg.boxes, np.float32).reshape(-1, 4) * s
+        P = None
         if event.pose is not None:
-            p = event.pose
-            C = p.centre
-            self.rec.log("world/camera", rr.Transform3D(translation=C, mat3x3=p.R.T),
+            R, C = event.pose.R, event.pose.centre
+            if to_enu is not None:
+                R, C = R @ to_enu.R.T, to_enu.apply(C[None])[0]
+            self.rec.log("world/camera", rr.Transform3D(translation=C, mat3x3=R.T),
                          rr.Pinhole(image_from_camera=S @ camera.K_opencv,
                                     resolution=[round(camera.width * s), round(camera.height * s)],
                                     camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=2.0))
             self._centres.append(C)
             if len(self._centres) % 5 == 1:
-                self.rec.log("world/trajectory", rr.LineStrips3D([np.array(self._centres)], colors=[[200, 200, 200]]))
-            P = camera.K_opencv @ np.hstack([p.R, p.t[:, None]])
-            if self._prev is not None and len(self._prev[1]):
-                F = fundamental_from_projections(self._prev[0], P)
-                lines = [seg * s for seg in self._epipolar_segments(F, self._prev[1], camera.width, camera.height)]
-                if len(lines):
-                    self.rec.log("world/camera/image/epipolar", rr.LineStrips2D(lines, colors=[[255, 255, 0]], radii=0.5))
-            self._prev = (P, msg.centres)
-        if event.keyframe is not None:
+                self.rec.log("world/trajectory", rr.LineStrips3D([np.array(self._centres)], colors=[[220, 220, 220]]))
+            P = S @ camera.K_opencv @ np.hstack([R, (-R @ C)[:, None]])
+        has_image = event.keyframe is not None
+        if has_image:
+            # boxes only with the image they were detected in: drawn over another frame's image they would jump
+            w, h = camera.width * s, camera.height * s
             self.rec.log("world/camera/image", rr.EncodedImage(contents=event.keyframe, media_type="image/jpeg"))
-        self.rec.log("world/camera/image/detections",
-                     rr.Boxes2D(array=boxes, array_format=rr.Box2DFormat.XYXY, colors=[[255, 80, 80]]))
-        if stats:
-            for k, v in stats.items():
-                if v is not None and np.isfinite(v):
-                    self.rec.log(f"stats/{k}", rr.Scalars(float(v)))
-        self._frames += 1
+            boxes = np.asarray(msg.boxes, np.float32).reshape(-1, 4) * s
+            self.rec.log("world/camera/image/detections",
+                         rr.Boxes2D(array=boxes, array_format=rr.Box2DFormat.XYXY, colors=[[255, 60, 60]]))
+            lines = []
+            if P is not None and self._prev_image is not None and len(self._prev_image[1]):
+                F = fundamental_from_projections(self._prev_image[0], P)
+                lines = epipolar_segments(F, self._prev_image[1], w, h)
+            self.rec.log("world/camera/image/epipolar/all",
+                         rr.LineStrips2D(lines, colors=[[255, 220, 0]], radii=rr.Radius.ui_points(0.75)))
+            if P is not None:
+                self._prev_image = (P, np.asarray(msg.centres, float).reshape(-1, 2) * s)
+        self._frames[event.frame] = (event.t_capture, P, has_image)
+        while len(self._frames) > 600:
+            self._frames.popitem(last=False)
+        for k, v in (stats or {}).items():
+            if v is not None and np.isfinite(v):
+                self.rec.log(f"stats/{k}", rr.Scalars(float(v)))
 
-    @staticmethod
-    def _epipolar_segments(F: np.ndarray, xy: np.ndarray, w: int, h: int) -> list[np.ndarray]:
-        """Each point's epipolar line in the second image, clipped to the image's left and right edges."""
-        x = np.column_stack([xy, np.ones(len(xy))])
-        L = x @ F.T  # a u + b v + c = 0
-        out = []
-        for a, b, c in L:
-            if abs(b) > 1e-9:
-                out.append(np.array([[0.0, -c / b], [w - 1.0, -(c + a * (w - 1)) / b]]))
-            elif abs(a) > 1e-9:
-                out.append(np.array([[-c / a, 0.0], [-c / a, h - 1.0]]))
-        return out
+    def apple_views(self, apple_id: int, boxes: list[tuple[int, np.ndarray]]):
+        """Apple ``apple_id``'s box on each image it was seen in (``boxes``: (frame, xyxy in camera pixels)), with
+        the epipolar line of its previous view, under world/camera/image/epipolar/<id> (hidden by default)."""
+        if self.camera is None:
+            return
+        s = self.scale or 1.0
+        w, h = self.camera.width * s, self.camera.height * s
+        path = f"world/camera/image/epipolar/{apple_id}"
+        prev = None
+        for f, box in boxes:
+            t, P, has_image = self._frames.get(f, (float("nan"), None, False))
+            b = np.asarray(box, float) * s
+            centre = (b[:2] + b[2:]) / 2
+            if has_image:
+                self._time(f, t)
+                lines = []
+                if prev is not None and P is not None:
+                    lines = epipolar_segments(fundamental_from_projections(prev[0], P), prev[1][None], w, h)
+                self.rec.log(path, rr.Boxes2D(array=b[None], array_format=rr.Box2DFormat.XYXY, colors=[[255, 255, 255]],
+                                              labels=[f"apple {apple_id}"]),
+                             rr.LineStrips2D(lines, colors=[[255, 220, 0]], radii=rr.Radius.ui_points(1.0)))
+            if P is not None:
+                prev = (P, centre)
 
     def apples(self, frame: int, t_capture: float, table: dict, apples=None, rows: list[dict] | None = None,
-               drone_latlon=None, force: bool = False):
-        """The apple map (every ``apples_every`` frames, or when forced), per-row counts and the map view."""
+               drone_latlon=None, force: bool = False, points: dict[int, np.ndarray] | None = None,
+               summary: str | None = None, trajectory_latlon=None):
+        """The apple map (every ``apples_every`` frames, or when forced): apples, rows, sparse points, per-row
+        counts, the map view and the summary."""
         if not force and frame % self.apples_every:
             return
         self._time(frame, t_capture)
         n = len(table["id"])
         pos = np.stack([table["x"], table["y"], table["z"]], 1) if n else np.zeros((0, 3))
         col = row_colours(table["row"]) if n else np.zeros((0, 3), np.uint8)
-        labels = [f"{i} (row {r})" for i, r in zip(table["id"], table["row"])]
-        self.rec.log("world/apples", rr.Points3D(pos, colors=col, radii=0.04, labels=labels, show_labels=False))
+        radius = np.asarray(table.get("radius_m", np.full(n, np.nan)), float)
+        radius = np.clip(np.where(np.isfinite(radius), radius, DEFAULT_RADIUS_M), 0.02, 0.08)
+        labels = [f"apple {i}, row {r}" for i, r in zip(table["id"], table["row"])]
+        self.rec.log("world/apples", rr.Points3D(pos, colors=col, radii=radius, labels=labels, show_labels=False))
         ok = np.isfinite(table["lat"]) & np.isfinite(table["lon"]) if n else np.zeros(0, bool)
         self.rec.log("map/apples", rr.GeoPoints(lat_lon=np.stack([table["lat"][ok], table["lon"][ok]], 1) if ok.any()
-                                                else np.zeros((0, 2)), radii=rr.Radius.ui_points(4.0), colors=col[ok]))
+                                                else np.zeros((0, 2)), radii=rr.Radius.ui_points(5.0), colors=col[ok]))
         if drone_latlon is not None and np.isfinite(drone_latlon).all():
-            self.rec.log("map/drone", rr.GeoPoints(lat_lon=[drone_latlon], radii=rr.Radius.ui_points(8.0),
-                                                   colors=[[30, 30, 255]]))
+            self.rec.log("map/drone", rr.GeoPoints(lat_lon=[drone_latlon], radii=rr.Radius.ui_points(9.0),
+                                                   colors=[[255, 255, 255]]))
+        if trajectory_latlon is not None and len(trajectory_latlon) > 1:
+            self.rec.log("map/trajectory", rr.GeoLineStrings(lat_lon=[trajectory_latlon], colors=[[200, 200, 200]],
+                                                             radii=rr.Radius.ui_points(1.5)))
+        self._rows(rows or [])
         self.rec.log("stats/apples", rr.Scalars(float(n)))
-        for r in rows or []:
-            self.rec.log(f"stats/rows/{r['row']}", rr.Scalars(float(r["count"])))
+        if self.ground_z is None:
+            self.ground_z = ground_level(points or {}, np.asarray(table["z"]) if n else np.zeros(0))
+        for k, p in (points or {}).items():
+            if self.ground_z is not None:
+                self.rec.log(f"world/points/{k}", rr.Points3D(p, colors=height_colours(p[:, 2], self.ground_z),
+                                                              radii=rr.Radius.ui_points(1.5)))
+        if self.ground_z is not None and n >= 10:
+            self._view_data = (pos, rows or [], float(np.nanmedian(table["lat"])))
+            if not self._framed:
+                self._frame_view()
+        if summary is not None:
+            self.rec.log("summary", rr.TextDocument(summary, media_type=rr.MediaType.MARKDOWN))
         if apples is not None:
             self.tracks(apples, table)
+
+    def _rows(self, rows: list[dict]):
+        """Row lines in 3-D and on the map, and the per-row counts (each series named and coloured as its row)."""
+        if not rows:
+            return
+        col = row_colours([r["row"] for r in rows])
+        self.rec.log("world/rows", rr.LineStrips3D([[[r["start_x"], r["start_y"], r["z"]], [r["end_x"], r["end_y"], r["z"]]]
+                                                    for r in rows], colors=col, radii=rr.Radius.ui_points(2.0),
+                                                   labels=[f"row {r['row']}" for r in rows], show_labels=True))
+        geo = [r for r in rows if np.isfinite([r["start_lat"], r["start_lon"], r["end_lat"], r["end_lon"]]).all()]
+        if geo:
+            self.rec.log("map/rows", rr.GeoLineStrings(lat_lon=[[[r["start_lat"], r["start_lon"]],
+                                                                 [r["end_lat"], r["end_lon"]]] for r in geo],
+                                                       colors=row_colours([r["row"] for r in geo]),
+                                                       radii=rr.Radius.ui_points(2.0)))
+        for r, c in zip(rows, col):
+            if r["row"] not in self._series:
+                self.rec.log(f"stats/rows/row_{r['row']}", rr.SeriesLines(names=f"row {r['row']}", colors=[c], widths=2.0),
+                             static=True)
+                self._series.add(r["row"])
+            self.rec.log(f"stats/rows/row_{r['row']}", rr.Scalars(float(r["count"])))
+
+    def _frame_view(self):
+        """Send the layout again, now with the grid on the ground, the eye above the rows looking across them from
+        the drone's side, and the map zoomed to the apples (once there are some, and at the end of the flight)."""
+        pos, rows, lat = self._view_data
+        longest = max(rows, key=lambda r: r["length_m"]) if rows else None
+        u = (np.array([longest["end_x"] - longest["start_x"], longest["end_y"] - longest["start_y"]])
+             if longest is not None and longest["length_m"] > 0.5 else np.array([1.0, 0.0]))
+        u = u / np.linalg.norm(u)
+        normal = np.array([-u[1], u[0]])
+        target = np.array([*np.median(pos[:, :2], 0), self.ground_z + 1.5])
+        if self._centres and (np.mean(self._centres, 0)[:2] - target[:2]) @ normal < 0:
+            normal = -normal
+        span = max(float(np.ptp(pos[:, :2] @ u)), float(np.ptp(pos[:, :2] @ normal)), 5.0)
+        dist = max(10.0, 0.8 * span)
+        eye = target + np.array([*(normal * dist * np.cos(np.radians(35))), dist * np.sin(np.radians(35))])
+        # web-map zoom z shows 156543 cos(lat) / 2^z metres per pixel: the apples' span over about 300 pixels
+        zoom = np.log2(156543.03 * np.cos(np.radians(lat)) * 300 / span) if np.isfinite(lat) else 19.0
+        self.rec.send_blueprint(blueprint(self.ground_z, (tuple(eye), tuple(target)), float(np.clip(zoom, 14, 22))))
+        self._framed = True
 
     def tracks(self, apples: dict, table: dict, max_rays: int = 12):
         """Each new apple's rays from its observing cameras (world/tracks/<id>; hidden by default)."""
@@ -172,6 +396,8 @@ class RerunLog:
             self._tracks_logged.add(aid)
 
     def close(self):
+        if self._view_data is not None:  # framed again on the whole map
+            self._frame_view()
         self.rec.flush()
         self.rec.disconnect()
 
@@ -185,3 +411,23 @@ def rrd_entities(path) -> dict[str, int]:
         p = str(chunk.entity_path)
         counts[p] = counts.get(p, 0) + chunk.num_rows
     return counts
+
+
+def rrd_rows(path, prefix: str = "/") -> dict[str, list[dict]]:
+    """Entity path -> its rows, read back from an .rrd file: each row a dict of ``frame`` (None when static) and
+    the components logged (``Archetype:field`` -> Python value), in frame order."""
+    from rerun.chunk import RrdReader
+
+    out: dict[str, list[dict]] = {}
+    for chunk in RrdReader(str(path)).stream():
+        p = str(chunk.entity_path)
+        if not p.startswith(prefix):
+            continue
+        rb = chunk.to_record_batch()
+        comps = {c: rb.column(c).to_pylist() for c in rb.schema.names if ":" in c}
+        frames = rb.column("frame").to_pylist() if "frame" in rb.schema.names else [None] * chunk.num_rows
+        for i in range(chunk.num_rows):
+            out.setdefault(p, []).append({"frame": frames[i], **{c: v[i] for c, v in comps.items()}})
+    for rows in out.values():
+        rows.sort(key=lambda r: -1 if r["frame"] is None else r["frame"])
+    return out

@@ -39,3 +39,14 @@ def replay_test_flight(tmp_path_factory):
     out = tmp_path_factory.mktemp("replay-test") / "flight"
     simulate_flight(config.load(REPLAY_TEST_CONFIG), out, jobs=2, progress=False)
     return FlightDir(out)
+
+
+@pytest.fixture(scope="session")
+def replayed_test_flight(replay_test_flight, tmp_path_factory):
+    """The tiny flight through both processes once per session (ONNX detector, every frame a keyframe at full
+    size): (flight, output folder, report)."""
+    from ground.replay import replay
+
+    out = tmp_path_factory.mktemp("replayed") / "out"
+    rep = replay(replay_test_flight.path, out, detector="onnx", keyframe_every=1, keyframe_width=0, quiet=True)
+    return replay_test_flight, out, rep

@@ -18,12 +18,11 @@ from ground.journal import Journal, read_journal
 from ground.outputs import APPLE_COLUMNS, harvest_correlation, read_harvest
 
 
-def test_replay_end_to_end(replay_test_flight, tmp_path):
+def test_replay_end_to_end(replayed_test_flight):
     from ground.rerun_log import rrd_entities
-    from ground.replay import evaluate_map, replay
+    from ground.replay import evaluate_map
 
-    out = tmp_path / "out"
-    rep = replay(replay_test_flight.path, out, detector="onnx", keyframe_every=1, keyframe_width=0, quiet=True)
+    replay_test_flight, out, rep = replayed_test_flight
     # every frame went through, most with registered poses
     log_tail = "\n".join((out / "ground.log").read_text().splitlines()[-15:])
     assert rep["frames"]["frames"] == 20 and rep["frames"]["missing_frames"] == 0, (rep["frames"], log_tail)
@@ -53,7 +52,7 @@ def test_replay_end_to_end(replay_test_flight, tmp_path):
     # the rerun recording, read back
     ents = rrd_entities(out / "flight.rrd")
     for e in ("/world/camera", "/world/camera/image", "/world/camera/image/detections", "/world/apples",
-              "/world/trajectory", "/map/apples", "/stats/apples"):
+              "/world/trajectory", "/world/rows", "/map/apples", "/map/rows", "/stats/apples", "/summary"):
         assert e in ents, (e, sorted(ents))
     assert ents["/world/camera"] == 20
     assert any(e.startswith("/world/tracks/") for e in ents)
