@@ -1,6 +1,6 @@
 """A screenshot of a recording as the grower sees it: rerun's web viewer, in headless Chromium with software WebGL.
 
-    python docs/screenshot.py out/demo/flight.rrd --out docs/images/viewer.png
+    python docs/screenshot.py out/demo/flight.rrd --out docs/images/viewer.jpg
 
 Needs Chromium (Debian: ``apt-get install chromium``) and Playwright's Python package (``pip install playwright``;
 no browser download: it drives the system's Chromium). The viewer is served by ``rerun --serve-web`` on loopback;
@@ -55,7 +55,10 @@ def screenshot(rrd: Path, out: Path, width: int = 1600, height: int = 900, wait_
                     time.sleep(5.0)
                     log.info("waiting for the viewer: %.0f of %.0f s", time.monotonic() - t0, wait_s)
                 out.parent.mkdir(parents=True, exist_ok=True)
-                page.screenshot(path=str(out))
+                if out.suffix.lower() in (".jpg", ".jpeg"):  # a quarter of the PNG's size, for the README
+                    page.screenshot(path=str(out), type="jpeg", quality=85)
+                else:
+                    page.screenshot(path=str(out))
             finally:
                 browser.close()
     finally:
@@ -72,7 +75,7 @@ def screenshot(rrd: Path, out: Path, width: int = 1600, height: int = 900, wait_
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python docs/screenshot.py", description=__doc__.split("\n\n")[0])
     ap.add_argument("rrd", type=Path, help="the recording (e.g. out/demo/flight.rrd)")
-    ap.add_argument("--out", type=Path, default=Path("docs/images/viewer.png"), help="the PNG to write")
+    ap.add_argument("--out", type=Path, default=Path("docs/images/viewer.jpg"), help="the picture to write (.png or .jpg)")
     ap.add_argument("--width", type=int, default=1600)
     ap.add_argument("--height", type=int, default=900)
     ap.add_argument("--wait-s", type=float, default=60.0, help="seconds to let the viewer load and draw")

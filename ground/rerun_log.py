@@ -376,8 +376,8 @@ class RerunLog:
         span = max(float(np.ptp(pos[:, :2] @ u)), float(np.ptp(pos[:, :2] @ normal)), 5.0)
         dist = max(10.0, 0.8 * span)
         eye = target + np.array([*(normal * dist * np.cos(np.radians(35))), dist * np.sin(np.radians(35))])
-        # web-map zoom z shows 156543 cos(lat) / 2^z metres per pixel: the apples' span over about 300 pixels
-        zoom = np.log2(156543.03 * np.cos(np.radians(lat)) * 300 / span) if np.isfinite(lat) else 19.0
+        # web-map zoom z shows 156543 cos(lat) / 2^z metres per pixel: the apples' span over about 180 pixels
+        zoom = np.log2(156543.03 * np.cos(np.radians(lat)) * 180 / span) if np.isfinite(lat) else 19.0
         self.rec.send_blueprint(blueprint(self.ground_z, (tuple(eye), tuple(target)), float(np.clip(zoom, 14, 22))))
         self._framed = True
 

@@ -40,3 +40,21 @@ def test_demo_commands_on_bundled_flight(tmp_path):
 def test_missing_flight_dir_is_a_clear_error(tmp_path):
     r = subprocess.run([sys.executable, "-m", "sim", "info", str(tmp_path / "nowhere")], capture_output=True, text=True)
     assert r.returncode == 2 and "nowhere" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_nothing_generated_is_committed():
+    """The repository's root holds the project's folders and files only; logs and outputs live in git-ignored
+    folders (out/)."""
+    import shutil
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    if shutil.which("git") is None or not (root / ".git").exists():
+        pytest.skip("not a git checkout")
+    r = subprocess.run(["git", "ls-files"], cwd=root, capture_output=True, text=True, check=True)
+    files = r.stdout.splitlines()
+    top = {f.split("/")[0] for f in files}
+    allowed = {".ci", ".gitignore", "Makefile", "README.md", "pyproject.toml", "benchmarks", "docs", "export", "ground",
+               "onboard", "pomar", "replay_data", "sim", "tests"}
+    assert top <= allowed, sorted(top - allowed)
+    assert not [f for f in files if f.endswith(".log") or f.startswith("out/")]
