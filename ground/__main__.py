@@ -79,6 +79,23 @@ def _cmd_replay(args) -> int:
     from ground.replay import BUNDLED, ReplayError, format_evaluation, replay
 
     flight = args.flight_dir or BUNDLED
+    if args.video:  # a flight built from the user's video, log and camera
+        from pomar.assemble import assemble_flight
+
+        if args.flight_dir or not (args.log and args.camera):
+            print("error: --video needs --log and --camera, and no flight directory", file=sys.stderr)
+            return 2
+        out = Path(args.out or f"out/replay/{Path(args.video).stem}")
+        try:
+            built = assemble_flight(args.video, args.log, args.camera, out / "flight")
+        except ValueError as exc:  # FlightFormatError, CameraFileError, VideoError, TelemetryError: they name the file
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        print(f"flight {built['flight_id']}: {built['frames']} frames at {built['fps']:.3f} fps, start from "
+              f"{built['start_from']}" + (f" (container - log {built['container_minus_log_s']:+.2f} s)"
+                                           if built["container_minus_log_s"] is not None else "")
+              + f"; camera {built['camera']}", file=sys.stderr)
+        flight, args.log = built["flight_dir"], None  # the built flight names its log
     out = Path(args.out or f"out/replay/{Path(flight).name}")
     ground_args = ["--k", str(args.k), "--tau-epipolar", str(args.tau_epipolar), "--tau-geom", str(args.tau_geom),
                    "--min-inliers", str(args.min_inliers),
@@ -93,7 +110,9 @@ def _cmd_replay(args) -> int:
         rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
                      keyframe_every=keyframe_every, keyframe_width=args.keyframe_width, every=args.every,
                      ground_args=ground_args, quiet=args.quiet,
-                     onboard_args=["--score-thresh", str(args.detector_score_thresh)] if args.detector_score_thresh else None)
+                     onboard_args=(["--score-thresh", str(args.detector_score_thresh)] if args.detector_score_thresh else [])
+                     + (["--log", args.log] if args.log else [])
+                     + (["--camera-tilt-deg", str(args.camera_tilt_deg)] if args.camera_tilt_deg is not None else []))
     except ReplayError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -227,6 +246,13 @@ def main(argv=None) -> int:
     rp.add_argument("--keyframe-width", type=int, default=960)
     rp.add_argument("--every", type=int, default=1, help="onboard processes every Nth frame")
     rp.add_argument("--quiet", action="store_true", help="no progress lines")
+    rp.add_argument("--video", help="replay a video of your own: with --log and --camera, the flight is built from "
+                                    "them (into OUT/flight; see pomar/assemble.py)")
+    rp.add_argument("--camera", help="with --video: a camera.json or a built-in camera (phantom-4-pro, mavic-3, ...)")
+    rp.add_argument("--log", help="the telemetry from this log (.tlog, DataFlash .bin, PX4 .ulg, DJI .SRT) instead of "
+                                  "the flight directory's telemetry.tlog")
+    rp.add_argument("--camera-tilt-deg", type=float,
+                    help="for a log without gimbal attitudes: the camera's fixed pitch below the horizon (90 = down)")
     _ground_options(rp)
     rp.set_defaults(func=_cmd_replay)
     g = sub.add_parser("run", help="the ground node: subscribe to a flight over zenoh and map its apples live")

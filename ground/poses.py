@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from onboard.telemetry import read_tlog
+from pomar.telemetry.tlog import read_tlog
 from pomar.camera import Camera
 from pomar.flight import FlightDir
 from pomar.geo import Origin

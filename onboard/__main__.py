@@ -2,7 +2,8 @@
 
   run         replay a flight directory through the node: frames + telemetry -> detector -> zenoh
   live        a camera or stream + a live MAVLink link -> detector -> zenoh
-  telemetry   read a .tlog and report its streams, gaps and, with --flight, each frame's sample
+  telemetry   read any supported log (.tlog, DataFlash .bin, PX4 .ulg, DJI .SRT): its streams, clock, gaps and
+              problems (--json OUT for a summary file), and with --flight each frame's sample
 """
 
 from __future__ import annotations
@@ -17,15 +18,19 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 def _cmd_telemetry(args) -> int:
     import numpy as np
 
-    from onboard.telemetry import Flags, TelemetryError, read_tlog
-    from pomar.flight import FlightDir
-
+    import json
     from pathlib import Path
 
-    if Path(args.tlog).is_dir():
-        raise TelemetryError(f"{args.tlog}: is a directory; give the log file (e.g. {Path(args.tlog) / 'telemetry.tlog'})")
-    tl = read_tlog(args.tlog, max_gap_s=args.max_gap_s)
+    from pomar.flight import FlightDir
+    from pomar.telemetry import Flags, TelemetryError, read_log
+
+    if Path(args.log).is_dir():
+        raise TelemetryError(f"{args.log}: is a directory; give the log file (e.g. {Path(args.log) / 'telemetry.tlog'})")
+    tl = read_log(args.log, max_gap_s=args.max_gap_s)
     print(tl.summary())
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(tl.summary_dict(), indent=2) + "\n")
     if args.flight:
         meta = FlightDir(args.flight).meta()
         t, flags = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps, args.clock_offset_s)
@@ -55,7 +60,26 @@ def _cmd_run(args) -> int:
 
     settings = NodeSettings(lockstep=not args.realtime, every=args.every, keyframe_every=args.keyframe_every,
                             keyframe_every_s=args.keyframe_every_s, keyframe_every_m=args.keyframe_every_m,
-                            keyframe_width=args.keyframe_width, jpeg_quality=args.jpeg_quality)
+                            keyframe_width=args.keyframe_width, jpeg_quality=args.jpeg_quality, log=args.log,
+                            camera_tilt_deg=args.camera_tilt_deg, clock_offset_s=args.clock_offset_s)
+    if args.video:
+        if not (args.log and args.camera):
+            print("error: --video needs --log and --camera", file=sys.stderr)
+            return 2
+        if args.flight_dir:
+            print("error: give a flight directory or --video/--log/--camera, not both", file=sys.stderr)
+            return 2
+        from pomar.assemble import assemble_flight
+
+        rep = assemble_flight(args.video, args.log, args.camera, args.flight_out or f"out/flights/{Path(args.video).stem}",
+                              flight_id=args.flight_id, clock_offset_s=args.clock_offset_s)
+        print(f"flight {rep['flight_id']}: {rep['frames']} frames at {rep['fps']:.3f} fps; start from {rep['start_from']}"
+              + (f" (container - log {rep['container_minus_log_s']:+.2f} s)" if rep["container_minus_log_s"] is not None
+                 else "") + f"; camera {rep['camera']}; directory {rep['flight_dir']}", file=sys.stderr)
+        args.flight_dir = rep["flight_dir"]
+    elif not args.flight_dir:
+        print("error: give a flight directory, or --video, --log and --camera", file=sys.stderr)
+        return 2
     try:
         # every input is read and cross-checked before anything is published or any port is opened
         node = OnboardNode(args.flight_dir, None, None, settings)
@@ -178,13 +202,29 @@ def main(argv=None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run", help="replay a flight directory through the node and publish it over zenoh")
-    r.add_argument("flight_dir")
+    r.add_argument("flight_dir", nargs="?", help="a flight directory (docs/flight-format.md); or give --video, "
+                                                  "--log and --camera")
+    r.add_argument("--video", help="a video file (MP4/MOV): the flight is built from it, --log and --camera "
+                                   "(frame rate and count from the container; see pomar/assemble.py)")
+    r.add_argument("--camera", help="with --video: a camera.json, or a built-in camera (phantom-4-pro, mavic-3, "
+                                    "mavic-2-pro, air-2s, mini-2, mini-3-pro, phantom-4-rtk)")
+    r.add_argument("--flight-id", type=id_argument("flight id"), help="with --video: the flight's id (default: the "
+                                                                      "video's name)")
+    r.add_argument("--flight-out", help="with --video: where the built flight directory goes (default "
+                                        "out/flights/<video name>)")
     r.add_argument("--detector", choices=["onnx", "truth-replay"], default="onnx",
                    help="onnx (the shipped model, default) or truth-replay (a diagnostic stand-in that replays "
                         "truth/detections.csv)")
     _detector_options(r)
     r.add_argument("--realtime", action="store_true", help="play at the video's frame rate, newest frame first, count drops")
     r.add_argument("--every", type=int, default=1, help="process every Nth frame (lock-step)")
+    r.add_argument("--log", help="the flight's telemetry from another log of any supported format (.tlog, ArduPilot "
+                                 "DataFlash .bin, PX4 .ulg, DJI .SRT) instead of the flight directory's telemetry.tlog")
+    r.add_argument("--camera-tilt-deg", type=float,
+                   help="for a log without gimbal attitudes: the camera's fixed pitch below the vehicle's horizon "
+                        "(90 = straight down); frames are flagged FIXED_MOUNT")
+    r.add_argument("--clock-offset-s", type=float, default=0.0,
+                   help="camera clock minus the log's clock, for logs without camera events")
     _link_options(r)
     r.add_argument("--wait-for-ground", type=float, default=30.0,
                    help="lock-step: wait up to this many seconds for a ground to subscribe before the first frame "
@@ -207,8 +247,11 @@ def main(argv=None) -> int:
     lv.add_argument("--max-frames", type=int, help="stop after this many processed frames")
     lv.add_argument("--duration", type=float, help="stop after this many seconds")
     lv.set_defaults(func=_cmd_live)
-    t = sub.add_parser("telemetry", help="read a .tlog: streams, rates, gaps, and each frame's sample")
-    t.add_argument("tlog")
+    t = sub.add_parser("telemetry", help="read a log (.tlog, .bin, .ulg, .SRT): streams, clock, gaps, problems, and "
+                                         "each frame's sample")
+    t.add_argument("log", help="the telemetry log; its format is taken from its first bytes")
+    t.add_argument("--json", help="write a summary here: format, positions, lat_range, lon_range, span_s, attitudes, "
+                                  "gimbal_attitudes, camera_events, problems, ...")
     t.add_argument("--flight", help="flight directory: sample the telemetry at its frames")
     t.add_argument("--clock-offset-s", type=float, default=0.0, help="camera clock minus autopilot clock")
     t.add_argument("--max-gap-s", type=float, default=1.0)
@@ -216,10 +259,10 @@ def main(argv=None) -> int:
     t.set_defaults(func=_cmd_telemetry)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    from onboard.telemetry import TelemetryError
     from pomar.camera import CameraFileError
     from pomar.flight import FlightFormatError
     from pomar.transport import TransportError
+    from pomar.telemetry import TelemetryError
     from pomar.video import VideoError
 
     try:

@@ -13,11 +13,12 @@ import logging
 import resource
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from onboard.sources import LatestFrame, SourceError, VideoSource
-from onboard.telemetry import Flags, TelemetryError, read_tlog
+from pomar.telemetry import Flags, TelemetryError, read_log
 from pomar import wire
 from pomar.flight import FlightDir
 
@@ -74,6 +75,8 @@ class NodeSettings:
     jpeg_quality: int = 85
     status_period_s: float = 1.0
     clock_offset_s: float = 0.0  # camera clock minus autopilot clock, when there are no capture records
+    log: str | None = None  # a telemetry log of any supported format, instead of the flight directory's .tlog
+    camera_tilt_deg: float | None = None  # for logs without gimbal attitudes: the camera's fixed pitch below horizon
 
 
 def encode_jpeg(img: np.ndarray, width: int, quality: int) -> bytes:
@@ -118,17 +121,20 @@ class OnboardNode:
         if (cam.width, cam.height) != (w, h):
             raise FlightFormatError(f"{self.flight.path / 'camera.json'} is for {cam.width}x{cam.height} images, but "
                                     f"{self.flight.video} is {w}x{h}")
-        tl = read_tlog(self.flight.tlog)
+        log_path = Path(self.s.log) if self.s.log else self.flight.telemetry_log
+        tl = read_log(log_path)
         if not len(tl.position):
-            raise TelemetryError(f"{self.flight.tlog}: no position in the log (no GLOBAL_POSITION_INT with a fix); "
-                                 f"frames cannot be placed")
+            raise TelemetryError(f"{log_path}: no position in the log; frames cannot be placed")
         t_frames, cap_flags = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps, self.s.clock_offset_s)
-        tel = tl.at(t_frames)
+        tel = tl.at(t_frames, self.s.camera_tilt_deg)
         tel["flags"] = tel["flags"] | cap_flags
         if meta.frame_count and (tel["flags"] & Flags.NO_POSITION).all():
-            raise TelemetryError(f"{self.flight.tlog}: its positions span {tl.position.t[0]:.1f}-{tl.position.t[-1]:.1f} "
+            raise TelemetryError(f"{log_path}: its positions span {tl.position.t[0]:.1f}-{tl.position.t[-1]:.1f} "
                                  f"(unix s), the video's frames {t_frames[0]:.1f}-{t_frames[-1]:.1f}: no frame falls "
                                  f"within the log")
+        if meta.frame_count and (tel["flags"] & Flags.NO_GIMBAL).all():
+            log.warning("%s has no camera attitude (no gimbal reports): frames get poses from the images alone; "
+                        "give the camera's mount tilt (--camera-tilt-deg) to use the vehicle's attitude", log_path)
         self.inputs = (meta, cam, t_frames, tel)
         return self.inputs
 

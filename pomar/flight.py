@@ -162,6 +162,12 @@ class FlightDir:
 
     video = property(lambda self: self.path / VIDEO)
     tlog = property(lambda self: self.path / TLOG)
+
+    @property
+    def telemetry_log(self) -> Path:
+        """The flight's telemetry: the log flight.json names (an assembled flight, pomar.assemble), else telemetry.tlog."""
+        named = self.meta().extra.get("telemetry_log")
+        return Path(named) if named else self.tlog
     truth_dir = property(lambda self: self.path / TRUTH)
 
     @property

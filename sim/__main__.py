@@ -1,4 +1,4 @@
-"""python -m sim {flight,info,show,telemetry}: render synthetic orchard flights and look at them."""
+"""python -m sim {flight,info,show,telemetry,logs}: render synthetic orchard flights and look at them."""
 
 from __future__ import annotations
 
@@ -52,6 +52,23 @@ def _cmd_telemetry(args) -> int:
     return 0
 
 
+def _cmd_logs(args) -> int:
+    from pathlib import Path
+
+    from pomar.flight import FlightDir
+    from sim.logs import write_dataflash, write_srt
+
+    fd = FlightDir(args.flight_dir)
+    meta = fd.meta()
+    out = Path(args.out or fd.path)
+    out.mkdir(parents=True, exist_ok=True)
+    counts = write_dataflash(fd.tlog, out / "telemetry.bin")
+    n = write_srt(fd.tlog, meta.frame_count, meta.fps, meta.video_start_utc, out / "video.SRT")
+    print(f"wrote {out / 'telemetry.bin'} ({', '.join(f'{k} {v}' for k, v in counts.items())}) and "
+          f"{out / 'video.SRT'} ({n} subtitles)")
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m sim", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -80,6 +97,11 @@ def main(argv=None) -> int:
     t.add_argument("--attitude-noise-deg", type=float)
     t.add_argument("--gimbal-noise-deg", type=float)
     t.set_defaults(func=_cmd_telemetry)
+    lg = sub.add_parser("logs", help="write the flight's telemetry as other drones log it, beside its .tlog: an "
+                                     "ArduPilot DataFlash telemetry.bin and a DJI video.SRT (one subtitle a frame)")
+    lg.add_argument("flight_dir")
+    lg.add_argument("--out", help="folder for the two files (default: the flight directory)")
+    lg.set_defaults(func=_cmd_logs)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     from pomar.flight import FlightFormatError

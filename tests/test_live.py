@@ -86,7 +86,7 @@ def test_live_camera_and_mavlink_to_zenoh(replay_test_flight):
     assert len(frames) == summary["frames_processed"] > 0
     assert summary["frames_read"] == 20
     # telemetry sampled live at each frame's capture time
-    from onboard.telemetry import Flags
+    from pomar.telemetry import Flags
 
     lat = np.array([f.telemetry.lat for f in frames])
     ok = np.isfinite(lat)

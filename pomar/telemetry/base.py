@@ -1,0 +1,293 @@
+"""The telemetry interface every reader fills: time series on one clock, sampled at each frame's capture time.
+
+A reader (``.tlog``, DataFlash ``.bin``, PX4 ``.ulg``, DJI ``.SRT``) returns a :class:`TelemetryLog`:
+
+- position: lat, lon (degrees), alt (m; MSL, or above take-off where ``altitude_reference`` says so);
+- gps: fix type, horizontal and vertical accuracy (m), satellites;
+- attitude: the vehicle's, quaternion wxyz, NED from body;
+- gimbal: the camera's, quaternion wxyz, NED from gimbal (yaw in the earth frame);
+- captures: frame index -> capture time, from the log's camera events.
+
+Every series is on one clock, unix seconds as the autopilot (or camera) knew them; ``clock`` says how that
+clock was found. What a reader could not read, and why, is in ``problems``. Sampling at a frame time
+interpolates position linearly and rotations by slerp; a frame that falls in a gap of a stream (its
+neighbouring samples further apart than the stream's own rate allows, see :func:`gap_limit`) or outside it
+is flagged, not silently interpolated across: see :class:`Flags`.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from enum import IntFlag
+
+import numpy as np
+from scipy.spatial.transform import Slerp
+
+from pomar.rotations import quat_wxyz_to_rotation, rotation_to_quat_wxyz
+
+
+class Flags(IntFlag):
+    """Quality flags of one frame's telemetry sample (0 = all good)."""
+
+    POSITION_GAP = 1  # the frame falls in a gap of the position stream
+    ATTITUDE_GAP = 2
+    GIMBAL_GAP = 4
+    NO_POSITION = 8  # no position sample around the frame (before the first or after the last)
+    NO_ATTITUDE = 16
+    NO_GIMBAL = 32  # no gimbal attitude around the frame (or none in the log)
+    NO_CAPTURE_RECORD = 64  # the frame time comes from the video clock, not a camera event of the log
+    NO_GPS_FIX = 128  # GPS fix type below 3D at the frame, or no GPS report around it
+    FIXED_MOUNT = 256  # the camera's attitude is the vehicle's plus a fixed mount tilt, not a gimbal report
+
+
+class TelemetryError(ValueError):
+    """A telemetry file is missing, unreadable, or holds nothing usable."""
+
+
+@dataclass
+class Series:
+    t: np.ndarray  # unix seconds, on the log's one clock
+    values: np.ndarray  # (n, d)
+
+    def __len__(self):
+        return len(self.t)
+
+    @classmethod
+    def empty(cls, d: int) -> "Series":
+        return cls(np.zeros(0), np.zeros((0, d)))
+
+    @classmethod
+    def of(cls, t, values, d: int) -> "Series":
+        """Sorted by time, repeated times dropped (autopilots resend); empty when there is nothing."""
+        t = np.asarray(t, float)
+        if not len(t):
+            return cls.empty(d)
+        return cls(*strictly_increasing(t, np.asarray(values, float).reshape(len(t), d)))
+
+
+@dataclass
+class Gap:
+    stream: str
+    start: float
+    end: float
+
+    @property
+    def seconds(self) -> float:
+        return self.end - self.start
+
+
+@dataclass
+class TelemetryLog:
+    path: str
+    position: Series  # lat, lon, alt
+    gps: Series  # fix_type, h_acc (m), v_acc (m), satellites
+    attitude: Series  # quaternion wxyz, NED from body
+    gimbal: Series  # quaternion wxyz, NED from gimbal (yaw in the earth frame)
+    captures: dict[int, float]  # frame index -> capture time (unix s, the log's clock)
+    capture_message: str | None
+    clock: str  # how the log's times were put on one clock
+    boot_to_unix: float | None
+    counts: Counter
+    bad_packets: int = 0
+    truncated_bytes: int = 0
+    max_gap_s: float = 1.0  # the least gap flagged; a slower stream's own limit is larger (gap_limit)
+    gaps: list[Gap] = field(default_factory=list)
+    parse_seconds: float = 0.0
+    format: str = "tlog"
+    altitude_reference: str = "msl"  # "msl", "ellipsoid" or "takeoff"
+    problems: list[str] = field(default_factory=list)
+    bad_by_type: Counter = field(default_factory=Counter)
+    #: Per-frame video times from the log itself (a DJI .SRT has one entry per frame or per second): seconds
+    #: from the video's start -> unix time. Empty for logs that know nothing of the video.
+    video_clock: Series = field(default_factory=lambda: Series.empty(1))
+
+    def find_gaps(self) -> None:
+        self.gaps = []
+        for name, s in (("position", self.position), ("attitude", self.attitude), ("gimbal", self.gimbal)):
+            self.gaps += stream_gaps(name, s.t, gap_limit(s.t, self.max_gap_s))
+
+    def summary(self) -> str:
+        lines = [f"{self.path}: {self.format}, {sum(self.counts.values())} messages read in {self.parse_seconds:.2f} s; "
+                 f"clock {self.clock}; altitude {self.altitude_reference}"]
+        for name, s in (("position", self.position), ("gps", self.gps), ("attitude", self.attitude), ("gimbal", self.gimbal)):
+            rate = (len(s) - 1) / (s.t[-1] - s.t[0]) if len(s) > 1 and s.t[-1] > s.t[0] else 0.0
+            lines.append(f"  {name:<9} {len(s):>6} samples" + (f", {rate:5.1f} Hz" if len(s) > 1 else ""))
+        lines.append(f"  captures  {len(self.captures):>6} ({self.capture_message or 'none'})")
+        if self.bad_packets or self.truncated_bytes:
+            by = ", ".join(f"{k} {v}" for k, v in self.bad_by_type.most_common(6))
+            lines.append(f"  {self.bad_packets} bad packets skipped ({by}), {self.truncated_bytes} bytes of a cut-off "
+                         "record at the end")
+        for g in self.gaps:
+            lines.append(f"  gap in {g.stream}: {g.seconds:.1f} s from {g.start:.3f} to {g.end:.3f}")
+        for p in self.problems:
+            lines.append(f"  problem: {p}")
+        return "\n".join(lines)
+
+    def summary_dict(self) -> dict:
+        """What ``onboard telemetry LOG --json`` writes."""
+        pos = self.position
+        ok = np.isfinite(pos.values[:, :2]).all(1) if len(pos) else np.zeros(0, bool)
+        span = [float(min(s.t[0] for s in self._streams())), float(max(s.t[-1] for s in self._streams()))] \
+            if self._streams() else None
+        return {
+            "path": self.path, "format": self.format, "clock": self.clock, "altitude_reference": self.altitude_reference,
+            "positions": int(len(pos)),
+            "lat_range": [float(pos.values[ok, 0].min()), float(pos.values[ok, 0].max())] if ok.any() else None,
+            "lon_range": [float(pos.values[ok, 1].min()), float(pos.values[ok, 1].max())] if ok.any() else None,
+            "start_unix": span[0] if span else None, "span_s": span[1] - span[0] if span else 0.0,
+            "attitudes": int(len(self.attitude)), "gimbal_attitudes": int(len(self.gimbal)),
+            "gps_reports": int(len(self.gps)),
+            "camera_events": int(len(self.captures)), "camera_event_message": self.capture_message,
+            "max_jump_m": max_jump_m(pos),
+            "gaps": [{"stream": g.stream, "start": g.start, "seconds": g.seconds} for g in self.gaps],
+            "bad_packets": int(self.bad_packets), "bad_packets_by_type": dict(self.bad_by_type),
+            "truncated_bytes": int(self.truncated_bytes),
+            "messages": dict(self.counts.most_common()),
+            "problems": list(self.problems),
+        }
+
+    def _streams(self) -> list[Series]:
+        return [s for s in (self.position, self.attitude, self.gimbal, self.gps) if len(s)]
+
+    # -- frame times and samples
+    def frame_times(self, n_frames: int, video_start_unix: float, fps: float, clock_offset_s: float = 0.0):
+        """Capture time (the log's clock) of each frame: the camera event when there is one, else the log's own
+        video clock (a DJI .SRT), else the video clock corrected by clock_offset_s (camera clock minus the log's).
+        Returns (t, flags)."""
+        t = video_start_unix - clock_offset_s + np.arange(n_frames) / fps
+        flags = np.full(n_frames, int(Flags.NO_CAPTURE_RECORD), np.int64)
+        if len(self.video_clock) >= 2:
+            t = np.interp(np.arange(n_frames) / fps, self.video_clock.t, self.video_clock.values[:, 0])
+            flags[:] = 0
+        for i, tc in self.captures.items():
+            if 0 <= i < n_frames:
+                t[i] = tc
+                flags[i] = 0
+        return t, flags
+
+    def at(self, t: np.ndarray, mount_tilt_deg: float | None = None) -> dict[str, np.ndarray]:
+        """Telemetry at times t (unix s, the log's clock): lat, lon, alt, q_attitude, q_gimbal (wxyz), gps_fix,
+        h_acc, flags. Values outside a stream are NaN; frames in a gap are interpolated and flagged.
+
+        A log without gimbal attitudes gives the camera's attitude only with ``mount_tilt_deg`` (the camera's
+        pitch below the vehicle's horizon, 90 = straight down): the vehicle's attitude turned by it, or, without
+        vehicle attitudes either (a DJI .SRT), the track's heading, level, turned by it; those frames are flagged
+        FIXED_MOUNT."""
+        t = np.atleast_1d(np.asarray(t, float))
+        flags = np.zeros(len(t), np.int64)
+        out: dict[str, np.ndarray] = {}
+        pos = self._linear(self.position, t, flags, Flags.POSITION_GAP, Flags.NO_POSITION)
+        out["lat"], out["lon"], out["alt"] = pos[:, 0], pos[:, 1], pos[:, 2]
+        out["q_attitude"] = self._slerp(self.attitude, t, flags, Flags.ATTITUDE_GAP, Flags.NO_ATTITUDE)
+        out["q_gimbal"] = self._slerp(self.gimbal, t, flags, Flags.GIMBAL_GAP, Flags.NO_GIMBAL)
+        out["gps_fix"] = np.zeros(len(t), int)
+        out["h_acc"] = np.full(len(t), np.nan)
+        if len(self.gps):
+            # the last report before each time, within the GPS stream's own gap limit (a stream that stopped is
+            # not repeated for the rest of the flight)
+            i = np.searchsorted(self.gps.t, t, side="right") - 1
+            near = (i >= 0) & (t - self.gps.t[np.clip(i, 0, None)] <= gap_limit(self.gps.t, self.max_gap_s))
+            out["gps_fix"][near] = self.gps.values[i[near], 0].astype(int)
+            out["h_acc"][near] = self.gps.values[i[near], 1]
+        flags |= np.where(out["gps_fix"] < 3, int(Flags.NO_GPS_FIX), 0)
+        if not len(self.gimbal) and mount_tilt_deg is not None:
+            out["q_gimbal"] = self._fixed_mount(t, out, float(mount_tilt_deg))
+            ok = np.isfinite(out["q_gimbal"]).all(1)
+            flags[ok] = (flags[ok] & ~int(Flags.NO_GIMBAL)) | int(Flags.FIXED_MOUNT)
+        out["flags"] = flags
+        return out
+
+    def _fixed_mount(self, t, out, tilt_deg: float) -> np.ndarray:
+        from scipy.spatial.transform import Rotation
+
+        mount = Rotation.from_euler("Y", -tilt_deg, degrees=True)  # pitch down, in the vehicle's frame
+        if len(self.attitude):
+            q = out["q_attitude"]
+            ok = np.isfinite(q).all(1)
+            res = np.full_like(q, np.nan)
+            if ok.any():
+                res[ok] = rotation_to_quat_wxyz(quat_wxyz_to_rotation(q[ok]) * mount)
+            return res
+        # no attitude at all: the heading of the track (north, east from the positions around each time)
+        p = self.position
+        if len(p) < 2:
+            return np.full((len(t), 4), np.nan)
+        dt = 0.5 * max(gap_limit(p.t, 0.0), 0.2)
+        a, b = self._linear(p, t - dt, np.zeros(len(t), np.int64), 0, 0), self._linear(p, t + dt, np.zeros(len(t), np.int64), 0, 0)
+        a = np.where(np.isfinite(a), a, np.column_stack([out["lat"], out["lon"], out["alt"]]))
+        b = np.where(np.isfinite(b), b, np.column_stack([out["lat"], out["lon"], out["alt"]]))
+        yaw = np.arctan2((b[:, 1] - a[:, 1]) * np.cos(np.radians(out["lat"])), b[:, 0] - a[:, 0])
+        res = np.full((len(t), 4), np.nan)
+        ok = np.isfinite(yaw)
+        res[ok] = rotation_to_quat_wxyz(Rotation.from_euler("Z", yaw[ok]) * mount)
+        return res
+
+    def _bracket(self, s: Series, t, flags, gap_flag, none_flag):
+        """Index of the sample before each t, and a mask of the t inside the stream; flags gaps and outsides."""
+        if len(s) == 0:
+            flags |= int(none_flag)
+            return None, np.zeros(len(t), bool)
+        inside = (t >= s.t[0]) & (t <= s.t[-1])
+        flags |= np.where(inside, 0, int(none_flag))
+        i = np.clip(np.searchsorted(s.t, t, side="right") - 1, 0, max(len(s) - 2, 0))
+        if len(s) > 1:
+            span = s.t[i + 1] - s.t[i]
+            flags |= np.where(inside & (span > gap_limit(s.t, self.max_gap_s)), int(gap_flag), 0)
+        return i, inside
+
+    def _linear(self, s: Series, t, flags, gap_flag, none_flag):
+        i, inside = self._bracket(s, t, flags, gap_flag, none_flag)
+        out = np.full((len(t), 3), np.nan)
+        if i is not None and inside.any():
+            for k in range(3):
+                out[inside, k] = np.interp(t[inside], s.t, s.values[:, k])
+        return out
+
+    def _slerp(self, s: Series, t, flags, gap_flag, none_flag):
+        i, inside = self._bracket(s, t, flags, gap_flag, none_flag)
+        out = np.full((len(t), 4), np.nan)
+        if i is None or not inside.any():
+            return out
+        if len(s) == 1:
+            out[inside] = s.values[0]
+            return out
+        rots = quat_wxyz_to_rotation(s.values)
+        out[inside] = rotation_to_quat_wxyz(Slerp(s.t, rots)(t[inside]))
+        return out
+
+
+def strictly_increasing(t: np.ndarray, values: np.ndarray):
+    """Sort by time and drop repeated timestamps (autopilots resend)."""
+    order = np.argsort(t, kind="stable")
+    t, values = t[order], values[order]
+    keep = np.concatenate([[True], np.diff(t) > 0]) if len(t) else np.zeros(0, bool)
+    return t[keep], values[keep]
+
+
+def gap_limit(t: np.ndarray, least_s: float = 1.0) -> float:
+    """The longest step a stream may take without a gap: 2.5 times its median step, and at least ``least_s`` (a
+    1-Hz stream is not a gap at every sample)."""
+    if len(t) < 3:
+        return least_s
+    return max(least_s, 2.5 * float(np.median(np.diff(t))))
+
+
+def stream_gaps(name: str, t: np.ndarray, limit_s: float) -> list[Gap]:
+    if len(t) < 2:
+        return []
+    d = np.diff(t)
+    return [Gap(name, float(t[i]), float(t[i + 1])) for i in np.nonzero(d > limit_s)[0]]
+
+
+def max_jump_m(position: Series) -> float | None:
+    """The largest horizontal step between consecutive positions (m), on a local flat earth."""
+    v = position.values
+    ok = np.isfinite(v[:, :2]).all(1) if len(v) else np.zeros(0, bool)
+    v = v[ok]
+    if len(v) < 2:
+        return None
+    lat = np.radians(v[:, 0])
+    dn = np.diff(v[:, 0]) * 111_320.0
+    de = np.diff(v[:, 1]) * 111_320.0 * np.cos(lat[1:])
+    return float(np.hypot(dn, de).max())

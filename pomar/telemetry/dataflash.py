@@ -1,0 +1,113 @@
+"""ArduPilot's on-board DataFlash log (``.bin``), through pymavlink's DFReader (``mavutil``).
+
+- position: ``POS`` (Lat, Lng, Alt MSL); without it, ``GPS`` (Lat, Lng, Alt).
+- GPS: ``GPS`` (Status = fix type, HDop, NSats).
+- attitude: ``ATT`` (Roll, Pitch, Yaw in degrees, NED).
+- gimbal: ``MNT`` (newer firmware: Roll, Pitch, YawE = yaw in the earth frame; older: ActRoll, ActPitch, ActYaw
+  relative to the vehicle) or ``GIMB``.
+- camera events: ``CAM`` (camera feedback, ``Img`` = image number from 1) or ``TRIG`` (trigger), by instance 0.
+
+Clock: every message carries TimeUS, the autopilot's boot time; DFReader maps it to UTC with the GPS
+messages' week and milliseconds (GWk, GMS). A log without GPS time stays on boot time and says so. A file cut
+mid-record keeps every whole record before the cut, and says so.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from pomar.rotations import ned_euler_to_rotation, rotation_to_quat_wxyz
+from pomar.telemetry.base import Series, TelemetryError, TelemetryLog
+
+log = logging.getLogger(__name__)
+
+TYPES = ["POS", "GPS", "ATT", "MNT", "GIMB", "CAM", "TRIG"]
+
+
+def read_dataflash(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
+    from pymavlink import DFReader
+
+    path = Path(path)
+    if not path.exists():
+        raise TelemetryError(f"{path}: file not found")
+    t0 = time.perf_counter()
+    try:
+        df = DFReader.DFReader_binary(str(path), zero_time_base=False)
+    except Exception as exc:
+        raise TelemetryError(f"{path}: not a readable DataFlash log ({exc})") from None
+    problems: list[str] = []
+    rows: dict[str, list] = {k: [] for k in TYPES}
+    counts: Counter = Counter()
+    try:
+        while True:
+            m = df.recv_match(type=TYPES)
+            if m is None:
+                break
+            kind = m.get_type()
+            counts[kind] += 1
+            if getattr(m, "I", 0) not in (0, None) and kind in ("GPS", "CAM", "TRIG", "MNT"):
+                continue  # the first instance of each (GPS 0, camera 0, mount 0)
+            rows[kind].append((m._timestamp, m))
+    except Exception as exc:  # a damaged record DFReader cannot step over: keep what was read
+        problems.append(f"stopped at a damaged record ({exc}): everything before it is used")
+    size = path.stat().st_size
+    # DFReader stops at the last whole record; anything after it is a record cut short
+    left = size - int(getattr(df, "offset", size))
+    if left > 0:
+        problems.append(f"the last {left} bytes are a record cut short (file cut?): everything before is used")
+    if not any(rows.values()):
+        raise TelemetryError(f"{path}: no position, attitude or camera messages (not an ArduPilot DataFlash log?)")
+    gps = rows["GPS"]
+    has_utc = any(getattr(m, "GWk", 0) for _, m in gps)
+    clock = "ArduPilot boot time mapped to UTC by GPS week and ms (DFReader)" if has_utc else "ArduPilot boot time"
+    if not has_utc:
+        problems.append("no GPS time in the log: times are seconds since the autopilot booted")
+
+    def series(kind, fields, d, scale=None, keep=None):
+        r = [(t, [getattr(m, f) for f in fields]) for t, m in rows[kind] if keep is None or keep(m)]
+        if not r:
+            return Series.empty(d)
+        v = np.array([x for _, x in r], float)
+        return Series.of([t for t, _ in r], v if scale is None else scale(v), d)
+
+    def not_origin(m):
+        return not (m.Lat == 0 and m.Lng == 0)
+
+    position = series("POS", ["Lat", "Lng", "Alt"], 3, keep=not_origin)
+    if not len(position):
+        position = series("GPS", ["Lat", "Lng", "Alt"], 3, keep=lambda m: m.Status >= 2 and not_origin(m))
+        if len(position):
+            problems.append("no POS messages: positions are the GPS receiver's")
+        else:
+            problems.append("no position (no POS, no GPS with a fix)")
+    gps_s = series("GPS", ["Status", "HDop", "HDop", "NSats"], 4)
+    attitude = series("ATT", ["Roll", "Pitch", "Yaw"], 4,
+                      scale=lambda v: rotation_to_quat_wxyz(ned_euler_to_rotation(v[:, 0], v[:, 1], v[:, 2])))
+    gimbal = Series.empty(4)
+    if rows["MNT"]:
+        m0 = rows["MNT"][0][1]
+        if "YawE" in m0.get_fieldnames():
+            gimbal = series("MNT", ["Roll", "Pitch", "YawE"], 4,
+                            scale=lambda v: rotation_to_quat_wxyz(ned_euler_to_rotation(v[:, 0], v[:, 1], v[:, 2])))
+        else:
+            problems.append("MNT without an earth-frame yaw (old firmware): mount angles not used")
+    elif rows["GIMB"]:
+        problems.append("GIMB messages (Solo gimbal) are not read")
+    cap_kind = "CAM" if rows["CAM"] else ("TRIG" if rows["TRIG"] else None)
+    captures = {}
+    if cap_kind:
+        for k, (t, m) in enumerate(rows[cap_kind]):
+            idx = getattr(m, "Img", None)
+            captures[int(idx) - 1 if idx else k] = float(t)  # Img counts from 1; frames from 0
+    else:
+        problems.append("no CAM or TRIG events: frame times come from the video's clock")
+    tl = TelemetryLog(str(path), position, gps_s, attitude, gimbal, captures, cap_kind, clock, None, counts,
+                      max_gap_s=max_gap_s, format="dataflash", altitude_reference="msl", problems=problems)
+    tl.find_gaps()
+    tl.parse_seconds = time.perf_counter() - t0
+    return tl

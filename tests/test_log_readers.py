@@ -1,0 +1,246 @@
+"""Every telemetry reader on real files from public repositories (../shared/datasets/logs, read in place), each DJI
+.SRT layout, and files cut short or of unknown layout: they parse, land at the place they were recorded on a
+plausible track, and say what they could not read."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pomar.telemetry import TelemetryError, detect_format, read_log
+from pomar.telemetry.srt import parse_subtitle
+
+LOGS = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "logs"
+needs_logs = pytest.mark.skipif(not LOGS.is_dir(), reason="../shared/datasets/logs not present")
+
+#: file -> (format, where it was recorded: lat, lon within 0.05 degrees, at least this many positions)
+REAL = {
+    "ardupilot-tlog/ardusub_2023-05-04_small.tlog": ("tlog", 48.386, -124.631, 700),
+    "px4-ulog/sample_log_small.ulg": ("ulog", 63.417, 10.408, 30),
+    "px4-ulog/sample_px4_events.ulg": ("ulog", 47.398, 8.546, 100),
+    "dji-srt/p4p_sample.SRT": ("srt", 47.469, 8.209, 5),
+    "dji-srt/mavic_mini.SRT": ("srt", 48.077, -121.746, 100),
+    "dji-srt/mavic_pro.SRT": ("srt", -20.253, 149.025, 400),
+    "dji-srt/old_format.SRT": ("srt", -20.253, 149.025, 400),
+    "dji-srt/mavic_2_style.SRT": ("srt", -20.253, 149.025, 400),
+    "dji-srt/matrice_300.srt": ("srt", 36.615, -6.113, 300),
+    "dji-srt/air2s.srt": ("srt", 41.425, 2.234, 15),
+    "dji-srt/broken_incomplete.SRT": ("srt", -34.738, -58.456, 15),
+}
+
+
+@needs_logs
+@pytest.mark.parametrize("name", sorted(REAL))
+def test_real_file_parses_at_its_place_on_a_plausible_track(name):
+    fmt, lat, lon, n = REAL[name]
+    path = LOGS / name
+    assert detect_format(path) == fmt
+    tl = read_log(path)
+    s = tl.summary_dict()
+    assert s["format"] == fmt and s["positions"] >= n, s
+    assert abs(np.mean(s["lat_range"]) - lat) < 0.05 and abs(np.mean(s["lon_range"]) - lon) < 0.05, s
+    assert s["max_jump_m"] is not None and s["max_jump_m"] < 50.0, s
+    assert np.all(np.diff(tl.position.t) > 0) and s["span_s"] > 0
+
+
+@needs_logs
+def test_summary_json_from_the_command_line(tmp_path):
+    out = tmp_path / "s.json"
+    r = subprocess.run([sys.executable, "-m", "onboard", "telemetry", str(LOGS / "px4-ulog/sample_px4_events.ulg"),
+                        "--json", str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    s = json.loads(out.read_text())
+    for key in ("format", "positions", "lat_range", "lon_range", "span_s", "attitudes", "gimbal_attitudes",
+                "camera_events", "problems"):
+        assert key in s, key
+    assert s["format"] == "ulog" and s["attitudes"] > 600 and s["camera_events"] == 0
+    assert any("camera_capture" in p for p in s["problems"])  # no camera events: said, with what is used instead
+
+
+@needs_logs
+def test_ardusub_streams_share_one_clock():
+    """The vehicle's SYSTEM_TIME has no UTC and the ground station sends its own: GPS_RAW_INT and
+    GLOBAL_POSITION_INT must still cover the same span; the retracted mount is no gimbal; packets of a dialect
+    pymavlink cannot check are counted by type."""
+    tl = read_log(LOGS / "ardupilot-tlog/ardusub_2023-05-04_small.tlog")
+    assert abs(tl.gps.t[0] - tl.position.t[0]) < 1.0 and abs(tl.gps.t[-1] - tl.position.t[-1]) < 1.0
+    assert abs(tl.attitude.t[0] - tl.position.t[0]) < 1.0
+    assert len(tl.gimbal) == 0 and any("retract" in p for p in tl.problems)
+    assert "no UTC" in " ".join(tl.problems) and "receive" in tl.clock
+    assert tl.bad_packets == 4 and set(tl.bad_by_type) == {"CAMERA_INFORMATION", "VIDEO_STREAM_INFORMATION",
+                                                           "CAMERA_SETTINGS", "CAMERA_CAPTURE_STATUS"}
+    # a 1-Hz-ish GPS stream is not a gap at every sample
+    assert not [g for g in tl.gaps if g.stream == "position"]
+
+
+def test_srt_layouts():
+    # Phantom 4 Pro / Mavic Mini: longitude first, H above take-off
+    lay, f = parse_subtitle("F/3.2, SS 160, ISO 100, EV 0, GPS (8.2090, 47.4692, 18), D 49.21m, H 45.60m, "
+                            "H.S 0.00m/s, V.S 0.00m/s")
+    assert lay == "p4p" and (f["lat"], f["lon"], f["alt"]) == (47.4692, 8.2090, 45.60)
+    # Mavic Pro: HOME and date, then GPS (longitude first) and barometer
+    lay, f = parse_subtitle("HOME(149.0251,-20.2532) 2017.08.05 14:11:51\nGPS(149.0251,-20.2533,16) BAROMETER:1.9\n"
+                            "ISO:100 Shutter:60 EV: Fnum:2.2")
+    assert lay == "home" and (f["lat"], f["lon"], f["alt"]) == (-20.2533, 149.0251, 1.9) and f["date"] > 1.5e9
+    # Matrice 300: latitude first, metres
+    lay, f = parse_subtitle("2022.06.21 16:06:17\nGPS(36.6146,-6.1120,0.0M) BAROMETER:0.3M")
+    assert lay == "m300" and (f["lat"], f["lon"], f["alt"]) == (36.6146, -6.1120, 0.3)
+    # Mavic 3 / Mini 3: brackets, rel_alt and abs_alt, gimbal angles
+    lay, f = parse_subtitle('<font size="28">FrameCnt: 12, DiffTime: 33ms\n2023-04-11 10:22:33.456\n[iso: 110] '
+                            "[shutter: 1/1000.0] [fnum: 1.7] [ev: 0] [color_md: default] [focal_len: 24.00] "
+                            "[latitude: 50.123456] [longitude: 8.654321] [rel_alt: 12.300 abs_alt: 152.780] "
+                            "[gb_yaw: 91.2 gb_pitch: -60.0 gb_roll: 0.0] </font>")
+    assert lay == "bracket" and (f["lat"], f["lon"], f["alt"], f["abs_alt"]) == (50.123456, 8.654321, 12.3, 152.78)
+    assert f["gimbal"] == (0.0, -60.0, 91.2)
+    # Mavic 2 (early firmware) spells it "longtitude"
+    lay, f = parse_subtitle("[latitude : -20.2533] [longtitude : 149.0251] [iso : 100] [shutter : 1/60.0]")
+    assert lay == "bracket" and (f["lat"], f["lon"]) == (-20.2533, 149.0251)
+    with pytest.raises(ValueError):
+        parse_subtitle("ISO 100 SS 1/60 (no position here)")
+
+
+def test_srt_of_an_unknown_layout_is_a_clear_error(tmp_path):
+    p = tmp_path / "odd.SRT"
+    p.write_text("1\n00:00:00,000 --> 00:00:01,000\nALT 12.0 SPEED 3.1 POSITION 47.1/8.2\n\n"
+                 "2\n00:00:01,000 --> 00:00:02,000\nALT 12.1 SPEED 3.1 POSITION 47.1/8.2\n\n")
+    with pytest.raises(TelemetryError, match=r"odd\.SRT: subtitle 1 has no layout this reader knows"):
+        read_log(p)
+
+
+@needs_logs
+def test_cut_files_keep_what_they_could_read(tmp_path):
+    # the real DJI file cut in the middle of a subtitle
+    tl = read_log(LOGS / "dji-srt/broken_incomplete.SRT")
+    assert len(tl.position) == 19 and any("cut short" in p for p in tl.problems)
+    # a PX4 log cut mid-record
+    src = (LOGS / "px4-ulog/sample_px4_events.ulg").read_bytes()
+    cut = tmp_path / "cut.ulg"
+    cut.write_bytes(src[: len(src) * 6 // 10])
+    full, part = read_log(LOGS / "px4-ulog/sample_px4_events.ulg"), read_log(cut)
+    assert 0 < len(part.position) < len(full.position) and any("cut short" in p for p in part.problems)
+    np.testing.assert_array_equal(part.position.values, full.position.values[: len(part.position)])
+
+
+def test_not_a_log(tmp_path):
+    junk = tmp_path / "x.dat"
+    junk.write_bytes(b"hello, not a log" * 10)
+    with pytest.raises(TelemetryError, match=r"x\.dat: not a telemetry log"):
+        read_log(junk)
+    with pytest.raises(TelemetryError, match="not found"):
+        read_log(tmp_path / "missing.ulg")
+
+
+@pytest.fixture(scope="module")
+def sim_logs(replay_test_flight, tmp_path_factory):
+    """The tiny simulated flight's telemetry also as a DataFlash .bin and a DJI .SRT (python -m sim logs)."""
+    out = tmp_path_factory.mktemp("logs")
+    r = subprocess.run([sys.executable, "-m", "sim", "logs", str(replay_test_flight.path), "--out", str(out)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    return replay_test_flight, out / "telemetry.bin", out / "video.SRT"
+
+
+def test_sim_logs_give_the_tlogs_samples(sim_logs):
+    """Each format, read by its own reader, samples the frames as the .tlog does: the same capture times, positions
+    within their rounding, and camera attitudes within 0.05 degrees."""
+    from pomar.rotations import quat_wxyz_to_rotation
+
+    flight, binf, srtf = sim_logs
+    meta = flight.meta()
+    ref = read_log(flight.tlog)
+    t_ref, _ = ref.frame_times(meta.frame_count, meta.video_start_utc, meta.fps)
+    s_ref = ref.at(t_ref)
+    for path, fmt in ((binf, "dataflash"), (srtf, "srt")):
+        tl = read_log(path)
+        assert tl.format == fmt
+        t, flags = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps)
+        np.testing.assert_allclose(t, t_ref, atol=2e-3)
+        assert not (flags & 64).any()  # every frame timed by the log itself (CAM events, subtitles)
+        s = tl.at(t)
+        for k, tol in (("lat", 1e-6), ("lon", 1e-6), ("alt", 0.01)):
+            np.testing.assert_allclose(s[k], s_ref[k], atol=tol)
+        ang = (quat_wxyz_to_rotation(s["q_gimbal"]).inv() * quat_wxyz_to_rotation(s_ref["q_gimbal"])).magnitude()
+        assert np.degrees(ang).max() < 0.05, (fmt, np.degrees(ang).max())
+
+
+def test_dataflash_cut_mid_record_keeps_what_it_read(sim_logs, tmp_path):
+    _, binf, _ = sim_logs
+    data = binf.read_bytes()
+    cut = tmp_path / "cut.bin"
+    cut.write_bytes(data[: len(data) * 2 // 3 + 5])
+    full, part = read_log(binf), read_log(cut)
+    assert 0 < len(part.position) < len(full.position) and len(part.captures) < len(full.captures)
+    assert any("cut" in p for p in part.problems), part.problems
+
+
+def test_replay_from_the_srt(sim_logs, replayed_test_flight, tmp_path):
+    """The tiny flight replayed through both processes with its DJI .SRT instead of its .tlog: every frame mapped,
+    the map about as the .tlog's."""
+    from ground.replay import replay
+
+    flight, _, srtf = sim_logs
+    _, _, ref = replayed_test_flight
+    rep = replay(flight.path, tmp_path / "out", detector="onnx", keyframe_every=1, keyframe_width=0, quiet=True,
+                 onboard_args=["--log", str(srtf)])
+    assert rep["frames"]["frames"] == 20 and rep["frames"]["missing_frames"] == 0
+    assert rep["onboard"]["telemetry_flagged_frames"] <= 20
+    assert 0.5 * ref["apples"] - 2 <= rep["apples"] <= 1.5 * ref["apples"] + 2, (rep["apples"], ref["apples"])
+
+
+def test_builtin_cameras_and_container_time(tmp_path):
+    from pomar.assemble import camera_for, mp4_creation_time
+    from pomar.camera import CameraFileError
+
+    cam, source = camera_for("Phantom 4 Pro", 3840, 2160)  # the paper's drone: about 74 degrees across
+    assert abs(np.degrees(2 * np.arctan(1920 / cam.fx)) - 73.7) < 0.5 and "phantom-4-pro" in source
+    with pytest.raises(CameraFileError, match="unknown camera 'Phantom 5'"):
+        camera_for("Phantom 5", 3840, 2160)
+    # an MP4 whose moov/mvhd says 2021-06-01 00:00:00 UTC
+    t = 1622505600 + 2082844800
+    mvhd = b"\x00\x00\x00\x00" + t.to_bytes(4, "big") * 2 + bytes(88)
+    moov = (8 + 8 + len(mvhd)).to_bytes(4, "big") + b"moov" + (8 + len(mvhd)).to_bytes(4, "big") + b"mvhd" + mvhd
+    p = tmp_path / "v.mp4"
+    p.write_bytes((16).to_bytes(4, "big") + b"ftypisom" + bytes(4) + moov)
+    assert mp4_creation_time(p) == 1622505600.0
+
+
+def test_flight_built_from_video_log_and_camera(sim_logs, replayed_test_flight, tmp_path):
+    """The tiny flight's video with its DataFlash .bin and camera.json, no flight directory written by hand: the
+    start comes from the CAM events, and the replay maps every frame, about as the .tlog's."""
+    from ground.replay import replay
+    from pomar.assemble import assemble_flight
+
+    flight, binf, _ = sim_logs
+    _, _, ref = replayed_test_flight
+    built = assemble_flight(flight.video, binf, str(flight.path / "camera.json"), tmp_path / "flight")
+    meta = flight.meta()
+    assert built["frames"] == meta.frame_count and built["fps"] == meta.fps and built["log_format"] == "dataflash"
+    # frame 0's true capture time (the autopilot's clock; the video's own clock runs 0.1 s apart in this flight)
+    assert "camera events" in built["start_from"] and abs(built["start_unix"] - flight.truth_frames()["t_unix"][0]) < 0.01
+    rep = replay(built["flight_dir"], tmp_path / "out", detector="onnx", keyframe_every=1, keyframe_width=0, quiet=True)
+    assert rep["frames"]["frames"] == 20 and rep["frames"]["missing_frames"] == 0
+    assert 0.5 * ref["apples"] - 2 <= rep["apples"] <= 1.5 * ref["apples"] + 2, (rep["apples"], ref["apples"])
+
+
+@needs_logs
+def test_a_log_from_another_time_is_refused(replay_test_flight, tmp_path):
+    """A PX4 log without camera events, from 2024, with a video whose container says 2010: a clear error naming
+    the log, and no flight directory half written."""
+    from pomar.assemble import assemble_flight
+    from pomar.flight import FlightFormatError
+
+    video = tmp_path / "v.mp4"
+    data = bytearray(replay_test_flight.video.read_bytes())
+    i = data.find(b"mvhd")
+    assert i > 0
+    data[i + 8:i + 12] = (1262304000 + 2082844800).to_bytes(4, "big")  # 2010-01-01
+    video.write_bytes(bytes(data))
+    with pytest.raises(FlightFormatError, match=r"sample_px4_events\.ulg: its positions span .* do not overlap"):
+        assemble_flight(video, LOGS / "px4-ulog/sample_px4_events.ulg", str(replay_test_flight.path / "camera.json"),
+                        tmp_path / "flight")
+    assert not (tmp_path / "flight").exists()
