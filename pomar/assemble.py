@@ -29,7 +29,7 @@ import numpy as np
 from pomar.camera import Camera, CameraFileError
 from pomar.flight import CAMERA, FLIGHT, VIDEO, FlightFormatError, check_id
 from pomar.telemetry import TelemetryLog, read_log
-from pomar.video import VideoError
+from pomar.video import video_info
 
 log = logging.getLogger(__name__)
 
@@ -98,29 +98,6 @@ def mp4_creation_time(path: str | Path) -> float | None:
                     t = struct.unpack(">Q", data[c + 4:c + 12])[0] if version == 1 else struct.unpack(">I", data[c + 4:c + 8])[0]
                     return float(t + epoch_1904) if t else None
     return None
-
-
-def video_info(path: str | Path) -> tuple[float, int, int, int]:
-    """(fps, frame count, width, height) from the container; VideoError when it has no frame rate."""
-    import cv2
-
-    path = Path(path)
-    if not path.is_file():
-        raise VideoError(f"{path}: file not found")
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise VideoError(f"{path}: OpenCV cannot open this video")
-    try:
-        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
-        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
-    finally:
-        cap.release()
-    if not (np.isfinite(fps) and 0 < fps < 1000):
-        raise VideoError(f"{path}: the container gives no frame rate ({fps})")
-    if n <= 0 or w <= 0 or h <= 0:
-        raise VideoError(f"{path}: the container gives no frame count or size")
-    return fps, n, w, h
 
 
 def start_time(tl: TelemetryLog, fps: float, container_unix: float | None, clock_offset_s: float = 0.0):

@@ -35,6 +35,24 @@ def video_size(path) -> tuple[int, int]:
     return img.shape[1], img.shape[0]
 
 
+def video_info(path) -> tuple[float, int, int, int]:
+    """(fps, frame count, width, height) as the container says; VideoError when it gives no frame rate."""
+    import cv2
+
+    cap = _open(path)
+    try:
+        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+    finally:
+        cap.release()
+    if not (np.isfinite(fps) and 0 < fps < 1000):
+        raise VideoError(f"{path}: the container gives no frame rate ({fps})")
+    if n <= 0 or w <= 0 or h <= 0:
+        raise VideoError(f"{path}: the container gives no frame count or size")
+    return fps, n, w, h
+
+
 def count_frames(path) -> int:
     """Number of frames that actually decode (not the container's claim)."""
     cap = _open(path)

@@ -18,6 +18,7 @@ is flagged, not silently interpolated across: see :class:`Flags`.
 from __future__ import annotations
 
 from collections import Counter
+from pathlib import Path
 from dataclasses import dataclass, field
 from enum import IntFlag
 
@@ -101,6 +102,9 @@ class TelemetryLog:
     #: Per-frame video times from the log itself (a DJI .SRT has one entry per frame or per second): seconds
     #: from the video's start -> unix time. Empty for logs that know nothing of the video.
     video_clock: Series = field(default_factory=lambda: Series.empty(1))
+
+    def __post_init__(self):
+        self.find_gaps()
 
     def find_gaps(self) -> None:
         self.gaps = []
@@ -255,6 +259,14 @@ class TelemetryLog:
         rots = quat_wxyz_to_rotation(s.values)
         out[inside] = rotation_to_quat_wxyz(Slerp(s.t, rots)(t[inside]))
         return out
+
+
+def existing(path) -> Path:
+    """The log's path, or TelemetryError naming it when there is no such file."""
+    path = Path(path)
+    if not path.is_file():
+        raise TelemetryError(f"{path}: file not found")
+    return path
 
 
 def strictly_increasing(t: np.ndarray, values: np.ndarray):

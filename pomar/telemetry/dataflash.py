@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from pomar.rotations import ned_euler_to_rotation, rotation_to_quat_wxyz
-from pomar.telemetry.base import Series, TelemetryError, TelemetryLog
+from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing
 
 log = logging.getLogger(__name__)
 
@@ -32,9 +32,7 @@ TYPES = ["POS", "GPS", "ATT", "MNT", "GIMB", "CAM", "TRIG"]
 def read_dataflash(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
     from pymavlink import DFReader
 
-    path = Path(path)
-    if not path.exists():
-        raise TelemetryError(f"{path}: file not found")
+    path = existing(path)
     t0 = time.perf_counter()
     try:
         df = DFReader.DFReader_binary(str(path), zero_time_base=False)
@@ -108,6 +106,5 @@ def read_dataflash(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
         problems.append("no CAM or TRIG events: frame times come from the video's clock")
     tl = TelemetryLog(str(path), position, gps_s, attitude, gimbal, captures, cap_kind, clock, None, counts,
                       max_gap_s=max_gap_s, format="dataflash", altitude_reference="msl", problems=problems)
-    tl.find_gaps()
     tl.parse_seconds = time.perf_counter() - t0
     return tl

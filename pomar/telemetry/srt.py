@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from pomar.rotations import ned_euler_to_rotation, rotation_to_quat_wxyz
-from pomar.telemetry.base import Series, TelemetryError, TelemetryLog
+from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing
 
 log = logging.getLogger(__name__)
 
@@ -119,9 +119,7 @@ def _subtitles(text: str, problems: list[str]) -> list[tuple[int, float | None, 
 
 
 def read_srt(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
-    path = Path(path)
-    if not path.exists():
-        raise TelemetryError(f"{path}: file not found")
+    path = existing(path)
     t0 = time.perf_counter()
     text = path.read_text(encoding="utf-8-sig", errors="replace")
     problems: list[str] = []
@@ -198,7 +196,6 @@ def read_srt(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
     if not g:
         problems.append("no gimbal or vehicle attitude in the subtitles: the camera's attitude needs a fixed mount "
                         "tilt and the heading of the track")
-    tl.find_gaps()
     tl.parse_seconds = time.perf_counter() - t0
     log.info("%s: %d subtitles, layout %s", path, len(rows), layout)
     return tl

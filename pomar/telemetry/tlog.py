@@ -30,7 +30,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from pomar.rotations import ned_euler_to_rotation, quat_wxyz_to_rotation, rotation_to_quat_wxyz
-from pomar.telemetry.base import Series, TelemetryError, TelemetryLog
+from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing
 
 log = logging.getLogger(__name__)
 
@@ -181,7 +181,6 @@ class MavlinkAccumulator:
         tl = TelemetryLog(source, position, gps, attitude, gimbal, captures, self.cap_msg, clock,
                           offsets.get(vehicle), Counter(self.counts), self.bad, truncated, max_gap_s,
                           format="tlog", problems=problems, bad_by_type=Counter(self.bad_by_type))
-        tl.find_gaps()
         if not quiet:
             for g in tl.gaps:
                 log.warning("%s: %.1f s gap in %s telemetry (frames in it are flagged)", source, g.seconds, g.stream)
@@ -227,9 +226,7 @@ def read_tlog(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
     dialect()
     from pymavlink import mavutil
 
-    path = Path(path)
-    if not path.exists():
-        raise TelemetryError(f"{path}: file not found")
+    path = existing(path)
     t0 = time.perf_counter()
     conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega", robust_parsing=True)
     acc = MavlinkAccumulator()

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pomar.telemetry.base import Series, TelemetryError, TelemetryLog
+from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing
 
 log = logging.getLogger(__name__)
 
@@ -56,9 +56,7 @@ def unread_tail(path: Path) -> int:
 def read_ulog(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
     from pyulog import ULog
 
-    path = Path(path)
-    if not path.exists():
-        raise TelemetryError(f"{path}: file not found")
+    path = existing(path)
     t0 = time.perf_counter()
     try:
         u = ULog(str(path), message_name_filter_list=TOPICS, disable_str_exceptions=True)
@@ -120,6 +118,5 @@ def read_ulog(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
         problems.append("no position (neither vehicle_global_position nor a GPS topic)")
     tl = TelemetryLog(str(path), position, gps_s, attitude, gimbal, captures, cap_msg, clock, boot_to_unix, counts,
                       max_gap_s=max_gap_s, format="ulog", altitude_reference="msl", problems=problems)
-    tl.find_gaps()
     tl.parse_seconds = time.perf_counter() - t0
     return tl
