@@ -1,6 +1,8 @@
 """python -m ground SUBCOMMAND: the ground side of the system.
 
-  replay    replay a recorded flight (default: the bundled one) through the onboard and ground nodes
+  replay    replay a recorded flight (default: the bundled one) through the onboard and ground nodes; with
+            --recorded JOURNAL, a recorded stream played at --speed S into a ground
+  play      publish a recorded stream (a ground's journal.bin) over zenoh at its capture-time pace
   run       the ground node: subscribe to a flight over zenoh, map its apples live, log to rerun
   register  register a flight's keyframes with pycolmap (files, no zenoh)
   evaluate  run the association on a simulated flight and score it against the truth
@@ -75,10 +77,47 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def _cmd_play(args) -> int:
+    import time
+
+    from ground.player import PlayerError, load_recording, play
+    from pomar import transport
+
+    def write_summary(d):
+        if args.summary:
+            Path(args.summary).write_text(json.dumps(d, indent=2) + "\n")
+
+    try:
+        rec = load_recording(args.recording, args.flight_id)
+    except PlayerError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        write_summary({"error": str(exc)})
+        return 2
+    for p in rec.problems:
+        print(f"warning: {args.recording}: {p}", file=sys.stderr)
+    session = transport.open_session(listen=args.listen or [transport.DEFAULT_ENDPOINT], connect=args.connect)
+    pub = transport.FlightPublisher(session, rec.flight_id, rec.drone_id)
+    if args.wait_for_ground > 0 and not pub.wait_for_subscriber(args.wait_for_ground):
+        print(f"no ground subscribed within {args.wait_for_ground:g} s: playing anyway", file=sys.stderr)
+    summary = play(rec, pub, args.speed)
+    print(json.dumps(summary, indent=2))
+    write_summary(summary)
+    try:  # closing a session with data still queued loses it: serve the history until stopped
+        time.sleep(args.linger)
+    except KeyboardInterrupt:
+        pass
+    pub.close()
+    session.close()
+    return 0
+
+
 def _cmd_replay(args) -> int:
     from ground.replay import BUNDLED, ReplayError, format_evaluation, replay
 
     flight = args.flight_dir or BUNDLED
+    if args.recorded and (args.video or args.log):
+        print("error: --recorded plays a recorded stream: no --video or --log with it", file=sys.stderr)
+        return 2
     if args.video:  # a flight built from the user's video, log and camera
         from pomar.assemble import assemble_flight
 
@@ -112,7 +151,8 @@ def _cmd_replay(args) -> int:
                      ground_args=ground_args, quiet=args.quiet,
                      onboard_args=(["--score-thresh", str(args.detector_score_thresh)] if args.detector_score_thresh else [])
                      + (["--log", args.log] if args.log else [])
-                     + (["--camera-tilt-deg", str(args.camera_tilt_deg)] if args.camera_tilt_deg is not None else []))
+                     + (["--camera-tilt-deg", str(args.camera_tilt_deg)] if args.camera_tilt_deg is not None else []),
+                     recorded=args.recorded, speed=args.speed)
     except ReplayError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -246,6 +286,10 @@ def main(argv=None) -> int:
     rp.add_argument("--keyframe-width", type=int, default=960)
     rp.add_argument("--every", type=int, default=1, help="onboard processes every Nth frame")
     rp.add_argument("--quiet", action="store_true", help="no progress lines")
+    rp.add_argument("--recorded", help="play this recorded stream (a ground's journal.bin; the flight directory gives "
+                                       "the truth to score against) instead of running the onboard node")
+    rp.add_argument("--speed", type=float, default=1.0,
+                    help="with --recorded: S x the recording's capture-time pace (1 = real time, 0 = as fast as it goes)")
     rp.add_argument("--video", help="replay a video of your own: with --log and --camera, the flight is built from "
                                     "them (into OUT/flight; see pomar/assemble.py)")
     rp.add_argument("--camera", help="with --video: a camera.json or a built-in camera (phantom-4-pro, mavic-3, ...)")
@@ -255,6 +299,19 @@ def main(argv=None) -> int:
                     help="for a log without gimbal attitudes: the camera's fixed pitch below the horizon (90 = down)")
     _ground_options(rp)
     rp.set_defaults(func=_cmd_replay)
+    pl = sub.add_parser("play", help="publish a recorded stream (journal.bin) over zenoh at its capture-time pace",
+                        description=__import__("ground.player", fromlist=["x"]).__doc__,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    pl.add_argument("recording", help="a ground's journal.bin")
+    pl.add_argument("--speed", type=float, default=1.0, help="S x real time (0 = as fast as it goes)")
+    pl.add_argument("--flight-id", type=id_argument("flight id"), help="refuse a recording of another flight")
+    pl.add_argument("--listen", action="append", help="zenoh endpoint to listen on (default tcp/127.0.0.1:7447)")
+    pl.add_argument("--connect", action="append", help="zenoh endpoint to connect to")
+    pl.add_argument("--wait-for-ground", type=float, default=30.0,
+                    help="wait up to this many seconds for a subscriber before the first message (0 = do not wait)")
+    pl.add_argument("--linger", type=float, default=30.0, help="seconds to keep serving the history after the end")
+    pl.add_argument("--summary", help="also write the play's summary (JSON) here")
+    pl.set_defaults(func=_cmd_play)
     g = sub.add_parser("run", help="the ground node: subscribe to a flight over zenoh and map its apples live")
     g.add_argument("--flight-id", required=True, type=id_argument("flight id"))
     g.add_argument("--drone-id", action="append", type=id_argument("drone id"),

@@ -50,6 +50,9 @@ def rss_mb() -> float:
         return peak_rss_mb()
 
 
+POSE_SOURCES = ("registered", "interpolated", "telemetry", "frames_without_pose")
+
+
 class GroundNode:
     """Feed it wire messages (decoded) with :meth:`handle`; it keeps the outputs and the rerun log current."""
 
@@ -203,6 +206,8 @@ class GroundNode:
             "flight_id": p.flight_id, "drone_id": p.drone_id, "final": final,
             "apples": int(len(table["id"])), "rows": rows,
             "frames": dict(p.counters), "gaps": p.gaps[:100],
+            # what share of the mapped frames got each kind of pose
+            "pose_shares": {k: p.counters[k] / max(1, sum(p.counters[j] for j in POSE_SOURCES)) for k in POSE_SOURCES},
             "registration": {
                 "keyframes_processed": len(reg.seconds) if reg else 0,
                 "registered": len(p.poses.model_pose) if p.poses else 0,

@@ -156,10 +156,14 @@ def format_evaluation(ev: dict) -> str:
 def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: str = "onnx", model=None,
            keyframe_every: int = 2, keyframe_width: int = 960, every: int = 1, rrd: bool = True,
            ground_args: list[str] | None = None, onboard_args: list[str] | None = None, timeout_s: float = 3600,
-           quiet: bool = False) -> dict:
+           quiet: bool = False, recorded=None, speed: float = 1.0) -> dict:
+    """Both processes over zenoh on loopback; with ``recorded`` (a journal.bin), the recording's player
+    (``python -m ground play``, at ``speed`` x its capture-time pace) stands in for the onboard node."""
     flight = FlightDir(flight_dir)
     meta = flight.meta()
     out = Path(out_dir or f"out/replay/{flight.path.name}")
+    if recorded is not None and Path(recorded).resolve() == (out / "journal.bin").resolve():
+        raise ReplayError(f"{recorded} is the journal this replay would write: give another --out")
     out.mkdir(parents=True, exist_ok=True)
     for stale in ("journal.bin", "report.json"):
         (out / stale).unlink(missing_ok=True)
@@ -174,9 +178,13 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
     if model:
         onboard_cmd += ["--model", str(model)]
     onboard_cmd += onboard_args or []
+    if recorded is not None:  # the recording's player instead of the onboard node; the ground maps it live
+        onboard_cmd = [py, "-m", "ground", "play", str(recorded), "--listen", endpoint, "--speed", str(speed),
+                       "--flight-id", meta.flight_id, "--linger", "600", "--summary", str(out / "onboard.json")]
     ground_cmd = [py, "-m", "ground", "run", "--flight-id", meta.flight_id, "--connect", endpoint, "--out", str(out),
                   "--fresh", "--expected-frames", str(-(-meta.frame_count // every))] + ([] if rrd else ["--no-rrd"]) \
-        + ([] if realtime else ["--max-lag-s", "0"]) + (ground_args or [])  # lock-step: every keyframe registered
+        + ([] if realtime or (recorded is not None and speed > 0) else ["--max-lag-s", "0"]) \
+        + (ground_args or [])  # lock-step (and --speed 0): every keyframe registered
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     t0 = time.monotonic()
     logs = {name: open(out / f"{name}.log", "w") for name in ("onboard", "ground")}
@@ -230,7 +238,9 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
     flight_s = meta.frame_count / meta.fps
     report.update(wall_seconds=wall, flight_seconds=flight_s, realtime_factor=flight_s / wall,
                   replay={"flight": str(flight.path), "realtime": realtime, "detector": detector,
-                          "keyframe_every": keyframe_every, "keyframe_width": keyframe_width, "every": every})
+                          "keyframe_every": keyframe_every, "keyframe_width": keyframe_width, "every": every,
+                          "recorded": str(recorded) if recorded is not None else None,
+                          "speed": speed if recorded is not None else None})
     if summary:
         report["onboard"] = summary
     if onboard_error:  # the map holds what came before the onboard node stopped

@@ -1,0 +1,51 @@
+"""A recorded stream (a ground's journal.bin) played again over real zenoh on loopback into a ground in another
+process, at its capture-time pace; bad recordings refused with a message naming the file."""
+
+from __future__ import annotations
+
+import msgpack
+import pytest
+
+from ground.journal import HEADER, record
+from ground.player import PlayerError, load_recording
+
+
+def test_recorded_stream_at_real_time_maps_as_the_lock_step_replay(replayed_test_flight, tmp_path):
+    from ground.replay import replay
+
+    flight, out, ref = replayed_test_flight
+    rep = replay(flight.path, tmp_path / "played", recorded=out / "journal.bin", speed=1.0, quiet=True)
+    assert rep["replay"]["recorded"] and rep["onboard"]["frames_processed"] == 20
+    assert rep["frames"]["frames"] == 20 and rep["frames"]["missing_frames"] == 0 and rep["final"]
+    # at the recording's pace (20 frames at 5 fps): the replay takes about the flight's 4 s, not less
+    assert rep["onboard"]["seconds"] >= 0.9 * (19 / 5)
+    assert 0.5 * ref["apples"] - 2 <= rep["apples"] <= 1.5 * ref["apples"] + 2, (rep["apples"], ref["apples"])
+    assert rep["timings"]["frame_delay_p95_s"] is not None
+    assert abs(sum(rep["pose_shares"].values()) - 1.0) < 1e-9
+
+
+def test_bad_recordings_are_refused_naming_the_file(replayed_test_flight, tmp_path):
+    _, out, _ = replayed_test_flight
+    journal = (out / "journal.bin").read_bytes()
+    good = load_recording(out / "journal.bin")
+    assert good.flight_id == "sim-replay-test" and good.frames == 20 and good.items[0][1] == "camera"
+    # another flight than asked for
+    with pytest.raises(PlayerError, match="journal.bin: a recording of flight 'sim-replay-test', not 'other'"):
+        load_recording(out / "journal.bin", "other")
+    # not a journal at all
+    junk = tmp_path / "junk.bin"
+    junk.write_bytes(b"\x00\x01garbage" * 100)
+    with pytest.raises(PlayerError, match="junk.bin: not a pomar journal"):
+        load_recording(junk)
+    # a schema version this build cannot read
+    future = tmp_path / "future.bin"
+    future.write_bytes(HEADER + record(msgpack.packb({"v": 99, "type": "frame2"})) + journal[len(HEADER):])
+    with pytest.raises(PlayerError, match="future.bin: record 0: unknown schema version 99"):
+        load_recording(future)
+    # cut in the middle of a record: every complete record before the cut still plays
+    cut = tmp_path / "cut.bin"
+    cut.write_bytes(journal[: len(journal) * 2 // 3])
+    part = load_recording(cut)
+    assert 0 < len(part.items) < len(good.items) and part.damaged_bytes > 0
+    assert any("damaged bytes" in p for p in part.problems)
+    assert [it[2] for it in part.items][:5] == [it[2] for it in good.items][:5]
