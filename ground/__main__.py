@@ -163,15 +163,19 @@ def _cmd_replay(args) -> int:
     for r in rep["rows"]:
         print(f"  row {r['row']}: {r['count']} apples over {r['length_m']:.1f} m")
     ob = rep.get("onboard", {})
+    played = bool(rep.get("replay", {}).get("recorded"))
     print(f"wall {rep['wall_seconds']:.1f} s for a {rep['flight_seconds']:.1f} s flight: real-time factor "
-          f"{rep['realtime_factor']:.2f}; peak memory: ground {rep['timings']['peak_rss_mb']:.0f} MB, "
-          f"onboard {ob.get('peak_rss_mb', float('nan')):.0f} MB")
+          f"{rep['realtime_factor']:.2f}; peak memory: ground {rep['timings']['peak_rss_mb']:.0f} MB"
+          + ("" if played else f", onboard {ob.get('peak_rss_mb', float('nan')):.0f} MB"))
     tm, fr = rep["timings"], rep["frames"]
     if tm.get("frame_delay_median_s") is not None:
         print(f"ground: frames mapped {tm['frame_delay_median_s']:.1f} s after they arrived (median; p95 "
               f"{tm['frame_delay_p95_s']:.1f} s, max {tm['frame_delay_max_s']:.1f} s); {fr['registered']} of "
               f"{fr['keyframes']} keyframes registered, {fr.get('skipped_keyframes', 0)} skipped to keep up")
-    if ob:
+    if ob and played:
+        print(f"player: {ob['frames_processed']} frames of {ob['recording']} at {ob['speed']:g}x in {ob['seconds']:.1f} s "
+              f"({ob['flight_seconds']:.1f} s of flight)")
+    elif ob:
         print(f"onboard: {ob['frames_processed']} frames processed, {ob['frames_dropped']} dropped, detector "
               f"{ob['detector_latency_s']:.3f} s/frame, read-to-publish median {ob['read_to_publish_median_s']:.3f} s, "
               f"link {ob['link_bytes_per_s_at_video_fps'] / 1e6:.2f} MB/s at the video's frame rate")
