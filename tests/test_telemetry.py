@@ -168,3 +168,20 @@ def test_live_udp_link_matches_the_file_and_identifies_as_companion(bundled_flig
     ok = np.isfinite(a["lat"])
     assert ok.mean() > 0.9
     np.testing.assert_allclose(a["lat"][ok], b["lat"][ok], atol=1e-7)
+
+
+def test_gps_reports_that_stop_are_not_repeated(bundled_flight, tmp_path):
+    """GPS_RAW_INT for the first 3 s only (as in an ArduPilot autotest log, 12 s of GPS against 302 s of
+    positions): frames after it have no fix information, flagged, instead of the last fix repeated."""
+    fr = bundled_flight.truth_frames()
+    t_stop = fr["t_unix"][0] + 3.0
+    short = tmp_path / "short-gps.tlog"
+    _rewrite(bundled_flight.tlog, short, lambda m, t: m.get_type() != "GPS_RAW_INT" or t < t_stop)
+    tl, t, s = frame_samples(bundled_flight, short)
+    late = fr["t_unix"] > t_stop + 1.0
+    early = fr["t_unix"] < t_stop - 0.5
+    assert late.sum() > 100 and early.sum() > 20
+    assert (s["gps_fix"][early] == 3).all() and np.isfinite(s["h_acc"][early]).all()
+    assert (s["gps_fix"][late] == 0).all() and np.isnan(s["h_acc"][late]).all()
+    assert (s["flags"][late] & Flags.NO_GPS_FIX).all() and not (s["flags"][late] & Flags.NO_POSITION).any()
+    assert any("GPS reports span" in p for p in tl.problems)
