@@ -56,7 +56,7 @@ def _settings(args):
     from ground.pipeline import GroundSettings
 
     return GroundSettings(association=AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom,
-                                                        min_inliers=args.min_inliers),
+                                                        min_inliers=args.min_inliers, cross_pass=not args.no_cross_pass),
                           registration=_registration_settings(args),
                           max_wait_s=args.max_wait_s, max_lag_s=args.max_lag_s, max_keyframe_gap=args.max_keyframe_gap,
                           min_score=args.min_score,
@@ -137,7 +137,7 @@ def _cmd_replay(args) -> int:
         flight, args.log = built["flight_dir"], None  # the built flight names its log
     out = Path(args.out or f"out/replay/{Path(flight).name}")
     ground_args = ["--k", str(args.k), "--tau-epipolar", str(args.tau_epipolar), "--tau-geom", str(args.tau_geom),
-                   "--min-inliers", str(args.min_inliers),
+                   "--min-inliers", str(args.min_inliers)] + (["--no-cross-pass"] if args.no_cross_pass else []) + [
                    "--max-features", str(args.max_features), "--match-window", str(args.match_window),
                    "--sift", args.sift, "--max-wait-s", str(args.max_wait_s),
                    "--max-keyframe-gap", str(args.max_keyframe_gap),
@@ -224,6 +224,9 @@ def _ground_options(p):
     p.add_argument("--tau-epipolar", type=float, default=a.tau_epipolar, help="association: epipolar gate, px")
     p.add_argument("--tau-geom", type=float, default=a.tau_geom, help="association: RANSAC inlier threshold, px")
     p.add_argument("--min-inliers", type=int, default=a.min_inliers, help="association: views an apple needs")
+    p.add_argument("--no-cross-pass", action="store_true",
+                   help="association: merge an apple only with apples of the last merge window (one pass), not with "
+                        "the whole map (the behaviour before cross-pass identity; a baseline)")
     _registration_options(p)
     p.add_argument("--max-wait-s", type=float, default=5.0,
                    help="frames wait for the keyframe after them unless no keyframe came for this long (s)")

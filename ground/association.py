@@ -51,6 +51,10 @@ class AssociationParams:
     merge_m: float = 0.04
     #: Windowed: how long (frames) an emitted apple stays a candidate for such a merge.
     merge_window: int = 600
+    #: Windowed: every apple of the map stays a candidate (found through a spatial index, so the cost stays flat
+    #: as the map grows): an apple seen again from a later pass, minutes after, merges into the first estimate.
+    #: False = only apples of the last merge_window frames (one pass's worth).
+    cross_pass: bool = True
     #: An apple's final position minimises the reprojection error over its inliers (the linear
     #: solution's depth is biased over the short baselines of a few frames); False = linear only.
     nonlinear: bool = True
@@ -285,19 +289,24 @@ def sample_views(Ps: np.ndarray, xs: np.ndarray, n: int = MERGE_VIEWS) -> tuple[
     return Ps[sel], xs[sel]
 
 
-def same_apple(a: Apple, b: Apple, tau_geom: float, min_inlier_ratio: float = 0.8) -> np.ndarray | None:
+def same_apple(a: Apple, b: Apple, tau_geom: float, min_inlier_ratio: float = 0.8,
+               max_median_px: float | None = None) -> np.ndarray | None:
     """The point both apples' views triangulate to, if it reprojects within tau_geom in at least
-    min_inlier_ratio of each apple's views (a few views of a long track fall outside by noise)."""
+    min_inlier_ratio of each apple's views (a few views of a long track fall outside by noise), and, with
+    ``max_median_px``, within that in the median of each apple's views."""
     Ps = np.concatenate([a.views[0], b.views[0]])
     xs = np.concatenate([a.views[1], b.views[1]])
     X = triangulate_nonlinear(Ps, xs)
     if not np.isfinite(X).all():
         return None
-    inl = reprojection_errors(Ps, xs, X) < tau_geom
+    err = reprojection_errors(Ps, xs, X)
+    inl = err < tau_geom
     na = len(a.views[1])
-    if inl[:na].mean() >= min_inlier_ratio and inl[na:].mean() >= min_inlier_ratio:
-        return X
-    return None
+    if inl[:na].mean() < min_inlier_ratio or inl[na:].mean() < min_inlier_ratio:
+        return None
+    if max_median_px is not None and max(np.median(err[:na]), np.median(err[na:])) > max_median_px:
+        return None
+    return X
 
 
 def merge_into(a: Apple, b: Apple, X: np.ndarray | None = None) -> None:
@@ -311,9 +320,11 @@ def merge_into(a: Apple, b: Apple, X: np.ndarray | None = None) -> None:
         a.views = sample_views(np.concatenate([a.views[0], b.views[0]]), np.concatenate([a.views[1], b.views[1]]))
 
 
-def find_duplicate(apple: Apple, candidates: list[Apple], params: "AssociationParams"):
+def find_duplicate(apple: Apple, candidates: list[Apple], params: "AssociationParams", strict: bool = False):
     """The candidate that apple duplicates, and their joint position: within merge_m, or within
-    merge_search_m and consistent (their views triangulate together within tau_geom)."""
+    merge_search_m and consistent (their views triangulate together within tau_geom; ``strict``: also within
+    tau_geom / 2 in the median of each one's views, for apples from another pass, which only their views can tell
+    from a neighbour a few cm away)."""
     if not candidates:
         return None, None
     C = np.array([c.X for c in candidates])
@@ -323,7 +334,7 @@ def find_duplicate(apple: Apple, candidates: list[Apple], params: "AssociationPa
             break
         c = candidates[i]
         if apple.views is not None and c.views is not None:
-            X = same_apple(c, apple, params.tau_geom)
+            X = same_apple(c, apple, params.tau_geom, max_median_px=params.tau_geom / 2 if strict else None)
             if X is not None:
                 return c, X
         elif d[i] < params.merge_m:
@@ -351,6 +362,47 @@ def merge_duplicates(apples: list[Apple], params: "AssociationParams") -> list[A
     for i, a in enumerate(kept):
         a.id = i
     return kept
+
+
+class SpatialIndex:
+    """Apples by grid cell (``cell_m`` = the merge search radius): the apples near a point, from the 27 cells around
+    it, in time independent of the map's size."""
+
+    def __init__(self, cell_m: float):
+        self.cell = float(cell_m)
+        self._cells: dict[tuple[int, int, int], dict[int, Apple]] = {}
+        self._where: dict[int, tuple[int, int, int]] = {}
+
+    def _key(self, X) -> tuple[int, int, int]:
+        return tuple(int(v) for v in np.floor(np.asarray(X, float)[:3] / self.cell))
+
+    def __len__(self) -> int:
+        return len(self._where)
+
+    def put(self, a: Apple) -> None:
+        """Add an apple, or move it to the cell of its (updated) position."""
+        new = self._key(a.X)
+        old = self._where.get(a.id)
+        if old == new:
+            return
+        if old is not None:
+            self._cells[old].pop(a.id, None)
+            if not self._cells[old]:
+                del self._cells[old]
+        self._cells.setdefault(new, {})[a.id] = a
+        self._where[a.id] = new
+
+    def near(self, X, r: float) -> list[Apple]:
+        kx, ky, kz = self._key(X)
+        X = np.asarray(X, float)
+        out = []
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for dz in (-1, 0, 1):
+                    for a in self._cells.get((kx + dx, ky + dy, kz + dz), {}).values():
+                        if np.linalg.norm(a.X - X) <= r:
+                            out.append(a)
+        return out
 
 
 _SAMPLE_CACHE: dict[tuple[int, int], np.ndarray] = {}
@@ -428,8 +480,10 @@ class WindowedAssociation:
         self._next_root = 0
         self._next_id = 0
         self._recent: list[Apple] = []  # emitted apples that a later track may turn out to duplicate
+        self._index = SpatialIndex(max(self.params.merge_search_m, 0.1))  # every apple, with cross_pass
         self._geom: dict[int, tuple] = {}  # recent frames' (P, centre, pseudo-inverse)
-        self.stats = {"frames": 0, "branch_bound_hits": 0, "roots": 0, "tracks_closed": 0, "apples": 0, "merged": 0}
+        self.stats = {"frames": 0, "branch_bound_hits": 0, "roots": 0, "tracks_closed": 0, "apples": 0, "merged": 0,
+                      "merged_across_passes": 0}
 
     # -- helpers
     def _emit(self, t: _Track) -> Apple | None:
@@ -465,14 +519,27 @@ class WindowedAssociation:
         p = self.params
         if p.merge_search_m > 0:
             target, X = find_duplicate(a, self._recent, p)
+            if target is None and p.cross_pass:
+                # the whole map: an apple seen again from another pass. Its views still triangulate with the first
+                # ones: the caps seen from two sides are offset along each pass's own rays, which the joint point
+                # (the apple's centre) absorbs; the stricter test keeps apples a few cm apart two.
+                recent = {id(r) for r in self._recent}
+                older = [c for c in self._index.near(a.X, p.merge_search_m) if id(c) not in recent]
+                target, X = find_duplicate(a, older, p, strict=True)
+                if target is not None:
+                    self.stats["merged_across_passes"] += 1
             if target is not None:
                 merge_into(target, a, X)
                 self.stats["merged"] += 1
+                if p.cross_pass:
+                    self._index.put(target)
                 return target
         a.id = self._next_id
         self._next_id += 1
         self.stats["apples"] += 1
         self._recent.append(a)
+        if p.cross_pass:
+            self._index.put(a)
         return a
 
     _VERIFY_VIEWS = 12  # views of a track checked when verifying an extension (first, last, evenly between)

@@ -154,3 +154,52 @@ def test_rows_survive_a_wild_apple():
     wild, a2 = direction_rows(np.vstack([xy, [[3e7, -2e7]]]))
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 200_000  # KB: no giant histogram
     assert abs(a2 - a) < np.radians(0.5) and (wild[:-1] == labels).all()
+
+
+def _two_passes(apples: np.ndarray, hide_first=(), hide_second=(), n: int = 70, gap: int = 40):
+    """A pass north along x = 0 looking east, a turn of ``gap`` frames without detections, then a pass back south
+    along x = 16 looking west: the same apples from both sides, ``gap`` + a pass's frames apart."""
+    from pomar.camera import Camera
+    from pomar.rotations import R_GIMBAL_FROM_CAMERA_NOMINAL, camera_from_gimbal_attitude, ned_euler_to_rotation, world_to_camera
+
+    cam = Camera.from_fov(1280, 720, 50.0)
+    y = np.arange(n) * 0.2
+    legs = [(np.stack([np.zeros(n), y, np.full(n, 12.0)], 1), 90.0, set(hide_first)),
+            (np.stack([np.full(n, 16.0), y[::-1], np.full(n, 12.0)], 1), -90.0, set(hide_second))]
+    frames, f = [], 0
+    for k, (centres, yaw, hidden) in enumerate(legs):
+        rot = ned_euler_to_rotation(np.zeros(n), np.full(n, -60.0), np.full(n, yaw))
+        R, t = world_to_camera(camera_from_gimbal_attitude(rot, R_GIMBAL_FROM_CAMERA_NOMINAL), centres)
+        for i in range(n):
+            uv, z = cam.project(apples, R[i], t[i])
+            ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < 1279) & (uv[:, 1] >= 0) & (uv[:, 1] < 719)
+            ok &= ~np.isin(np.arange(len(apples)), list(hidden))
+            frames.append(FrameDetections(f, cam.projection_matrix(R[i], t[i]), uv[ok]))
+            f += 1
+        if k == 0:  # the turn: frames with a pose and no apples
+            for _ in range(gap):
+                frames.append(FrameDetections(f, cam.projection_matrix(R[-1], t[-1]), np.zeros((0, 2))))
+                f += 1
+    return frames
+
+
+def test_an_apple_seen_again_on_a_later_pass_is_one_apple():
+    """Two passes over the same apples, from both sides of the row, further apart than the merge window: with
+    cross-pass identity every apple is counted once; without it (today's window), each twice."""
+    rng = np.random.default_rng(16)
+    apples = np.stack([rng.uniform(6.0, 10.0, 25), rng.uniform(2.0, 12.0, 25), rng.uniform(0.8, 3.0, 25)], 1)
+    frames = _two_passes(apples)
+    once = WindowedAssociation(AssociationParams(k=5, merge_window=50)).run(frames)
+    twice = WindowedAssociation(AssociationParams(k=5, merge_window=50, cross_pass=False)).run(frames)
+    assert len(once) == len(apples), (len(once), len(apples))
+    assert len(twice) >= 1.8 * len(apples)
+    assert np.max(nearest_errors(once, apples)) < 0.01
+    # the apples seen on both passes hold both passes' views
+    assert sum(a.first_frame < 70 and a.last_frame >= 110 for a in once) >= 0.8 * len(apples)
+
+
+def test_two_apples_5_cm_apart_on_different_passes_stay_two():
+    apples = np.array([[8.0, 7.0, 2.0], [8.0, 7.05, 2.0]])
+    frames = _two_passes(apples, hide_first=[1], hide_second=[0])
+    found = WindowedAssociation(AssociationParams(k=5, merge_window=50)).run(frames)
+    assert len(found) == 2 and np.max(nearest_errors(found, apples)) < 0.01
