@@ -186,8 +186,21 @@ def score_map(flight: FlightDir, pred: np.ndarray, min_visible: float = 0.5, tru
         "count_error_pct": 100.0 * (count - truth_count) / truth_count if truth_count else float("nan"),
         "median_error_m": float(np.median(dist)) if tp else float("nan"),
         "p95_error_m": float(np.percentile(dist, 95)) if tp else float("nan"),
+        "duplicates": duplicates(pred, truth_xyz),
         "rows": per_row,
     }
+
+
+def duplicates(pred: np.ndarray, truth: np.ndarray, within_m: float = 0.15) -> int:
+    """Apples counted twice: predicted apples beyond the first whose nearest truth apple (within ``within_m``) is the
+    same one."""
+    if not len(pred) or not len(truth):
+        return 0
+    from scipy.spatial import cKDTree
+
+    d, j = cKDTree(truth).query(pred)
+    _, n = np.unique(j[d <= within_m], return_counts=True)
+    return int((n - 1).sum())
 
 
 def evaluate(flight_dir, mode: str = "windowed", params: AssociationParams | None = None,

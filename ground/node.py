@@ -76,6 +76,7 @@ class GroundNode:
         self._first_mapped: float | None = None
         self._live: dict = {}  # what the summary says of the frame being mapped
         self.memory: list[tuple[int, float]] = []  # (frames mapped, resident MB), see sample_memory
+        self.progress: list[tuple[float, int]] = []  # (seconds since start, frames mapped), sampled with memory
         self.latency: list[float] = []
         self.stream = stream  # the filter in front of the pipeline: what it let in and refused
         self.ignored_end_claims = 0  # "finished" statuses contradicted by the stream
@@ -150,8 +151,10 @@ class GroundNode:
         is mapped in one long step); at most 400 samples, thinned evenly."""
         while not stop.wait(period_s):
             self.memory.append((self.pipe.released + 1, round(rss_mb(), 1)))
+            self.progress.append((round(time.monotonic() - self.t_start, 2), self.pipe.released + 1))
             if len(self.memory) > 400:
                 self.memory = self.memory[::2]
+                self.progress = self.progress[::2]
                 period_s *= 2
 
     def link_stats(self) -> dict:
@@ -225,7 +228,8 @@ class GroundNode:
                         "ground_latency_median_s": float(np.median(self.latency)) if self.latency else None,
                         # how long frames waited on the ground, from their message's arrival to being mapped
                         **delay_stats(self.pipe.frame_delays),
-                        "peak_rss_mb": peak_rss_mb(), "rss_mb_by_frames_mapped": self.memory},
+                        "peak_rss_mb": peak_rss_mb(), "rss_mb_by_frames_mapped": self.memory,
+                        "frames_mapped_by_wall_s": self.progress},
             "onboard_status": vars(st).copy() if st else None,
             "link": self.link_stats(),
             "errors": self.errors[-50:],

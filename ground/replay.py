@@ -109,7 +109,7 @@ def evaluate_map(flight: FlightDir, out: Path, min_visible: float = 0.5, match_m
     from ground.evaluate import score_map
 
     keys = ("precision", "recall", "f1", "count", "truth_count", "count_error_pct", "median_error_m", "p95_error_m",
-            "recall_all_apples_in_rows_seen", "rows")
+            "recall_all_apples_in_rows_seen", "duplicates", "rows")
     apples = _enu(flight, out / "apples.csv")
     frames, cams, R_ours = replay_cameras(flight, out)
     res = {}
