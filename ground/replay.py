@@ -225,7 +225,9 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
         for f in logs.values():
             f.close()
     wall = time.monotonic() - t0
-    onboard_error = _onboard_error(out) if failed.is_set() or onboard.returncode not in (0, -signal.SIGINT) else None
+    # the onboard node failed only if it exited by itself (the watcher saw it) or said so in its summary: the exit code
+    # after our own stop (SIGINT, then SIGKILL when closing its zenoh session outlasts stop_process) is not its failure
+    onboard_error = _onboard_error(out) if failed.is_set() else None
     onboard_json = out / "onboard.json"
     summary = json.loads(onboard_json.read_text()) if onboard_json.is_file() else {}
     onboard_error = onboard_error or summary.get("error")
@@ -243,6 +245,7 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
                           "speed": speed if recorded is not None else None})
     if summary:
         report["onboard"] = summary
+    report["onboard_exit_code"] = onboard.returncode
     if onboard_error:  # the map holds what came before the onboard node stopped
         report["onboard_error"] = onboard_error
     if flight.has_truth:
