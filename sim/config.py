@@ -74,6 +74,10 @@ class Flight:
     start_m: float = -15.0
     end_m: float = 15.0
     passes: list[Pass] = field(default_factory=lambda: [Pass()])
+    #: Turns at the row ends: 0 = corners (straight lines between passes, as before); T > 0 = the path and the
+    #: heading smoothed over about T seconds, so the drone slows into the turn, swings round and may look over
+    #: the headland.
+    turn_s: float = 0.0
     fps: float = 10.0
     #: UTC start of the video (ISO 8601), by the autopilot's (true) clock.
     start_utc: str = "2018-12-13T14:00:00Z"
@@ -163,6 +167,7 @@ _CHECKS = [
     ("flight.fps", lambda v: v > 0, "must be > 0"),
     ("flight.tilt_deg", lambda v: 0 <= v < 80, "must be in [0, 80)"),
     ("flight.passes", lambda v: len(v) > 0, "must hold at least one pass"),
+    ("flight.turn_s", lambda v: 0 <= v <= 30, "must be in [0, 30]"),
     ("camera.width", lambda v: 16 <= v <= 3840 and v % 2 == 0, "must be even, in [16, 3840]"),
     ("camera.height", lambda v: 16 <= v <= 2160 and v % 2 == 0, "must be even, in [16, 2160]"),
     ("camera.hfov_deg", lambda v: 5 < v < 150, "must be in (5, 150)"),

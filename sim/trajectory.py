@@ -86,13 +86,17 @@ def build_trajectory(cfg: SimConfig) -> Trajectory:
     xy = np.stack([np.interp(s, s_way, pts[:, 0]), np.interp(s, s_way, pts[:, 1])], 1)
     xy[s < 0] = pts[0] + s[s < 0, None] * d0
     xy[s > length] = pts[-1] + (s[s > length, None] - length) * d1
+    yaw_nom = np.interp(s, s_way, yaws)
+    if f.turn_s > 0:  # round the corners: the path and the heading low-passed over about turn_s
+        sigma = 0.5 * f.turn_s * RATE_HZ
+        xy = gaussian_filter1d(xy, sigma, axis=0, mode="nearest")
+        yaw_nom = gaussian_filter1d(yaw_nom, sigma, mode="nearest")
     # lateral wobble (across the direction of travel, approximated by the across-row axis on passes)
     xy[:, 0] += smooth_noise(rng, n, 3.0, f.lateral_wobble_m)
     xy[:, 1] += smooth_noise(rng, n, 4.0, f.lateral_wobble_m * 0.3)
     z = f.altitude_m + smooth_noise(rng, n, 3.0, f.altitude_wobble_m)
     to_enu = orchard_to_enu_matrix(cfg.orchard.row_azimuth_deg)
     centre = np.column_stack([xy @ to_enu.T, z])
-    yaw_nom = np.interp(s, s_way, yaws)
     aw = f.attitude_wobble_deg
     gimbal = np.column_stack([
         smooth_noise(rng, n, 0.7, aw * 0.6),
