@@ -26,9 +26,6 @@ from pomar import wire
 
 log = logging.getLogger(__name__)
 
-KIND = {wire.FrameMessage: "frames", wire.KeyframeMessage: "keyframes", wire.StatusMessage: "status",
-        wire.CameraMessage: "camera"}
-
 
 class PlayerError(ValueError):
     """A recording that cannot be played; the message names the file."""
@@ -92,7 +89,7 @@ def load_recording(path, flight_id: str | None = None) -> Recording:
             t = t_frame.get(m.frame, t0 + t_last) - t0
         else:
             t = t_last
-        items.append((t, KIND[type(m)], payload, m))
+        items.append((t, wire.kind_of(m), payload, m))
     items.sort(key=lambda it: (it[0], it[1] != "camera"))
     cams = [it for it in items if it[1] == "camera"]
     items = cams[:1] + [it for it in items if it[1] != "camera"]  # the camera first: the ground needs it to start
@@ -103,7 +100,7 @@ def play(rec: Recording, publisher, speed: float = 1.0, progress_s: float = 5.0)
     """Publish the recording's messages at ``speed`` x their capture-time pace (0: at once); returns a summary."""
     start = time.monotonic()
     last_report = start
-    sent = {k: 0 for k in KIND.values()}
+    sent = {k: 0 for k in wire.KINDS}
     finished = False
     for t, kind, payload, msg in rec.items:
         if speed > 0:

@@ -108,9 +108,7 @@ class FlightPublisher:
         self.bytes[kind] += len(payload)
 
     def publish(self, msg) -> None:
-        kind = {wire.FrameMessage: "frames", wire.KeyframeMessage: "keyframes", wire.StatusMessage: "status",
-                wire.CameraMessage: "camera"}[type(msg)]
-        self.put(kind, msg.encode())
+        self.put(wire.kind_of(msg), msg.encode())
 
     def close(self) -> None:
         for p in self._pubs.values():

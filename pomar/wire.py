@@ -404,6 +404,11 @@ def _decode(payload: bytes, from_dict):
         raise WireError(f"malformed message ({type(exc).__name__}: {exc})", "malformed") from None
 
 
+def kind_of(msg) -> str:
+    """The stream (key suffix, one of KINDS) a message goes on."""
+    return {FrameMessage: "frames", KeyframeMessage: "keyframes", StatusMessage: "status", CameraMessage: "camera"}[type(msg)]
+
+
 def decode(payload: bytes):
     """Decode and validate any message by its type field."""
     d = _unpack(payload)
