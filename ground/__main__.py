@@ -78,8 +78,6 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_play(args) -> int:
-    import time
-
     from ground.player import PlayerError, load_recording, play
     from pomar import transport
 
@@ -102,12 +100,7 @@ def _cmd_play(args) -> int:
     summary = play(rec, pub, args.speed)
     print(json.dumps(summary, indent=2))
     write_summary(summary)
-    try:  # closing a session with data still queued loses it: serve the history until stopped
-        time.sleep(args.linger)
-    except KeyboardInterrupt:
-        pass
-    pub.close()
-    session.close()
+    transport.linger_and_close(session, pub, args.linger)
     return 0
 
 
@@ -119,7 +112,7 @@ def _cmd_replay(args) -> int:
         print("error: --recorded plays a recorded stream: no --video or --log with it", file=sys.stderr)
         return 2
     if args.video:  # a flight built from the user's video, log and camera
-        from pomar.assemble import assemble_flight
+        from pomar.assemble import assemble_flight, describe
 
         if args.flight_dir or not (args.log and args.camera):
             print("error: --video needs --log and --camera, and no flight directory", file=sys.stderr)
@@ -130,10 +123,7 @@ def _cmd_replay(args) -> int:
         except ValueError as exc:  # FlightFormatError, CameraFileError, VideoError, TelemetryError: they name the file
             print(f"error: {exc}", file=sys.stderr)
             return 2
-        print(f"flight {built['flight_id']}: {built['frames']} frames at {built['fps']:.3f} fps, start from "
-              f"{built['start_from']}" + (f" (container - log {built['container_minus_log_s']:+.2f} s)"
-                                           if built["container_minus_log_s"] is not None else "")
-              + f"; camera {built['camera']}", file=sys.stderr)
+        print(describe(built), file=sys.stderr)
         flight, args.log = built["flight_dir"], None  # the built flight names its log
     out = Path(args.out or f"out/replay/{Path(flight).name}")
     ground_args = ["--k", str(args.k), "--tau-epipolar", str(args.tau_epipolar), "--tau-geom", str(args.tau_geom),

@@ -128,7 +128,7 @@ class GroundNode:
             latency = now - e.t_capture if abs(now - e.t_capture) < 3600 else None  # None: a replay's recorded times
             if latency is not None:
                 self.latency.append(latency)
-            behind = self.pipe._newest_t - e.t_capture
+            behind = self.pipe.newest_t - e.t_capture
             fps = self.ground_fps()
             self._live = {"frame": e.frame, "behind_s": behind, "ground_fps": fps, "drone_fps": self.pipe.fps}
             if rr is not None:

@@ -109,7 +109,7 @@ class GroundPipeline:
         self.seconds = {"registration": 0.0, "association": 0.0}
         self.gaps: list[tuple[int, int]] = []
         self.frame_times: dict[int, float] = {}
-        self._newest_t = float("-inf")  # the latest capture time of any frame received
+        self.newest_t = float("-inf")  # the latest capture time of any frame received
         self._arrived: dict[int, float] = {}  # frame -> when its message came (monotonic clock)
         self._steps: deque[int] = deque(maxlen=20)  # frame-index steps between the last frames mapped
         self.frame_delays: list[float] = []  # per mapped frame: seconds from its message's arrival to its release
@@ -154,7 +154,7 @@ class GroundPipeline:
             return
         self.pending[msg.frame] = msg
         self.frame_times[msg.frame] = msg.t_capture
-        self._newest_t = max(self._newest_t, msg.t_capture)
+        self.newest_t = max(self.newest_t, msg.t_capture)
         self._arrived[msg.frame] = time.monotonic()
         if self.counters["frames"] == 1 and not self._kf_seen:
             self._last_kf_t = time.monotonic()  # the wait for keyframes starts with the first frame
@@ -198,7 +198,7 @@ class GroundPipeline:
         if not self.s.max_lag_s or len(waiting) < 2:
             return
         t_first = self.frame_times.get(waiting[0])
-        lag = self._newest_t - t_first if t_first is not None else float("nan")
+        lag = self.newest_t - t_first if t_first is not None else float("nan")
         if not lag > self.s.max_lag_s:  # NaN (a frame without a capture time) never thins
             return
         keep, cur, i = [], self._last_kf, 0

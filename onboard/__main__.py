@@ -69,13 +69,11 @@ def _cmd_run(args) -> int:
         if args.flight_dir:
             print("error: give a flight directory or --video/--log/--camera, not both", file=sys.stderr)
             return 2
-        from pomar.assemble import assemble_flight
+        from pomar.assemble import assemble_flight, describe
 
         rep = assemble_flight(args.video, args.log, args.camera, args.flight_out or f"out/flights/{Path(args.video).stem}",
                               flight_id=args.flight_id, clock_offset_s=args.clock_offset_s)
-        print(f"flight {rep['flight_id']}: {rep['frames']} frames at {rep['fps']:.3f} fps; start from {rep['start_from']}"
-              + (f" (container - log {rep['container_minus_log_s']:+.2f} s)" if rep["container_minus_log_s"] is not None
-                 else "") + f"; camera {rep['camera']}; directory {rep['flight_dir']}", file=sys.stderr)
+        print(describe(rep), file=sys.stderr)
         args.flight_dir = rep["flight_dir"]
     elif not args.flight_dir:
         print("error: give a flight directory, or --video, --log and --camera", file=sys.stderr)
@@ -106,7 +104,9 @@ def _cmd_run(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         write_summary({**getattr(exc, "summary", {}), "error": str(exc)})
         code = 1
-    _linger_and_close(args, session, pub)
+    from pomar.transport import linger_and_close
+
+    linger_and_close(session, pub, args.linger)
     return code
 
 
@@ -117,18 +117,6 @@ def _publisher(args, flight_id: str, drone_id: str):
     listen = None if args.zenoh_config else (args.listen or [transport.DEFAULT_ENDPOINT])
     session = transport.open_session(listen=listen, connect=args.connect, config_file=args.zenoh_config)
     return session, transport.FlightPublisher(session, flight_id, drone_id)
-
-
-def _linger_and_close(args, session, pub):
-    """Closing a session with data still queued loses it: keep serving the publisher's history a while."""
-    import time
-
-    try:
-        time.sleep(args.linger)
-    except KeyboardInterrupt:
-        pass
-    pub.close()
-    session.close()
 
 
 def _detector(args, flight_dir=None):
@@ -168,7 +156,9 @@ def _cmd_live(args) -> int:
         print(json.dumps(summary, indent=2))
     finally:
         telemetry.close()
-        _linger_and_close(args, session, pub)
+        from pomar.transport import linger_and_close
+
+        linger_and_close(session, pub, args.linger)
     return 0
 
 

@@ -117,6 +117,14 @@ def start_time(tl: TelemetryLog, fps: float, container_unix: float | None, clock
     return t0, how, offset
 
 
+def describe(report: dict) -> str:
+    """One line on a built flight: frames, start and how it was found, the clock offset, the camera."""
+    offset = report["container_minus_log_s"]
+    return (f"flight {report['flight_id']}: {report['frames']} frames at {report['fps']:.3f} fps, start from "
+            f"{report['start_from']}" + (f" (container - log {offset:+.2f} s)" if offset is not None else "")
+            + f"; camera {report['camera']}; directory {report['flight_dir']}")
+
+
 def assemble_flight(video: str | Path, log_path: str | Path, camera: str, out: str | Path,
                     flight_id: str | None = None, drone_id: str = "drone-1", clock_offset_s: float = 0.0) -> dict:
     """Write the flight directory ``out`` for ``video`` + ``log_path`` + ``camera``; returns what was found (start

@@ -115,6 +115,17 @@ class FlightPublisher:
             p.undeclare()
 
 
+def linger_and_close(session: zenoh.Session, publisher: FlightPublisher, seconds: float) -> None:
+    """Keep serving the publisher's history for ``seconds`` (or until Ctrl-C / SIGINT), then close: closing a session
+    with data still queued loses it."""
+    try:
+        time.sleep(seconds)
+    except KeyboardInterrupt:
+        pass
+    publisher.close()
+    session.close()
+
+
 class FlightSubscriber:
     """Receives one flight's messages through a :class:`pomar.wire.StreamFilter`: decoded, validated, from the
     flight's drones only, frames and keyframes de-duplicated.

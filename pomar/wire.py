@@ -404,9 +404,12 @@ def _decode(payload: bytes, from_dict):
         raise WireError(f"malformed message ({type(exc).__name__}: {exc})", "malformed") from None
 
 
+_KIND_OF = {FrameMessage: "frames", KeyframeMessage: "keyframes", StatusMessage: "status", CameraMessage: "camera"}
+
+
 def kind_of(msg) -> str:
     """The stream (key suffix, one of KINDS) a message goes on."""
-    return {FrameMessage: "frames", KeyframeMessage: "keyframes", StatusMessage: "status", CameraMessage: "camera"}[type(msg)]
+    return _KIND_OF[type(msg)]
 
 
 def decode(payload: bytes):
