@@ -11,6 +11,8 @@ import logging
 import sys
 from pathlib import Path
 
+from pomar.apple_scale import SCALE_HELP, scale_argument
+
 
 def train_arguments(p: argparse.ArgumentParser):
     p.add_argument("--out", type=Path, default=Path("out/export/resnet18"), help="run folder (checkpoints, history)")
@@ -78,6 +80,8 @@ def evaluate_arguments(p: argparse.ArgumentParser):
                    "flight (held out from training and from the scored flights)")
     p.add_argument("--val-add256", type=int, metavar="N", help="choose the operating threshold as the best F1 on N "
                    "ADD256 *training* patches instead (for a model meant for ADD256-like imagery; never the test split)")
+    p.add_argument("--detector-scale", type=scale_argument, default="auto",
+                   help="simulated frames: " + SCALE_HELP + " (ADD256's patches go at their own size)")
     p.add_argument("--json", type=Path, help="write the metrics here")
     p.add_argument("--write-metadata", action="store_true",
                    help="also store the metrics (and the score threshold used) in the model's metadata file")

@@ -27,9 +27,10 @@ log = logging.getLogger(__name__)
 def score(detector, samples, score_thresh: float, progress_name: str) -> dict:
     preds, truths, times = [], [], []
     t_last = time.perf_counter()
-    for i, (img, boxes, ignore) in enumerate(samples):
+    for i, (img, boxes, ignore, *scale) in enumerate(samples):
         t = time.perf_counter()
-        b, s = detector.detect_rgb(img, score_thresh=0.05)  # low threshold: AP needs the whole ranking
+        # low threshold: AP needs the whole ranking
+        b, s = detector.detect_rgb(img, score_thresh=0.05, scale=scale[0] if scale else 1.0)
         times.append(time.perf_counter() - t)
         preds.append((b, s))
         truths.append((boxes, ignore))
@@ -42,19 +43,27 @@ def score(detector, samples, score_thresh: float, progress_name: str) -> dict:
 
 
 def evaluate(model=None, add256=None, sim_flights=(), sim_every: int = 5, min_visible: float = 0.5,
-             score_thresh: float | None = None) -> dict:
+             score_thresh: float | None = None, detector_scale: str = "auto") -> dict:
+    """Scores on ADD256's test split (its patches at their own size) and on simulated flights, whose frames are
+    rescaled as the onboard node does (``detector_scale``: auto from each frame's telemetry, off, or a factor)."""
     from onboard.detector import OnnxDetector
+    from pomar.apple_scale import flight_radius_px, policy_for
+    from pomar.flight import FlightDir
 
     det = OnnxDetector(model)
     thresh = det.score_thresh if score_thresh is None else score_thresh
-    out = {"model": str(det.path), "score_thresh": thresh}
+    policy = policy_for(det, detector_scale)
+    out = {"model": str(det.path), "score_thresh": thresh, "detector_scale": detector_scale}
     test = ((read_rgb(p), b, None) for p, b in add256_split(add256, "test"))
     out["add256_test"] = score(det, test, thresh, "ADD256 test")
     for f in sim_flights:
         frames = load_sim_frames(f, min_visible, every=sim_every)
+        radius = flight_radius_px(FlightDir(f))
         key = "sim" if f == sim_flights[0] else f"sim:{Path(f).name}"  # the first is the headline
-        out[key] = score(det, ((s.image, s.boxes, s.ignore) for s in frames), thresh, key)
-        out[key]["flight"] = str(f)
+        scales = [policy.scale(float(radius[int(s.name.rsplit(":", 1)[1])])) for s in frames]
+        out[key] = score(det, ((s.image, s.boxes, s.ignore, k) for s, k in zip(frames, scales)), thresh, key)
+        out[key].update(flight=str(f), image_size=list(frames[0].image.shape[1::-1]) if frames else None,
+                        scale_median=float(np.median(scales)) if scales else None)
     return out
 
 
@@ -100,7 +109,8 @@ def run(args) -> int:
     if args.val_flight or args.val_add256:
         samples, chosen_on = validation_samples(args)
         thresh = choose_threshold(args.model, samples, chosen_on)
-    res = evaluate(args.model, args.add256, args.sim_flight, args.sim_every, args.min_visible, thresh)
+    res = evaluate(args.model, args.add256, args.sim_flight, args.sim_every, args.min_visible, thresh,
+                   args.detector_scale)
     if chosen_on:
         res["score_thresh_chosen_on"] = chosen_on
     print_table(res)

@@ -14,6 +14,8 @@ import argparse
 import json
 import logging
 import sys
+
+from pomar.apple_scale import SCALE_HELP, scale_argument
 from pathlib import Path
 
 
@@ -60,7 +62,8 @@ def _settings(args):
                           registration=_registration_settings(args),
                           max_wait_s=args.max_wait_s, max_lag_s=args.max_lag_s, max_keyframe_gap=args.max_keyframe_gap,
                           min_score=args.min_score,
-                          confirm_score=args.confirm_score, confirm_views=args.confirm_views)
+                          confirm_score=args.confirm_score, confirm_views=args.confirm_views,
+                          tree_spacing_m=args.tree_spacing_m, min_radius_ratio=args.min_radius_ratio)
 
 
 def _cmd_run(args) -> int:
@@ -132,7 +135,9 @@ def _cmd_replay(args) -> int:
                    "--sift", args.sift, "--max-wait-s", str(args.max_wait_s),
                    "--max-keyframe-gap", str(args.max_keyframe_gap),
                    "--min-score", str(args.min_score), "--confirm-score", str(args.confirm_score),
-                   "--confirm-views", str(args.confirm_views)] + (["--upright"] if args.upright else []) \
+                   "--confirm-views", str(args.confirm_views), "--tree-spacing-m", str(args.tree_spacing_m),
+                   "--min-radius-ratio", str(args.min_radius_ratio)] \
+        + (["--upright"] if args.upright else []) \
         + (["--max-lag-s", str(args.max_lag_s)] if args.realtime else [])  # lock-step: replay() sets 0
     keyframe_every = args.keyframe_every or (1 if args.realtime else 2)
     try:
@@ -141,7 +146,8 @@ def _cmd_replay(args) -> int:
                      ground_args=ground_args, quiet=args.quiet,
                      onboard_args=(["--score-thresh", str(args.detector_score_thresh)] if args.detector_score_thresh else [])
                      + (["--log", args.log] if args.log else [])
-                     + (["--camera-tilt-deg", str(args.camera_tilt_deg)] if args.camera_tilt_deg is not None else []),
+                     + (["--camera-tilt-deg", str(args.camera_tilt_deg)] if args.camera_tilt_deg is not None else [])
+                     + ["--detector-scale", args.detector_scale],
                      recorded=args.recorded, speed=args.speed)
     except ReplayError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -230,6 +236,11 @@ def _ground_options(p):
     p.add_argument("--confirm-score", type=float, default=g.confirm_score,
                    help="an apple counts once --confirm-views of its views scored this much")
     p.add_argument("--confirm-views", type=int, default=g.confirm_views, help="see --confirm-score")
+    p.add_argument("--min-radius-ratio", type=float, default=g.min_radius_ratio,
+                   help="size check: an apple counts only if its radius (boxes x depth) is at least this fraction of "
+                        "the map's median (a partly hidden apple looks small); 0 = off")
+    p.add_argument("--tree-spacing-m", type=float, default=g.tree_spacing_m,
+                   help="trees along a row are this far apart (m): trees.csv counts apples per tree segment")
 
 
 def main(argv=None) -> int:
@@ -276,6 +287,7 @@ def main(argv=None) -> int:
     rp.add_argument("--detector-score-thresh", type=float, default=0.7,
                     help="the onboard detector's score threshold: weaker detections extend tracks, "
                          "--confirm-score decides which apples count")
+    rp.add_argument("--detector-scale", type=scale_argument, default="auto", help=SCALE_HELP)
     rp.add_argument("--keyframe-every", type=int,
                     help="every Nth processed frame also goes as a keyframe (default: 2 in lock-step; 1 with "
                          "--realtime, where processed frames are further apart and the ground skips what it cannot "

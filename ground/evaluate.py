@@ -175,9 +175,11 @@ def score_map(flight: FlightDir, pred: np.ndarray, min_visible: float = 0.5, tru
         across = np.median(pred[sel, :2] @ normal)
         r = int(truth_rows_id[np.argmin(np.abs(truth_rows_x - across))])
         km_sel = rows_km == lab
+        tv = int((is_visible & (a["row"] == r)).sum())
         per_row.append({"row": r, "count": int(sel.sum()), "count_kmeans": int(km_sel.sum()),
-                        "truth_visible": int((is_visible & (a["row"] == r)).sum()),
-                        "truth_all": int((a["row"] == r).sum())})
+                        "truth_visible": tv, "truth_all": int((a["row"] == r).sum()),
+                        "count_error_pct": 100.0 * (int(sel.sum()) - tv) / tv if tv else float("nan")})
+    trees = per_tree(pred, truth_xyz[is_visible], a["row"][is_visible], truth_rows_id, truth_rows_x, direction)
 
     return {
         "precision": precision, "recall": recall, "f1": f1,
@@ -188,7 +190,42 @@ def score_map(flight: FlightDir, pred: np.ndarray, min_visible: float = 0.5, tru
         "p95_error_m": float(np.percentile(dist, 95)) if tp else float("nan"),
         "duplicates": duplicates(pred, truth_xyz),
         "rows": per_row,
+        "worst_row_error_pct": max((abs(r["count_error_pct"]) for r in per_row
+                                    if r["truth_visible"] >= MIN_ROW_APPLES), default=float("nan")),
+        "trees": trees,
     }
+
+
+#: Rows with fewer visible apples (the edge of the view) are left out of the per-row and per-tree scores.
+MIN_ROW_APPLES = 30
+
+
+def per_tree(pred: np.ndarray, truth: np.ndarray, truth_row: np.ndarray, rows_id: np.ndarray, rows_across: np.ndarray,
+             direction: float, bin_m: float = 1.0) -> dict:
+    """Per-tree counts against the truth: each row with at least MIN_ROW_APPLES visible apples is cut into
+    ``bin_m`` bins along the row over its visible apples' span; predicted apples go to the nearest truth row.
+    Pearson r of predicted against visible apples per bin, over all such rows' bins, and the bins' mean
+    absolute error."""
+    u = np.array([np.cos(direction), np.sin(direction)])
+    n = np.array([-u[1], u[0]])
+    pred_row = rows_id[np.argmin(np.abs(pred[:, :2] @ n - rows_across[None, :].T), axis=0)] if len(pred) else \
+        np.zeros(0, int)
+    p_all, t_all = [], []
+    for r in rows_id:
+        t_sel = truth_row == r
+        if t_sel.sum() < MIN_ROW_APPLES:
+            continue
+        ta = truth[t_sel, :2] @ u
+        lo = np.floor(ta.min())
+        nb = int(np.ceil(ta.max() - lo + 1e-9 + 1e-6 / bin_m))
+        edges = lo + np.arange(nb + 1) * bin_m
+        t_all.append(np.histogram(ta, edges)[0])
+        p_all.append(np.histogram(pred[pred_row == r, :2] @ u, edges)[0])
+    if not t_all:
+        return {"bins": 0, "r": float("nan"), "mae": float("nan")}
+    p, t = np.concatenate(p_all).astype(float), np.concatenate(t_all).astype(float)
+    r = float(np.corrcoef(p, t)[0, 1]) if len(p) > 2 and p.std() > 0 and t.std() > 0 else float("nan")
+    return {"bins": int(len(t)), "r": r, "mae": float(np.abs(p - t).mean()), "truth_mean": float(t.mean())}
 
 
 def duplicates(pred: np.ndarray, truth: np.ndarray, within_m: float = 0.15) -> int:

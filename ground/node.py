@@ -184,7 +184,7 @@ class GroundNode:
         table = self.pipe.table()
         poses = self.pipe.poses
         rows = write_map(self.out, table, getattr(self.pipe, "row_direction", 0.0),
-                         poses.origin if poses is not None else None)
+                         poses.origin if poses is not None else None, self.settings.tree_spacing_m)
         cams = self.pipe.pose_table()
         write_atomic(self.out / "poses.csv", poses_csv(cams))
         report = self.report(table, rows, final)
@@ -208,6 +208,8 @@ class GroundNode:
         r = {
             "flight_id": p.flight_id, "drone_id": p.drone_id, "final": final,
             "apples": int(len(table["id"])), "rows": rows,
+            "size_check": {"min_radius_ratio": self.settings.min_radius_ratio, "left_out": p.size_rejected,
+                           "confirmed": len(p.apples)},
             "frames": dict(p.counters), "gaps": p.gaps[:100],
             # what share of the mapped frames got each kind of pose
             "pose_shares": {k: p.counters[k] / max(1, sum(p.counters[j] for j in POSE_SOURCES)) for k in POSE_SOURCES},

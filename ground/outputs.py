@@ -6,6 +6,9 @@
 - ``apples.ply``: ASCII point cloud in ENU, coloured by row;
 - ``rows.csv``: row, count, length (m, along the row direction), apples per metre, and the row's line:
   start and end in ENU and WGS84 (the span of its apples along the row, at their median across-row offset);
+- ``trees.csv``: row, tree (1.. from the row's start), position along the row (m, the segment's centre from the
+  row's start), the segment's centre (ENU and WGS84), and its count: each row's line cut into segments one tree
+  spacing long;
 - ``poses.csv``: every mapped frame's camera (centre in ENU and WGS84, rotation, pose source);
 - ``report.json``: counts, settings, timings (written by the caller through :func:`write_json`).
 """
@@ -137,6 +140,43 @@ def rows_csv(rows: list[dict]) -> str:
     return buf.getvalue()
 
 
+TREE_COLUMNS = ["row", "tree", "along_m", "x", "y", "lat", "lon", "count"]
+
+
+def trees_summary(table: dict, rows: list[dict], direction: float, spacing_m: float, origin=None) -> list[dict]:
+    """Per tree: each row's line (rows_summary) cut into segments ``spacing_m`` long from its start; an apple
+    belongs to the segment its position along the row falls in (those beyond the line's ends to the end segments)."""
+    if spacing_m <= 0:
+        raise ValueError(f"tree spacing must be > 0 m, got {spacing_m}")
+    out = []
+    u = np.array([np.cos(direction), np.sin(direction)])
+    xy = np.stack([table["x"], table["y"]], 1) if len(table["id"]) else np.zeros((0, 2))
+    for r in rows:
+        start = np.array([r["start_x"], r["start_y"]])
+        n = max(1, int(np.ceil(r["length_m"] / spacing_m - 1e-9)))
+        sel = np.asarray(table["row"]) == r["row"]
+        k = np.clip(np.floor((xy[sel] - start) @ u / spacing_m), 0, n - 1).astype(int)
+        counts = np.bincount(k, minlength=n)
+        along = (np.arange(n) + 0.5) * spacing_m
+        centres = start + along[:, None] * u
+        geo = (np.asarray(origin.to_geodetic(np.column_stack([centres, np.full(n, r.get("z", 0.0))])))
+               if origin is not None else np.full((n, 3), np.nan))
+        out += [{"row": r["row"], "tree": i + 1, "along_m": float(along[i]), "x": float(centres[i, 0]),
+                 "y": float(centres[i, 1]), "lat": float(geo[i, 0]), "lon": float(geo[i, 1]), "count": int(counts[i])}
+                for i in range(n)]
+    return out
+
+
+def trees_csv(trees: list[dict]) -> str:
+    fmt = {"along_m": ".2f", "x": ".3f", "y": ".3f", "lat": ".9f", "lon": ".9f"}
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(TREE_COLUMNS)
+    for t in trees:
+        w.writerow([format(t[c], fmt.get(c, "")) for c in TREE_COLUMNS])
+    return buf.getvalue()
+
+
 POSE_COLUMNS = ["frame", "t_unix", "source", "x", "y", "z", "lat", "lon", "alt", "qw", "qx", "qy", "qz", "sigma_m"]
 
 
@@ -151,10 +191,11 @@ def poses_csv(poses: dict) -> str:
     return buf.getvalue()
 
 
-def write_map(out_dir: Path, table: dict, direction: float, origin=None) -> list[dict]:
-    """apples.csv, apples.geojson, apples.ply and rows.csv; returns the rows summary."""
+def write_map(out_dir: Path, table: dict, direction: float, origin=None, tree_spacing_m: float = 1.0) -> list[dict]:
+    """apples.csv, apples.geojson, apples.ply, rows.csv and trees.csv; returns the rows summary."""
     out = Path(out_dir)
     rows = rows_summary(table, direction, origin)
+    write_atomic(out / "trees.csv", trees_csv(trees_summary(table, rows, direction, tree_spacing_m, origin)))
     write_atomic(out / "apples.csv", apples_csv(table))
     write_atomic(out / "apples.geojson", apples_geojson(table))
     write_atomic(out / "apples.ply", apples_ply(table))

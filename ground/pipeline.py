@@ -68,6 +68,12 @@ class GroundSettings:
     #: for: an apple is in fewer of the frames sent (real-time replays, journal re-run: bundled flight F1
     #: 0.742 -> 0.776, count -40 % -> -32 %; second flight 0.802 -> 0.852, -30 % -> -20 %).
     confirm_views: int = 3
+    #: Trees along a row are this far apart (m): trees.csv cuts each row's line into segments this long.
+    tree_spacing_m: float = 1.0
+    #: 3-D size consistency: an apple counts only if its radius (boxes x depth) is at least this fraction of the
+    #: median radius of the apples mapped (once MIN_SIZED apples have one); 0 = off. An apple half hidden by
+    #: leaves shows a smaller box than it is: partly hidden apples of the far rows, seen through the near row.
+    min_radius_ratio: float = 0.0
 
 
 @dataclass
@@ -94,12 +100,14 @@ class GroundPipeline:
         self._scores: dict[int, np.ndarray] = {}  # stream frame -> scores of the detections it fed
         self._boxes: dict[int, np.ndarray] = {}  # stream frame -> (n, 4) boxes of those detections (xyxy, px)
         self.radius_m: dict[int, float] = {}  # apple id -> radius estimated from its boxes and depths
+        self.size_rejected = 0  # confirmed apples left out of the map by the size check (counted_ids)
         self._confirmed: dict[int, int] = {}  # apple id -> views scored confirm_score or more
         self.pending: dict[int, wire.FrameMessage] = {}
         self.keyframes: dict[int, bytes] = {}  # waiting for registration
         self._kf_for_event: dict[int, bytes] = {}
         self._kf_seen: set[int] = set()
         self._last_kf_t = time.monotonic()
+        self._last_kf_capture = float("nan")  # capture time of the last keyframe's frame (or of the first frame)
         self._last_kf: int | None = None  # the last keyframe given to registration
         self.released = -1
         self.status: wire.StatusMessage | None = None
@@ -156,8 +164,9 @@ class GroundPipeline:
         self.frame_times[msg.frame] = msg.t_capture
         self.newest_t = max(self.newest_t, msg.t_capture)
         self._arrived[msg.frame] = time.monotonic()
-        if self.counters["frames"] == 1 and not self._kf_seen:
+        if self.counters["frames"] == 0 and not self._kf_seen:
             self._last_kf_t = time.monotonic()  # the wait for keyframes starts with the first frame
+            self._last_kf_capture = msg.t_capture
         self.counters["frames"] += 1
         if self.poses is not None:
             t = msg.telemetry
@@ -168,6 +177,7 @@ class GroundPipeline:
             return
         self._kf_seen.add(msg.frame)
         self._last_kf_t = time.monotonic()
+        self._last_kf_capture = self.frame_times.get(msg.frame, self.newest_t)
         self.keyframes[msg.frame] = msg.jpeg
         self.counters["keyframes"] += 1
 
@@ -218,7 +228,11 @@ class GroundPipeline:
                      lag, len(skipped), len(waiting))
 
     def _stalled(self) -> bool:
-        return time.monotonic() - self._last_kf_t > self.s.max_wait_s
+        """No keyframe for max_wait_s, while the frames went on for max_wait_s of flight past the last one: the
+        drone stopped sending keyframes. A slow onboard detector delays frames and keyframes alike and stalls
+        nothing."""
+        flown = self.newest_t - self._last_kf_capture
+        return time.monotonic() - self._last_kf_t > self.s.max_wait_s and not flown <= self.s.max_wait_s
 
     def _first_keyframe_width(self) -> int | None:
         for jpeg in self.keyframes.values():
@@ -361,10 +375,25 @@ class GroundPipeline:
                 "qw": q[:, 3], "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2],
                 "sigma_m": np.array([p.sigma_m for p in P])}
 
+    #: Apples with a radius needed before the size check applies.
+    MIN_SIZED = 20
+
+    def counted_ids(self) -> list[int]:
+        """The apples that count: those confirmed, less those too small for their size to be whole (size check)."""
+        ids = sorted(self.apples)
+        r = np.array([self.radius_m.get(i, np.nan) for i in ids], float)
+        ok = np.isfinite(r)
+        self.size_rejected = 0
+        if self.s.min_radius_ratio > 0 and ok.sum() >= self.MIN_SIZED:
+            small = ok & (r < self.s.min_radius_ratio * np.median(r[ok]))
+            self.size_rejected = int(small.sum())
+            ids = [i for i, sm in zip(ids, small) if not sm]
+        return ids
+
     def table(self) -> dict[str, np.ndarray]:
         """Apples as columns: id, x y z (ENU), lat lon alt, row (1..N), radius, observations, reprojection error,
         first/last frame."""
-        ids = sorted(self.apples)
+        ids = self.counted_ids()
         A = [self.apples[i] for i in ids]
         X = np.array([a.X for a in A]).reshape(-1, 3)
         enu = self.poses.to_enu(X) if self.poses is not None and len(X) else X

@@ -109,7 +109,7 @@ def evaluate_map(flight: FlightDir, out: Path, min_visible: float = 0.5, match_m
     from ground.evaluate import score_map
 
     keys = ("precision", "recall", "f1", "count", "truth_count", "count_error_pct", "median_error_m", "p95_error_m",
-            "recall_all_apples_in_rows_seen", "duplicates", "rows")
+            "recall_all_apples_in_rows_seen", "duplicates", "rows", "worst_row_error_pct", "trees")
     apples = _enu(flight, out / "apples.csv")
     frames, cams, R_ours = replay_cameras(flight, out)
     res = {}
@@ -147,6 +147,10 @@ def format_evaluation(ev: dict) -> str:
         lines.append("rows: truth row, count (row direction), count (K-means), truth visible")
         for r in ev["rows"]:
             lines.append(f"  row {r['row']:>2}: {r['count']:>5} {r['count_kmeans']:>5} {r['truth_visible']:>5}")
+    tr = ev.get("trees")
+    if tr and tr["bins"]:
+        lines.append(f"trees (1-m bins along rows of 30+ visible apples): {tr['bins']} bins, r {tr['r']:.3f}, mean "
+                     f"absolute error {tr['mae']:.2f} apples (truth mean {tr['truth_mean']:.2f})")
     a = ev["absolute"]
     lines.append(f"absolute (where GPS put the map): F1 {a['f1']:.3f}, median error "
                  f"{a['median_error_m'] if a['median_error_m'] == a['median_error_m'] else float('nan'):.3f} m")

@@ -12,6 +12,8 @@ import argparse
 import logging
 import sys
 
+from pomar.apple_scale import SCALE_HELP, scale_argument
+
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 
@@ -61,7 +63,8 @@ def _cmd_run(args) -> int:
     settings = NodeSettings(lockstep=not args.realtime, every=args.every, keyframe_every=args.keyframe_every,
                             keyframe_every_s=args.keyframe_every_s, keyframe_every_m=args.keyframe_every_m,
                             keyframe_width=args.keyframe_width, jpeg_quality=args.jpeg_quality, log=args.log,
-                            camera_tilt_deg=args.camera_tilt_deg, clock_offset_s=args.clock_offset_s)
+                            camera_tilt_deg=args.camera_tilt_deg, clock_offset_s=args.clock_offset_s,
+                            detector_scale=args.detector_scale)
     if args.video:
         if not (args.log and args.camera):
             print("error: --video needs --log and --camera", file=sys.stderr)
@@ -152,7 +155,7 @@ def _cmd_live(args) -> int:
         summary = run_live(args.camera, telemetry, camera, args.flight_id, args.drone_id, pub, detector,
                            KeyframePolicy(args.keyframe_every, args.keyframe_every_s, args.keyframe_every_m),
                            args.keyframe_width, args.jpeg_quality, args.clock_offset_s, play_fps=args.play_fps,
-                           max_frames=args.max_frames, duration_s=args.duration)
+                           max_frames=args.max_frames, duration_s=args.duration, detector_scale=args.detector_scale)
         print(json.dumps(summary, indent=2))
     finally:
         telemetry.close()
@@ -169,6 +172,7 @@ def _detector_options(r):
     r.add_argument("--score-thresh", type=float, help="detection score threshold (default: the model's)")
     r.add_argument("--tile-size", type=int, default=1344, help="frames larger than this are tiled")
     r.add_argument("--threads", type=int, help="onnxruntime intra-op threads")
+    r.add_argument("--detector-scale", type=scale_argument, default="auto", help=SCALE_HELP)
 
 
 def _link_options(r, keyframe_every=2):

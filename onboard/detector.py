@@ -116,6 +116,9 @@ class OnnxDetector:
         self.input_name = self.session.get_inputs()[0].name
         self.score_thresh = float(score_thresh if score_thresh is not None else self.meta.get("score_thresh", 0.5))
         self.tile_size, self.overlap, self.nms_iou = int(tile_size), int(overlap), float(nms_iou)
+        #: the apple radius (px) the model detects best, where the optical axis meets the canopy (its metadata;
+        #: None: the model does not say, and frames go at their own size)
+        self.apple_radius_px = self.meta.get("apple_radius_px")
         if self.overlap * 2 >= self.tile_size:
             raise ValueError("overlap must be less than half the tile size")
 
@@ -124,10 +127,23 @@ class OnnxDetector:
         boxes, scores = self.session.run(None, {self.input_name: x})[:2]
         return boxes.reshape(-1, 4).astype(np.float32), scores.reshape(-1).astype(np.float32)
 
-    def detect_rgb(self, rgb: np.ndarray, score_thresh: float | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(boxes (N, 4), scores (N,)) of an RGB uint8 image, scores at least ``score_thresh``."""
+    def detect_rgb(self, rgb: np.ndarray, score_thresh: float | None = None,
+                   scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """(boxes (N, 4), scores (N,)) of an RGB uint8 image, scores at least ``score_thresh``. With ``scale`` != 1
+        the image is resized by it first (apples at the model's size, see pomar.apple_scale); the boxes are in the
+        given image's pixels either way."""
         if rgb.ndim != 3 or rgb.shape[2] != 3:
             raise ValueError(f"expected an HxWx3 image, got shape {rgb.shape}")
+        if scale != 1.0:
+            import cv2
+
+            h, w = rgb.shape[:2]
+            size = (max(1, round(w * scale)), max(1, round(h * scale)))
+            small = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
+            boxes, scores = self.detect_rgb(small, score_thresh)
+            s = np.array([size[0] / w, size[1] / h, size[0] / w, size[1] / h], np.float32)
+            # OpenCV's resize maps pixel centres: x_small = (x + 0.5) * s - 0.5
+            return ((boxes + 0.5) / s - 0.5).astype(np.float32), scores
         thresh = self.score_thresh if score_thresh is None else score_thresh
         h, w = rgb.shape[:2]
         all_b, all_s = [], []
@@ -150,6 +166,6 @@ class OnnxDetector:
         order = np.argsort(-scores, kind="stable")
         return boxes[order], scores[order]
 
-    def detect(self, frame: int, image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def detect(self, frame: int, image: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Same call as the other onboard detectors: a frame index and its BGR image (OpenCV's order)."""
-        return self.detect_rgb(np.ascontiguousarray(image[..., ::-1]))
+        return self.detect_rgb(np.ascontiguousarray(image[..., ::-1]), scale=scale)

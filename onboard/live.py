@@ -20,6 +20,8 @@ import numpy as np
 from onboard.node import KeyframePolicy, encode_jpeg
 from onboard.sources import LatestFrame, VideoSource
 from pomar import wire
+from pomar.camera import Camera
+from pomar.apple_scale import policy_for, scale_summary, telemetry_radius_px
 
 log = logging.getLogger(__name__)
 
@@ -59,13 +61,17 @@ def sample_when_bracketed(telemetry, t: float, deadline: float) -> dict:
 def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str, publisher, detector,
              keyframes: KeyframePolicy, keyframe_width: int = 960, jpeg_quality: int = 85, clock_offset_s: float = 0.0,
              telemetry_max_wait_s: float = 1.0, play_fps: float | None = None, max_frames: int | None = None,
-             duration_s: float | None = None, status_period_s: float = 1.0) -> dict:
+             duration_s: float | None = None, status_period_s: float = 1.0, detector_scale: str = "auto") -> dict:
     """Run until the source ends, ``max_frames`` frames were processed or ``duration_s`` passed."""
     publisher.publish(wire.CameraMessage(flight_id, drone_id, camera, play_fps or 0.0, time.time()))
+    camera_fx = Camera.from_dict(camera).fx
     frames = StampedFrames(VideoSource(camera_url), fps=play_fps)
     t0 = last_status = time.monotonic()
     processed = kf = detections = 0
     det_s = 0.0
+    scaling = policy_for(detector, detector_scale)
+    expected = float("nan")  # the last frame's foreseen apple radius (px): this frame's scale (height changes slowly)
+    scales = []
     flagged = 0
     latencies = []
 
@@ -78,16 +84,19 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
         for i, img in frames:
             t_read = frames.read_time.get(i, time.time())
             t_capture = t_read + clock_offset_s
+            scale = scaling.scale(expected)
             td = time.perf_counter()
-            boxes, scores = detector.detect(i, img)
+            boxes, scores = detector.detect(i, img, scale)
             det_s += time.perf_counter() - td
+            scales.append(scale)
             s = sample_when_bracketed(telemetry, t_capture, t_read + telemetry_max_wait_s)
+            expected = float(telemetry_radius_px(camera_fx, s)[0])
             tel = wire.Telemetry(float(s["lat"][0]), float(s["lon"][0]), float(s["alt"][0]),
                                  tuple(map(float, s["q_attitude"][0])), tuple(map(float, s["q_gimbal"][0])),
                                  int(s["gps_fix"][0]), float(s["h_acc"][0]), int(s["flags"][0]))
             flagged += tel.flags != 0
             publisher.publish(wire.FrameMessage(flight_id, drone_id, i, t_capture, tel, img.shape[1], img.shape[0],
-                                                boxes, scores))
+                                                boxes, scores, scale=scale))
             if keyframes.due(t_capture, tel.lat, tel.lon, tel.alt):
                 publisher.publish(wire.KeyframeMessage(flight_id, drone_id, i, encode_jpeg(img, keyframe_width, jpeg_quality)))
                 kf += 1
@@ -106,6 +115,6 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
     return {"flight": flight_id, "frames_read": frames.read, "frames_processed": processed,
             "frames_dropped": frames.dropped, "keyframes": kf, "detections": detections,
             "telemetry_flagged_frames": int(flagged), "seconds": elapsed, "frames_per_s": processed / max(elapsed, 1e-9),
-            "detector_latency_s": det_s / max(processed, 1),
+            "detector_latency_s": det_s / max(processed, 1), "detector_scale": scale_summary(scales),
             "read_to_publish_median_s": float(np.median(latencies)) if latencies else None,
             "error": str(frames.error) if frames.error else None}

@@ -20,6 +20,7 @@ import numpy as np
 from onboard.sources import LatestFrame, SourceError, VideoSource
 from pomar.telemetry import Flags, TelemetryError, read_log
 from pomar import wire
+from pomar.apple_scale import policy_for, scale_summary, telemetry_radius_px
 from pomar.flight import FlightDir
 
 log = logging.getLogger(__name__)
@@ -77,6 +78,7 @@ class NodeSettings:
     clock_offset_s: float = 0.0  # camera clock minus autopilot clock, when there are no capture records
     log: str | None = None  # a telemetry log of any supported format, instead of the flight directory's .tlog
     camera_tilt_deg: float | None = None  # for logs without gimbal attitudes: the camera's fixed pitch below horizon
+    detector_scale: str = "auto"  # frames resized so apples reach the model at its size (pomar.apple_scale); off; or a number
 
 
 def encode_jpeg(img: np.ndarray, width: int, quality: int) -> bytes:
@@ -99,7 +101,7 @@ class OnboardNode:
         self.s = settings or NodeSettings()
         self.inputs = None  # check_inputs()'s result
         self.stats = {"frames_read": 0, "frames_processed": 0, "frames_dropped": 0, "keyframes": 0,
-                      "detections": 0, "detector_seconds": 0.0, "read_to_publish_seconds": []}
+                      "detections": 0, "detector_seconds": 0.0, "read_to_publish_seconds": [], "scales": []}
 
     def _status(self, meta, state: str, t0: float, message: str = "") -> None:
         st = self.stats
@@ -135,11 +137,17 @@ class OnboardNode:
         if meta.frame_count and (tel["flags"] & Flags.NO_GIMBAL).all():
             log.warning("%s has no camera attitude (no gimbal reports): frames get poses from the images alone; "
                         "give the camera's mount tilt (--camera-tilt-deg) to use the vehicle's attitude", log_path)
+        tel["expected_radius_px"] = telemetry_radius_px(cam.fx, tel)
+        if self.s.detector_scale == "auto" and not np.isfinite(tel["expected_radius_px"]).any():
+            log.warning("%s places no take-off point (no relative altitude) or no camera attitude: the apple size "
+                        "cannot be foreseen, and frames go to the detector at their own size (--detector-scale N sets "
+                        "one scale)", log_path)
         self.inputs = (meta, cam, t_frames, tel)
         return self.inputs
 
     def run(self) -> dict:
         meta, cam, t_frames, tel = self.inputs or self.check_inputs()
+        scaling = policy_for(self.detector, self.s.detector_scale)  # the detector may come after check_inputs()
         self.pub.publish(wire.CameraMessage(meta.flight_id, meta.drone_id, cam.to_dict(), meta.fps, meta.video_start_utc))
         source = VideoSource(self.flight.video, self.s.every, expected_frames=meta.frame_count)
         frames = source if self.s.lockstep else LatestFrame(source, fps=meta.fps)
@@ -150,14 +158,16 @@ class OnboardNode:
         try:
             for i, img in frames:
                 t_read = time.perf_counter()
+                scale = scaling.scale(float(tel["expected_radius_px"][i]))
                 td = time.perf_counter()
-                boxes, scores = self.detector.detect(i, img)
+                boxes, scores = self.detector.detect(i, img, scale)
                 self.stats["detector_seconds"] += time.perf_counter() - td
+                self.stats["scales"].append(scale)
                 telemetry = wire.Telemetry(float(tel["lat"][i]), float(tel["lon"][i]), float(tel["alt"][i]),
                                            tuple(map(float, tel["q_attitude"][i])), tuple(map(float, tel["q_gimbal"][i])),
                                            int(tel["gps_fix"][i]), float(tel["h_acc"][i]), int(tel["flags"][i]))
                 self.pub.publish(wire.FrameMessage(meta.flight_id, meta.drone_id, i, float(t_frames[i]), telemetry,
-                                                   img.shape[1], img.shape[0], boxes, scores))
+                                                   img.shape[1], img.shape[0], boxes, scores, scale=scale))
                 if policy.due(float(t_frames[i]), telemetry.lat, telemetry.lon, telemetry.alt):
                     jpeg = encode_jpeg(img, self.s.keyframe_width, self.s.jpeg_quality)
                     self.pub.publish(wire.KeyframeMessage(meta.flight_id, meta.drone_id, i, jpeg))
@@ -184,6 +194,7 @@ class OnboardNode:
             "keyframes": self.stats["keyframes"], "detections": self.stats["detections"],
             "seconds": elapsed, "frames_per_s": processed / max(elapsed, 1e-9),
             "detector_latency_s": self.stats["detector_seconds"] / max(processed, 1),
+            "detector_scale": scale_summary(self.stats["scales"]),
             "read_to_publish_median_s": float(np.median(lat)),
             "bytes_per_message": {k: self.pub.bytes[k] / max(self.pub.sent[k], 1) for k in wire.KINDS},
             "telemetry_flagged_frames": int((tel["flags"] != 0).sum()), "error": str(error) if error else None,

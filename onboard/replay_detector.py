@@ -24,8 +24,10 @@ class TruthReplayDetector:
         self._uvr = np.stack([d["u"], d["v"], d["r_px"]], 1)[keep][order]
         self._score = np.ones(int(keep.sum()), np.float32)
 
-    def detect(self, frame: int, image: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """(boxes (N, 4) x1 y1 x2 y2, OpenCV pixels; scores (N,)) of a frame."""
+    apple_radius_px = None  # the truth needs no rescaling
+
+    def detect(self, frame: int, image: np.ndarray | None = None, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """(boxes (N, 4) x1 y1 x2 y2, OpenCV pixels; scores (N,)) of a frame; ``scale`` changes nothing."""
         lo, hi = np.searchsorted(self._frame, [frame, frame + 1])
         u, v, r = self._uvr[lo:hi].T
         r = np.maximum(r, 1.0)

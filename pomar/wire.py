@@ -2,7 +2,8 @@
 
 Key expressions, under ``pomar/<flight_id>/<drone_id>/``:
 
-- ``frames``    one :class:`FrameMessage` per processed frame: telemetry at capture + detections
+- ``frames``    one :class:`FrameMessage` per processed frame: telemetry at capture + detections (and the
+  scale the frame was resized by for the detector; optional, 1 when absent)
 - ``keyframes`` one :class:`KeyframeMessage` per keyframe: frame index + JPEG bytes
 - ``status``    :class:`StatusMessage`: rates, drops, detector latency, heartbeat
 - ``camera``    :class:`CameraMessage`: the flight's camera.json, so the ground needs no file from the drone
@@ -225,6 +226,8 @@ class FrameMessage:
     boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 4), np.float32))  # (N, 4) x1 y1 x2 y2
     scores: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32))  # (N,)
     camera_id: str = "cam0"
+    #: The factor the frame was resized by before detection (boxes are in the full frame's pixels all the same).
+    scale: float = 1.0
 
     @property
     def centres(self) -> np.ndarray:
@@ -240,7 +243,7 @@ class FrameMessage:
             "v": SCHEMA_VERSION, "type": "frame", "flight": self.flight_id, "drone": self.drone_id,
             "frame": int(self.frame), "t": float(self.t_capture), "tel": self.telemetry.to_list(),
             "w": int(self.width), "h": int(self.height), "cam": self.camera_id,
-            "n": len(b), "boxes": b.tobytes(), "scores": s.tobytes(),
+            "n": len(b), "boxes": b.tobytes(), "scores": s.tobytes(), "scale": float(self.scale),
         }, use_bin_type=True)
 
     @classmethod
@@ -275,7 +278,8 @@ class FrameMessage:
                             "box_outside_image")
         return cls(_str("flight", d["flight"]), _str("drone", d["drone"]), frame,
                    _float(f"{where}: capture time", d["t"], 0.0, 2.0**33), Telemetry.from_list(d["tel"]), w, h,
-                   boxes, scores, _str(f"{where}: camera id", d.get("cam", "cam0")))
+                   boxes, scores, _str(f"{where}: camera id", d.get("cam", "cam0")),
+                   _float(f"{where}: detector scale", d.get("scale", 1.0), 0.01, 16.0))
 
 
 @dataclass

@@ -102,9 +102,19 @@ class TelemetryLog:
     #: Per-frame video times from the log itself (a DJI .SRT has one entry per frame or per second): seconds
     #: from the video's start -> unix time. Empty for logs that know nothing of the video.
     video_clock: Series = field(default_factory=lambda: Series.empty(1))
+    #: The take-off (home) point's altitude in ``alt``'s reference, where the log says it (a relative altitude
+    #: beside the absolute one): the height above the ground is alt - home_alt. None where the log does not say.
+    home_alt: float | None = None
 
     def __post_init__(self):
+        if self.home_alt is None and self.altitude_reference == "takeoff":
+            self.home_alt = 0.0
         self.find_gaps()
+
+    def height_above_home(self, alt) -> np.ndarray:
+        """Heights (m) above the take-off point of altitudes in this log's reference; NaN where home is unknown."""
+        a = np.asarray(alt, float)
+        return a - self.home_alt if self.home_alt is not None else np.full_like(a, np.nan)
 
     def find_gaps(self) -> None:
         self.gaps = []
@@ -136,6 +146,7 @@ class TelemetryLog:
             if self._streams() else None
         return {
             "path": self.path, "format": self.format, "clock": self.clock, "altitude_reference": self.altitude_reference,
+            "home_alt": self.home_alt,
             "positions": int(len(pos)),
             "lat_range": [float(pos.values[ok, 0].min()), float(pos.values[ok, 0].max())] if ok.any() else None,
             "lon_range": [float(pos.values[ok, 1].min()), float(pos.values[ok, 1].max())] if ok.any() else None,
@@ -171,8 +182,8 @@ class TelemetryLog:
         return t, flags
 
     def at(self, t: np.ndarray, mount_tilt_deg: float | None = None) -> dict[str, np.ndarray]:
-        """Telemetry at times t (unix s, the log's clock): lat, lon, alt, q_attitude, q_gimbal (wxyz), gps_fix,
-        h_acc, flags. Values outside a stream are NaN; frames in a gap are interpolated and flagged.
+        """Telemetry at times t (unix s, the log's clock): lat, lon, alt, height (above home; NaN where the log does
+        not place home), q_attitude, q_gimbal (wxyz), gps_fix, h_acc, flags. Values outside a stream are NaN; frames in a gap are interpolated and flagged.
 
         A log without gimbal attitudes gives the camera's attitude only with ``mount_tilt_deg`` (the camera's
         pitch below the vehicle's horizon, 90 = straight down): the vehicle's attitude turned by it, or, without
@@ -183,6 +194,7 @@ class TelemetryLog:
         out: dict[str, np.ndarray] = {}
         pos = self._linear(self.position, t, flags, Flags.POSITION_GAP, Flags.NO_POSITION)
         out["lat"], out["lon"], out["alt"] = pos[:, 0], pos[:, 1], pos[:, 2]
+        out["height"] = self.height_above_home(out["alt"])
         out["q_attitude"] = self._slerp(self.attitude, t, flags, Flags.ATTITUDE_GAP, Flags.NO_ATTITUDE)
         out["q_gimbal"] = self._slerp(self.gimbal, t, flags, Flags.GIMBAL_GAP, Flags.NO_GIMBAL)
         out["gps_fix"] = np.zeros(len(t), int)

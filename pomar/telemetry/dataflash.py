@@ -104,7 +104,10 @@ def read_dataflash(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
             captures[int(idx) - 1 if idx else k] = float(t)  # Img counts from 1; frames from 0
     else:
         problems.append("no CAM or TRIG events: frame times come from the video's clock")
+    # POS's RelHomeAlt beside its Alt gives the home point's altitude
+    home = [m.Alt - m.RelHomeAlt for _, m in rows["POS"] if "RelHomeAlt" in m.get_fieldnames() and m.RelHomeAlt]
     tl = TelemetryLog(str(path), position, gps_s, attitude, gimbal, captures, cap_kind, clock, None, counts,
-                      max_gap_s=max_gap_s, format="dataflash", altitude_reference="msl", problems=problems)
+                      max_gap_s=max_gap_s, format="dataflash", altitude_reference="msl", problems=problems,
+                      home_alt=float(np.median(home)) if home else None)
     tl.parse_seconds = time.perf_counter() - t0
     return tl

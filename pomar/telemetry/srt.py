@@ -189,10 +189,13 @@ def read_srt(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
     if g:
         ang = np.array([a for _, a in g], float)
         gimbal = Series.of([ti for ti, _ in g], rotation_to_quat_wxyz(ned_euler_to_rotation(ang[:, 0], ang[:, 1], ang[:, 2])), 4)
+    # rel_alt beside abs_alt gives the take-off point's altitude
+    home = [r[1]["abs_alt"] - r[1]["alt"] for r in rows if "abs_alt" in r[1] and r[1].get("alt") is not None]
     tl = TelemetryLog(str(path), position, Series.empty(4), Series.empty(4), gimbal, {}, None, clock, None,
                       Counter({f"subtitles ({k})": v for k, v in layouts.items()}), max_gap_s=max_gap_s, format="srt",
                       altitude_reference="msl" if absolute else "takeoff", problems=problems,
-                      video_clock=Series.of(video_t, t[:, None], 1))
+                      video_clock=Series.of(video_t, t[:, None], 1),
+                      home_alt=float(np.median(home)) if home else None)
     if not g:
         problems.append("no gimbal or vehicle attitude in the subtitles: the camera's attitude needs a fixed mount "
                         "tilt and the heading of the track")

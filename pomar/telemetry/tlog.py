@@ -52,6 +52,7 @@ class MavlinkAccumulator:
         self.sys_time_seen: set[int] = set()
         self.pos, self.gps, self.att, self.gim, self.mount, self.caps = [], [], [], [], [], []
         self.pos_systems: Counter = Counter()
+        self.home_alts: deque = deque(maxlen=2000)  # alt - relative_alt (m): the home point's altitude
         self.cap_msg = None
 
     def _bad(self, m) -> None:
@@ -87,6 +88,8 @@ class MavlinkAccumulator:
                 return
             self.pos_systems[src] += 1
             self.pos.append((src, m.time_boot_ms / 1e3, np.nan, ts, m.lat / 1e7, m.lon / 1e7, m.alt / 1e3))
+            if m.relative_alt:  # 0 from autopilots that do not fill it
+                self.home_alts.append((m.alt - m.relative_alt) / 1e3)
         elif kind == "GPS_RAW_INT":
             boot, unix = (np.nan, m.time_usec / 1e6) if m.time_usec > _UNIX_USEC else (m.time_usec / 1e6, np.nan)
             if not m.time_usec:
@@ -180,7 +183,8 @@ class MavlinkAccumulator:
                             "of positions: frames outside them have no fix information")
         tl = TelemetryLog(source, position, gps, attitude, gimbal, captures, self.cap_msg, clock,
                           offsets.get(vehicle), Counter(self.counts), self.bad, truncated, max_gap_s,
-                          format="tlog", problems=problems, bad_by_type=Counter(self.bad_by_type))
+                          format="tlog", problems=problems, bad_by_type=Counter(self.bad_by_type),
+                          home_alt=float(np.median(self.home_alts)) if self.home_alts else None)
         if not quiet:
             for g in tl.gaps:
                 log.warning("%s: %.1f s gap in %s telemetry (frames in it are flagged)", source, g.seconds, g.stream)

@@ -1,6 +1,7 @@
 """PX4's ``.ulg`` logs, through pyulog (PX4's own parser).
 
 - position: ``vehicle_global_position`` (lat, lon, alt MSL); without it, the GPS topic's own position.
+- home: ``home_position`` (alt): heights above the take-off point.
 - GPS: ``vehicle_gps_position`` or ``sensor_gps`` (fix type, eph/epv, satellites; old logs give lat/lon in
   1e-7 degrees and alt in mm, new ones ``latitude_deg`` and ``altitude_msl_m``).
 - attitude: ``vehicle_attitude`` (q, wxyz, NED from FRD body); gimbal: ``gimbal_device_attitude_status``.
@@ -25,7 +26,7 @@ from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing
 log = logging.getLogger(__name__)
 
 TOPICS = ["vehicle_global_position", "vehicle_gps_position", "sensor_gps", "vehicle_attitude",
-          "gimbal_device_attitude_status", "camera_capture"]
+          "gimbal_device_attitude_status", "camera_capture", "home_position"]
 
 
 def _topic(ulog, name):
@@ -116,7 +117,10 @@ def read_ulog(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
         problems.append("no camera_capture events: frame times come from the video's clock")
     if not len(position):
         problems.append("no position (neither vehicle_global_position nor a GPS topic)")
+    home = _topic(u, "home_position")
+    home_alt = float(np.median(home["alt"])) if home is not None and len(home["alt"]) else None
     tl = TelemetryLog(str(path), position, gps_s, attitude, gimbal, captures, cap_msg, clock, boot_to_unix, counts,
-                      max_gap_s=max_gap_s, format="ulog", altitude_reference="msl", problems=problems)
+                      max_gap_s=max_gap_s, format="ulog", altitude_reference="msl", problems=problems,
+                      home_alt=home_alt)
     tl.parse_seconds = time.perf_counter() - t0
     return tl

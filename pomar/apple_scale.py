@@ -1,0 +1,128 @@
+"""The size apples should have in a frame, from what the drone knows: its height above the take-off point, the
+camera's angle off nadir (gimbal attitude) and the lens's focal length.
+
+The detector works best on apples of the size it was trained on (its metadata's ``apple_radius_px``). The onboard
+node rescales each frame by :func:`detector_scale` so that apples reach it at that size: a 4K frame from 12 m is
+halved, which also makes it four times cheaper. The ground uses :func:`expected_radius_px` to check detections.
+
+Geometry: the optical axis meets the canopy's middle height at range (height - canopy_mid_m) / cos(off_nadir);
+an apple of radius ``apple_radius_m`` there spans fx * radius / range pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pomar.rotations import quat_wxyz_to_rotation
+
+#: Mean radius of an apple (m): 6-9 cm fruit, as the simulator's orchards and ADD256's.
+APPLE_RADIUS_M = 0.0375
+#: Height (m) of the canopy's middle, where most visible apples hang (trellised trees 0.8-3 m).
+CANOPY_MID_M = 1.9
+#: The least range (m) and the largest angle off nadir (deg) the geometry is trusted at.
+MIN_RANGE_M = 2.0
+MAX_OFF_NADIR_DEG = 70.0
+
+
+def off_nadir_deg(q_ned_from_gimbal) -> np.ndarray:
+    """Angles (deg) between the camera's optical axis (the gimbal's x axis) and straight down; NaN for NaN input."""
+    q = np.atleast_2d(np.asarray(q_ned_from_gimbal, float))
+    out = np.full(len(q), np.nan)
+    ok = np.isfinite(q).all(1) & (np.linalg.norm(q, axis=1) > 0)
+    if ok.any():
+        axis = quat_wxyz_to_rotation(q[ok]).apply([1.0, 0.0, 0.0])  # NED
+        out[ok] = np.degrees(np.arccos(np.clip(axis[:, 2], -1.0, 1.0)))
+    return out
+
+
+def expected_radius_px(fx: float, height_m, off_nadir, canopy_mid_m: float = CANOPY_MID_M,
+                       apple_radius_m: float = APPLE_RADIUS_M) -> np.ndarray:
+    """Radius (px) of an apple where the optical axis meets the canopy; NaN where height or angle is unknown."""
+    h = np.asarray(height_m, float)
+    a = np.radians(np.minimum(np.asarray(off_nadir, float), MAX_OFF_NADIR_DEG))
+    rng = np.maximum(h - canopy_mid_m, MIN_RANGE_M) / np.cos(a)
+    return fx * apple_radius_m / rng
+
+
+@dataclass
+class ScalePolicy:
+    """How frames are rescaled before detection: towards the model's apple size (``target_px``), within
+    [min_scale, max_scale], in steps of ``step`` (so that small height wobbles keep one input size)."""
+
+    target_px: float | None  # None: no rescaling (a model that does not say its apple size, or rescaling off)
+    min_scale: float = 0.25
+    max_scale: float = 1.5
+    step: float = 0.05
+    fixed: float | None = None  # one scale for every frame instead
+
+    def scale(self, expected_px: float) -> float:
+        if self.fixed is not None:
+            return float(self.fixed)
+        if self.target_px is None or not np.isfinite(expected_px) or expected_px <= 0:
+            return 1.0
+        s = float(np.clip(self.target_px / expected_px, self.min_scale, self.max_scale))
+        return round(round(s / self.step) * self.step, 4)
+
+
+def parse_scale(value: str) -> tuple[str, float | None]:
+    """A ``--detector-scale`` value: ``auto``, ``off`` or a number -> (mode, fixed scale)."""
+    v = str(value).strip().lower()
+    if v in ("auto", "off"):
+        return v, None
+    try:
+        s = float(v)
+    except ValueError:
+        raise ValueError(f"detector scale must be 'auto', 'off' or a number, got {value!r}") from None
+    if not 0.05 <= s <= 8.0:
+        raise ValueError(f"detector scale {s} is outside 0.05-8")
+    return "fixed", s
+
+
+def telemetry_radius_px(fx: float, tel: dict) -> np.ndarray:
+    """:func:`expected_radius_px` of telemetry samples (``TelemetryLog.at``'s dict: height, q_gimbal)."""
+    return expected_radius_px(fx, tel["height"], off_nadir_deg(tel["q_gimbal"]))
+
+
+def flight_radius_px(flight) -> np.ndarray:
+    """Per frame of a flight directory (pomar.flight.FlightDir): the apple radius (px) foreseen from its telemetry."""
+    from pomar.telemetry import read_log
+
+    meta, cam = flight.meta(), flight.camera()
+    tl = read_log(flight.telemetry_log)
+    t, _ = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps, 0.0)
+    return telemetry_radius_px(cam.fx, tl.at(t))
+
+
+def policy_for(detector, setting: str = "auto") -> ScalePolicy:
+    """The scale policy of a ``--detector-scale`` setting for a detector (its ``apple_radius_px``)."""
+    mode, fixed = parse_scale(setting)
+    if mode == "fixed":
+        return ScalePolicy(None, fixed=fixed)
+    target = getattr(detector, "apple_radius_px", None) if mode == "auto" else None
+    return ScalePolicy(float(target) if target else None)
+
+
+def scale_summary(scales) -> dict | None:
+    """Median and range of the scales frames were detected at (a run's summary)."""
+    if not len(scales):
+        return None
+    a = np.asarray(scales, float)
+    return {"median": float(np.median(a)), "min": float(a.min()), "max": float(a.max())}
+
+
+SCALE_HELP = ("auto (default): resize each frame so that apples reach the model at the size it was trained on, "
+              "foreseen from the height above take-off, the camera's tilt and its focal length (pomar/apple_scale.py); "
+              "off: native size; or one factor for every frame")
+
+
+def scale_argument(value: str) -> str:
+    """argparse type of ``--detector-scale``."""
+    import argparse
+
+    try:
+        parse_scale(value)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return value

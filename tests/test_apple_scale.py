@@ -1,0 +1,143 @@
+"""Scale normalisation (issue 17): the apple size foreseen from telemetry, the frames rescaled before detection
+with their boxes put back in the full frame, the scale on the wire; per-tree counts (trees.csv) and their score."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pomar import wire
+from pomar.apple_scale import ScalePolicy, expected_radius_px, off_nadir_deg, parse_scale, telemetry_radius_px
+from pomar.telemetry import read_log
+
+
+def test_home_altitude_and_heights_come_from_the_tlogs_relative_altitude(bundled_flight):
+    tl = read_log(bundled_flight.telemetry_log)
+    assert tl.home_alt == pytest.approx(bundled_flight.origin().alt, abs=0.05)  # the sim's home is the ground
+    meta = bundled_flight.meta()
+    t, _ = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps, 0.0)
+    tel = tl.at(t)
+    assert 9.0 < np.nanmedian(tel["height"]) < 15.0  # flown at 12 m, with GPS altitude noise
+    assert np.nanmedian(off_nadir_deg(tel["q_gimbal"])) == pytest.approx(30.0, abs=2.0)
+
+
+def test_the_foreseen_apple_size_matches_the_flights_truth(bundled_flight):
+    """The telemetry's height and tilt with the lens give the apples' radius in pixels to within 20 %."""
+    tl = read_log(bundled_flight.telemetry_log)
+    meta, cam = bundled_flight.meta(), bundled_flight.camera()
+    t, _ = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps, 0.0)
+    expected = np.nanmedian(telemetry_radius_px(cam.fx, tl.at(t)))
+    d = bundled_flight.truth_detections()
+    truth = np.median(d["r_px"][d["visible_fraction"] >= 0.5])
+    assert expected == pytest.approx(truth, rel=0.2)
+
+
+def test_scale_policy_and_its_setting():
+    p = ScalePolicy(5.0)
+    assert p.scale(10.0) == 0.5 and p.scale(40.0) == 0.25 and p.scale(2.0) == 1.5  # clamped
+    assert p.scale(float("nan")) == 1.0 and ScalePolicy(None).scale(10.0) == 1.0
+    assert ScalePolicy(None, fixed=0.7).scale(3.0) == 0.7
+    assert p.scale(5.3) == 0.95  # steps of 0.05
+    # twice as high above the canopy: half the size
+    assert expected_radius_px(1000.0, 2 * 8 + 1.9, 0.0) == pytest.approx(expected_radius_px(1000.0, 8 + 1.9, 0.0) / 2)
+    assert parse_scale("auto") == ("auto", None) and parse_scale("0.5") == ("fixed", 0.5)
+    for bad in ("big", "0", "20"):
+        with pytest.raises(ValueError):
+            parse_scale(bad)
+
+
+def test_frame_message_carries_its_scale():
+    tel = wire.Telemetry(-28.5, -50.9, 972.0, (1, 0, 0, 0), (1, 0, 0, 0), 3, 0.5, 0)
+    m = wire.FrameMessage("f", "d", 3, 1.5e9, tel, 3840, 2160, np.array([[10, 10, 20, 20]], np.float32),
+                          np.array([0.9], np.float32), scale=0.55)
+    assert wire.FrameMessage.decode(m.encode()).scale == pytest.approx(0.55)
+    import msgpack
+
+    d = msgpack.unpackb(m.encode(), raw=False)
+    d["scale"] = 0.0
+    with pytest.raises(wire.WireError, match="scale"):
+        wire.FrameMessage.decode(msgpack.packb(d, use_bin_type=True))
+    del d["scale"]  # a sender from before scales: frames at their own size
+    assert wire.FrameMessage.decode(msgpack.packb(d, use_bin_type=True)).scale == 1.0
+
+
+def test_a_rescaled_frame_gives_boxes_in_the_full_frames_pixels(bundled_flight):
+    """The shipped model on a bundled frame twice its size (apples twice as large), scaled back by 0.5: the same
+    apples as on the frame itself, at the same places."""
+    import cv2
+
+    from onboard.detector import DEFAULT_MODEL, OnnxDetector
+    from pomar.video import read_frame
+
+    if not DEFAULT_MODEL.is_file():
+        pytest.skip("no shipped model")
+    det = OnnxDetector()
+    assert det.apple_radius_px and 3 < det.apple_radius_px < 8  # the model says the size it detects best
+    img = read_frame(bundled_flight.video, 80)
+    big = cv2.resize(img, (img.shape[1] * 2, img.shape[0] * 2), interpolation=cv2.INTER_LINEAR)
+    ref, _ = det.detect(80, img)
+    got, _ = det.detect(80, big, scale=0.5)
+    assert len(ref) > 20 and abs(len(got) - len(ref)) <= 0.2 * len(ref)
+    c_ref = (ref[:, :2] + ref[:, 2:]) / 2
+    c_got = ((got[:, :2] + got[:, 2:]) / 2 + 0.5) / 2 - 0.5  # the big frame's pixels -> the frame's
+    d = np.linalg.norm(c_got[:, None] - c_ref[None], axis=2).min(1)
+    assert np.median(d) < 1.0 and got[:, 2].max() > img.shape[1]  # boxes in the big frame's pixels
+
+
+def test_trees_csv_cuts_rows_into_tree_segments(tmp_path):
+    from ground.outputs import rows_summary, trees_summary, write_map
+
+    rng = np.random.default_rng(1)
+    n = 120
+    along = rng.uniform(0, 12, n)
+    row = np.repeat([1, 2], n // 2)
+    table = {"id": np.arange(n), "x": np.where(row == 1, 0.0, 4.0) + rng.normal(0, 0.2, n), "y": along,
+             "z": np.full(n, 2.0), "lat": np.zeros(n), "lon": np.zeros(n), "alt": np.zeros(n), "row": row,
+             "radius_m": np.full(n, 0.04), "observations": np.full(n, 5), "reprojection_error_px": np.ones(n),
+             "first_frame": np.zeros(n, int), "last_frame": np.ones(n, int)}
+    direction = np.pi / 2  # rows run north
+    rows = rows_summary(table, direction)
+    trees = trees_summary(table, rows, direction, 1.5)
+    for r in rows:
+        mine = [t for t in trees if t["row"] == r["row"]]
+        assert sum(t["count"] for t in mine) == r["count"]
+        assert len(mine) == int(np.ceil(r["length_m"] / 1.5 - 1e-9))
+        assert np.allclose(np.diff([t["along_m"] for t in mine]), 1.5)
+    write_map(tmp_path, table, direction, tree_spacing_m=1.5)
+    lines = (tmp_path / "trees.csv").read_text().splitlines()
+    assert lines[0] == "row,tree,along_m,x,y,lat,lon,count" and len(lines) == len(trees) + 1
+    with pytest.raises(ValueError, match="spacing"):
+        trees_summary(table, rows, direction, 0.0)
+
+
+def test_per_tree_score_is_one_for_a_perfect_map_and_falls_with_misplaced_apples():
+    from ground.evaluate import per_tree
+
+    rng = np.random.default_rng(2)
+    truth = np.column_stack([np.repeat([0.0, 4.0], 60), rng.uniform(0, 20, 120) ** 1.3 / 2, np.full(120, 2.0)])
+    direction = np.pi / 2  # rows run north; across-row offsets along the normal (-x here), as score_map gives them
+    rows_id, across = np.array([1, 2]), np.array([0.0, -4.0])
+    truth_row = np.repeat([1, 2], 60)
+    perfect = per_tree(truth, truth, truth_row, rows_id, across, direction)
+    assert perfect["r"] == pytest.approx(1.0) and perfect["mae"] == 0 and perfect["bins"] > 20
+    shuffled = truth.copy()
+    shuffled[:, 1] = rng.permutation(shuffled[:, 1])
+    assert per_tree(shuffled, truth, truth_row, rows_id, across, direction)["r"] < 0.9
+
+
+def test_size_check_leaves_out_apples_too_small_to_be_whole(tmp_path):
+    """With the size check on, apples whose radius is under the ratio times the map's median are not counted; with
+    fewer than MIN_SIZED sized apples, or the check off, all are."""
+    from ground.pipeline import GroundPipeline, GroundSettings
+
+    pipe = GroundPipeline(tmp_path, GroundSettings(min_radius_ratio=0.85))
+    radii = np.r_[np.full(30, 0.036), np.full(6, 0.026)]  # 30 whole apples, 6 half hidden
+    pipe.apples = {i: None for i in range(len(radii) + 1)}
+    pipe.radius_m = {i: r for i, r in enumerate(radii)}  # the last apple has no radius: it counts
+    ids = pipe.counted_ids()
+    assert ids == list(range(30)) + [36] and pipe.size_rejected == 6
+    pipe.s.min_radius_ratio = 0.0
+    assert len(pipe.counted_ids()) == 37 and pipe.size_rejected == 0
+    pipe.s.min_radius_ratio = 0.85
+    pipe.radius_m = {i: pipe.radius_m[i] for i in list(range(10)) + [30, 31]}  # 12 sized apples: too few to judge
+    assert len(pipe.counted_ids()) == 37
