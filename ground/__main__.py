@@ -63,7 +63,8 @@ def _settings(args):
                           max_wait_s=args.max_wait_s, max_lag_s=args.max_lag_s, max_keyframe_gap=args.max_keyframe_gap,
                           min_score=args.min_score,
                           confirm_score=args.confirm_score, confirm_views=args.confirm_views,
-                          tree_spacing_m=args.tree_spacing_m, min_radius_ratio=args.min_radius_ratio)
+                          tree_spacing_m=args.tree_spacing_m, min_radius_ratio=args.min_radius_ratio,
+                          min_view_ratio=args.min_view_ratio)
 
 
 def _cmd_run(args) -> int:
@@ -136,7 +137,7 @@ def _cmd_replay(args) -> int:
                    "--max-keyframe-gap", str(args.max_keyframe_gap),
                    "--min-score", str(args.min_score), "--confirm-score", str(args.confirm_score),
                    "--confirm-views", str(args.confirm_views), "--tree-spacing-m", str(args.tree_spacing_m),
-                   "--min-radius-ratio", str(args.min_radius_ratio)] \
+                   "--min-radius-ratio", str(args.min_radius_ratio), "--min-view-ratio", str(args.min_view_ratio)] \
         + (["--upright"] if args.upright else []) \
         + (["--max-lag-s", str(args.max_lag_s)] if args.realtime else [])  # lock-step: replay() sets 0
     keyframe_every = args.keyframe_every or (1 if args.realtime else 2)
@@ -239,6 +240,9 @@ def _ground_options(p):
     p.add_argument("--min-radius-ratio", type=float, default=g.min_radius_ratio,
                    help="size check: an apple counts only if its radius (boxes x depth) is at least this fraction of "
                         "the map's median (a partly hidden apple looks small); 0 = off")
+    p.add_argument("--min-view-ratio", type=float, default=g.min_view_ratio,
+                   help="expected views: an apple counts only if detected in at least this share of the mapped frames "
+                        "it projects into (one glimpsed through leaves is not); 0 = off")
     p.add_argument("--tree-spacing-m", type=float, default=g.tree_spacing_m,
                    help="trees along a row are this far apart (m): trees.csv counts apples per tree segment")
 

@@ -208,8 +208,9 @@ class GroundNode:
         r = {
             "flight_id": p.flight_id, "drone_id": p.drone_id, "final": final,
             "apples": int(len(table["id"])), "rows": rows,
-            "size_check": {"min_radius_ratio": self.settings.min_radius_ratio, "left_out": p.size_rejected,
-                           "confirmed": len(p.apples)},
+            "counting": {"confirmed": len(p.apples), "min_radius_ratio": self.settings.min_radius_ratio,
+                         "left_out_small": p.size_rejected, "min_view_ratio": self.settings.min_view_ratio,
+                         "left_out_few_views": p.views_rejected},
             "frames": dict(p.counters), "gaps": p.gaps[:100],
             # what share of the mapped frames got each kind of pose
             "pose_shares": {k: p.counters[k] / max(1, sum(p.counters[j] for j in POSE_SOURCES)) for k in POSE_SOURCES},

@@ -73,7 +73,11 @@ class GroundSettings:
     #: 3-D size consistency: an apple counts only if its radius (boxes x depth) is at least this fraction of the
     #: median radius of the apples mapped (once MIN_SIZED apples have one); 0 = off. An apple half hidden by
     #: leaves shows a smaller box than it is: partly hidden apples of the far rows, seen through the near row.
-    min_radius_ratio: float = 0.0
+    min_radius_ratio: float = 0.8
+    #: Expected views: an apple counts only if it was detected in at least this share of the frames it projects
+    #: into (the mapped frames around its track); 0 = off. An apple glimpsed through leaves, or a false detection
+    #: that happened to triangulate, is seen in few of the frames it lies in.
+    min_view_ratio: float = 0.15
 
 
 @dataclass
@@ -101,6 +105,8 @@ class GroundPipeline:
         self._boxes: dict[int, np.ndarray] = {}  # stream frame -> (n, 4) boxes of those detections (xyxy, px)
         self.radius_m: dict[int, float] = {}  # apple id -> radius estimated from its boxes and depths
         self.size_rejected = 0  # confirmed apples left out of the map by the size check (counted_ids)
+        self.views_rejected = 0  # ... and by the expected views
+        self._proj: list[np.ndarray | None] = []  # association frame -> its camera matrix (None: no pose)
         self._confirmed: dict[int, int] = {}  # apple id -> views scored confirm_score or more
         self.pending: dict[int, wire.FrameMessage] = {}
         self.keyframes: dict[int, bytes] = {}  # waiting for registration
@@ -291,6 +297,7 @@ class GroundPipeline:
                 # that drops frames sends indices with gaps, so the association counts frames, not indices.
                 seq = len(self._seq_frame)
                 self._seq_frame.append(f)
+                self._proj.append(P)
                 self._scores[seq] = np.asarray(msg.scores)[keep]
                 self._boxes[seq] = np.asarray(msg.boxes, float).reshape(-1, 4)[keep]
                 # scores are needed while a track or a merge can still reach back to them
@@ -377,18 +384,40 @@ class GroundPipeline:
 
     #: Apples with a radius needed before the size check applies.
     MIN_SIZED = 20
+    #: Frames either side of an apple's track (association frames) searched for the views it should have had.
+    VIEW_SEARCH = 300
+    VIEW_MARGIN_PX = 10
+
+    def expected_views(self, a: Apple) -> int:
+        """Mapped frames around the apple's track whose camera sees it: in front, inside the image by a margin."""
+        lo, hi = max(0, a.first_frame - self.VIEW_SEARCH), min(len(self._proj), a.last_frame + self.VIEW_SEARCH + 1)
+        P = [p for p in self._proj[lo:hi] if p is not None]
+        if not P:
+            return 0
+        x = np.asarray(P) @ np.append(a.X, 1.0)
+        z = x[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = x[:, 0] / z, x[:, 1] / z
+        m = self.VIEW_MARGIN_PX
+        return int(((z > 0.5) & (u > m) & (u < self.camera.width - m) & (v > m) & (v < self.camera.height - m)).sum())
 
     def counted_ids(self) -> list[int]:
-        """The apples that count: those confirmed, less those too small for their size to be whole (size check)."""
+        """The apples that count: those confirmed, less those too small for their size to be whole (size check) and
+        those detected in too few of the frames they lie in (expected views)."""
         ids = sorted(self.apples)
         r = np.array([self.radius_m.get(i, np.nan) for i in ids], float)
         ok = np.isfinite(r)
-        self.size_rejected = 0
+        drop = np.zeros(len(ids), bool)
         if self.s.min_radius_ratio > 0 and ok.sum() >= self.MIN_SIZED:
-            small = ok & (r < self.s.min_radius_ratio * np.median(r[ok]))
-            self.size_rejected = int(small.sum())
-            ids = [i for i, sm in zip(ids, small) if not sm]
-        return ids
+            drop |= ok & (r < self.s.min_radius_ratio * np.median(r[ok]))
+        self.size_rejected = int(drop.sum())
+        if self.s.min_view_ratio > 0 and self.camera is not None:
+            for k, i in enumerate(ids):
+                if not drop[k]:
+                    a = self.apples[i]
+                    drop[k] = a.n_observations < self.s.min_view_ratio * self.expected_views(a)
+        self.views_rejected = int(drop.sum()) - self.size_rejected
+        return [i for i, d in zip(ids, drop) if not d]
 
     def table(self) -> dict[str, np.ndarray]:
         """Apples as columns: id, x y z (ENU), lat lon alt, row (1..N), radius, observations, reprojection error,

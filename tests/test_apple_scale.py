@@ -141,3 +141,20 @@ def test_size_check_leaves_out_apples_too_small_to_be_whole(tmp_path):
     pipe.s.min_radius_ratio = 0.85
     pipe.radius_m = {i: pipe.radius_m[i] for i in list(range(10)) + [30, 31]}  # 12 sized apples: too few to judge
     assert len(pipe.counted_ids()) == 37
+
+
+def test_expected_views_leave_out_apples_seen_in_few_of_the_frames_they_lie_in(tmp_path):
+    from ground.association import Apple
+    from ground.pipeline import GroundPipeline, GroundSettings
+    from pomar.camera import Camera
+
+    pipe = GroundPipeline(tmp_path, GroundSettings(min_radius_ratio=0.0, min_view_ratio=0.15))
+    pipe.camera = Camera.from_fov(640, 360, 60.0)
+    P = pipe.camera.K_opencv @ np.hstack([np.eye(3), np.zeros((3, 1))])  # at the origin, looking along +z
+    pipe._proj = [P] * 40
+    seen = Apple(1, np.array([0.0, 0.0, 10.0]), [(i, 0) for i in range(10, 18)], 0.5)  # 8 views of 40
+    glimpsed = Apple(2, np.array([1.0, 0.5, 10.0]), [(20, 0), (21, 0), (22, 0)], 0.5)  # 3 of 40
+    behind = Apple(3, np.array([0.0, 0.0, -10.0]), [(5, 0), (6, 0), (7, 0)], 0.5)  # never in view: 3 of 0
+    pipe.apples = {1: seen, 2: glimpsed, 3: behind}
+    assert pipe.expected_views(seen) == 40 and pipe.expected_views(behind) == 0
+    assert pipe.counted_ids() == [1, 3] and pipe.views_rejected == 1

@@ -1,0 +1,92 @@
+"""The detector's AP@0.5 against the scale frames are resized by before detection (issue 17), on simulated flights
+and on ADD256's test split: where the model works best, and what the telemetry foresees for each flight.
+
+    .venv/bin/python benchmarks/detector_scale.py out/sim/gen/tune-1 [more flights] [--add256]
+        [--scales 0.5 0.75 1 1.25] [--every 8] [--model FILE.onnx] [--by-size]
+
+For each flight it prints the apple radius the telemetry foresees (pomar.apple_scale, median over frames), the
+truth's median radius (apples at least half visible), and AP, precision, recall and F1 at each scale; with
+``--add256``, the same for ADD256's test patches (radius about 6-13 px). Accuracy only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from export.data import add256_split, load_sim_frames, read_rgb
+from export.metrics import evaluate_detections, iou
+from onboard.detector import OnnxDetector
+from pomar.apple_scale import flight_radius_px
+from pomar.flight import FlightDir
+
+
+def sweep(det, samples, scales, name: str) -> None:
+    for sc in scales:
+        preds, truths = [], []
+        for img, boxes, ignore in samples:
+            preds.append(det.detect_rgb(img, score_thresh=0.05, scale=sc))
+            truths.append((boxes, ignore))
+        m = evaluate_detections(preds, truths, det.score_thresh)
+        print(f"  {name:<16} scale {sc:>5.2f}: AP {m['ap50']:.3f}  P {m['precision']:.3f}  R {m['recall']:.3f}  "
+              f"F1 {m['f1']:.3f}", flush=True)
+
+
+def recall_by_size(det, samples, scale: float, name: str, edges=(0, 3, 4, 5, 6, 8, 12, 99)) -> None:
+    """Recall at the operating threshold of truth apples by their radius (px) as the model sees them (x scale): a
+    truth box counts as found when a detection overlaps it at IoU 0.5 or more."""
+    found, radius = [], []
+    for img, boxes, _ in samples:
+        b, _ = det.detect_rgb(img, scale=scale)
+        if len(boxes):
+            hit = (iou(np.asarray(boxes, float), b).max(1) >= 0.5) if len(b) else np.zeros(len(boxes), bool)
+            found.append(hit)
+            radius.append((boxes[:, 2] - boxes[:, 0]) / 2 * scale)
+    found, radius = np.concatenate(found), np.concatenate(radius)
+    cells = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (radius >= lo) & (radius < hi)
+        if sel.any():
+            cells.append(f"{lo}-{hi} px: {found[sel].mean():.2f} ({int(sel.sum())})")
+    print(f"  {name:<16} scale {scale:>5.2f}: recall by radius as the model sees it: " + "; ".join(cells), flush=True)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("flights", nargs="*", type=Path)
+    p.add_argument("--add256", action="store_true", help="also ADD256's test split")
+    p.add_argument("--scales", type=float, nargs="+", default=[0.5, 0.75, 1.0, 1.25])
+    p.add_argument("--every", type=int, default=8, help="every Nth frame of each flight")
+    p.add_argument("--model")
+    p.add_argument("--by-size", action="store_true", help="also recall by apple radius, at each scale")
+    a = p.parse_args(argv)
+    det = OnnxDetector(a.model)
+    print(f"model {det.path.name}: apple_radius_px {det.apple_radius_px}, threshold {det.score_thresh}")
+    for f in a.flights:
+        flight = FlightDir(f)
+        d = flight.truth_detections()
+        truth_r = float(np.median(d["r_px"][d["visible_fraction"] >= 0.5]))
+        foreseen = float(np.nanmedian(flight_radius_px(flight)))
+        print(f"{f.name}: {flight.camera().width}x{flight.camera().height}, apple radius foreseen {foreseen:.2f} px, "
+              f"truth median {truth_r:.2f} px" + (f"; auto scale {det.apple_radius_px / foreseen:.2f}"
+                                                  if det.apple_radius_px else ""))
+        frames = [(s.image, s.boxes, s.ignore) for s in load_sim_frames(f, 0.5, every=a.every)]
+        sweep(det, frames, a.scales, f.name)
+        if a.by_size:
+            for sc in a.scales:
+                recall_by_size(det, frames, sc, f.name)
+    if a.add256:
+        test = [(read_rgb(pth), b, None) for pth, b in add256_split(None, "test")]
+        print(f"ADD256 test: {len(test)} patches")
+        sweep(det, test, a.scales, "ADD256 test")
+        if a.by_size:
+            for sc in a.scales:
+                recall_by_size(det, test, sc, "ADD256 test")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
