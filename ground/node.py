@@ -334,7 +334,14 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
                         last_frame = now
                     if isinstance(m, wire.StatusMessage) and m.state in ("finished", "error"):
                         log.info("the drone says the flight is %s (%d frames processed)", m.state, m.frames_processed)
-                        claim = (m, now)
+                        # judged as it comes, not only the batch's last: a false claim followed by the true one in
+                        # the same batch is still seen for what it is
+                        if node.pipe.counters["frames"] + node.pipe.counters["late_frames"] > m.frames_processed:
+                            node.ignored_end_claims += 1
+                            log.warning("a %r status says %d frames were sent, but more arrived: ignored", m.state,
+                                        m.frames_processed)
+                        else:
+                            claim = (m, now)
                 node.step()
             if claim is not None:
                 have = node.pipe.counters["frames"] + node.pipe.counters["late_frames"]

@@ -21,7 +21,7 @@ from pomar.rotations import quat_wxyz_to_rotation
 APPLE_RADIUS_M = 0.0375
 #: Height (m) of the canopy's middle, where most visible apples hang (trellised trees 0.8-3 m).
 CANOPY_MID_M = 1.9
-#: The least range (m) and the largest angle off nadir (deg) the geometry is trusted at.
+#: The least height above the canopy's middle (m) and the largest angle off nadir (deg) the geometry is trusted at.
 MIN_RANGE_M = 2.0
 MAX_OFF_NADIR_DEG = 70.0
 
@@ -39,10 +39,14 @@ def off_nadir_deg(q_ned_from_gimbal) -> np.ndarray:
 
 def expected_radius_px(fx: float, height_m, off_nadir, canopy_mid_m: float = CANOPY_MID_M,
                        apple_radius_m: float = APPLE_RADIUS_M) -> np.ndarray:
-    """Radius (px) of an apple where the optical axis meets the canopy; NaN where height or angle is unknown."""
+    """Radius (px) of an apple where the optical axis meets the canopy; NaN where height or angle is unknown, or the
+    height is less than MIN_RANGE_M above the canopy's middle (not a flight over the trees: a take-off point that is
+    not the ground, say), so that such frames go at their own size rather than shrunk to nothing."""
     h = np.asarray(height_m, float)
     a = np.radians(np.minimum(np.asarray(off_nadir, float), MAX_OFF_NADIR_DEG))
-    rng = np.maximum(h - canopy_mid_m, MIN_RANGE_M) / np.cos(a)
+    above = h - canopy_mid_m
+    with np.errstate(invalid="ignore"):
+        rng = np.where(above >= MIN_RANGE_M, above, np.nan) / np.cos(a)
     return fx * apple_radius_m / rng
 
 

@@ -147,7 +147,8 @@ def write_srt(tlog: Path, frame_count: int, fps: float, video_start_unix: float,
     tl = read_tlog(tlog)
     t, _ = tl.frame_times(frame_count, video_start_unix, fps, clock_offset_s)
     s = tl.at(t)
-    home_alt = float(tl.position.values[0, 2])
+    # rel_alt is above the take-off point, as DJI's: the ground where the tlog says so, else the first position
+    home_alt = tl.home_alt if tl.home_alt is not None else float(tl.position.values[0, 2])
     gimbal = _euler_deg(np.where(np.isfinite(s["q_gimbal"]), s["q_gimbal"], [1.0, 0, 0, 0]))
     lines = []
     for i in range(frame_count):

@@ -40,6 +40,8 @@ def test_scale_policy_and_its_setting():
     assert p.scale(5.3) == 0.95  # steps of 0.05
     # twice as high above the canopy: half the size
     assert expected_radius_px(1000.0, 2 * 8 + 1.9, 0.0) == pytest.approx(expected_radius_px(1000.0, 8 + 1.9, 0.0) / 2)
+    # a height that cannot be a flight over the trees (a take-off point that is not the ground): not foreseen
+    assert np.isnan(expected_radius_px(1000.0, 3.0, 30.0)) and ScalePolicy(5.0).scale(float("nan")) == 1.0
     assert parse_scale("auto") == ("auto", None) and parse_scale("0.5") == ("fixed", 0.5)
     for bad in ("big", "0", "20"):
         with pytest.raises(ValueError):
