@@ -131,13 +131,18 @@ ROW_FORMATS = {"length_m": ".2f", "apples_per_m": ".2f", "start_x": ".3f", "star
                "end_y": ".3f", "start_lat": ".9f", "start_lon": ".9f", "end_lat": ".9f", "end_lon": ".9f"}
 
 
-def rows_csv(rows: list[dict]) -> str:
+def records_csv(records: list[dict], columns: list[str], formats: dict[str, str]) -> str:
+    """CSV text of records (dicts), the given columns in order, each value formatted by ``formats`` where named."""
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(ROW_COLUMNS)
-    for r in rows:
-        w.writerow([format(r[c], ROW_FORMATS.get(c, "")) for c in ROW_COLUMNS])
+    w.writerow(columns)
+    for r in records:
+        w.writerow([format(r[c], formats.get(c, "")) for c in columns])
     return buf.getvalue()
+
+
+def rows_csv(rows: list[dict]) -> str:
+    return records_csv(rows, ROW_COLUMNS, ROW_FORMATS)
 
 
 TREE_COLUMNS = ["row", "tree", "along_m", "x", "y", "lat", "lon", "count"]
@@ -168,13 +173,7 @@ def trees_summary(table: dict, rows: list[dict], direction: float, spacing_m: fl
 
 
 def trees_csv(trees: list[dict]) -> str:
-    fmt = {"along_m": ".2f", "x": ".3f", "y": ".3f", "lat": ".9f", "lon": ".9f"}
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(TREE_COLUMNS)
-    for t in trees:
-        w.writerow([format(t[c], fmt.get(c, "")) for c in TREE_COLUMNS])
-    return buf.getvalue()
+    return records_csv(trees, TREE_COLUMNS, {"along_m": ".2f", "x": ".3f", "y": ".3f", "lat": ".9f", "lon": ".9f"})
 
 
 POSE_COLUMNS = ["frame", "t_unix", "source", "x", "y", "z", "lat", "lon", "alt", "qw", "qx", "qy", "qz", "sigma_m"]
