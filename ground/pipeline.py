@@ -106,7 +106,7 @@ class GroundPipeline:
         self.radius_m: dict[int, float] = {}  # apple id -> radius estimated from its boxes and depths
         self.size_rejected = 0  # confirmed apples left out of the map by the size check (counted_ids)
         self.views_rejected = 0  # ... and by the expected views
-        self._proj: list[np.ndarray | None] = []  # association frame -> its camera matrix (None: no pose)
+        self._proj: list[np.ndarray] = []  # association frame -> its camera matrix
         self._confirmed: dict[int, int] = {}  # apple id -> views scored confirm_score or more
         self.pending: dict[int, wire.FrameMessage] = {}
         self.keyframes: dict[int, bytes] = {}  # waiting for registration
@@ -388,13 +388,14 @@ class GroundPipeline:
     VIEW_SEARCH = 300
     VIEW_MARGIN_PX = 10
 
-    def expected_views(self, a: Apple) -> int:
-        """Mapped frames around the apple's track whose camera sees it: in front, inside the image by a margin."""
-        lo, hi = max(0, a.first_frame - self.VIEW_SEARCH), min(len(self._proj), a.last_frame + self.VIEW_SEARCH + 1)
-        P = [p for p in self._proj[lo:hi] if p is not None]
-        if not P:
+    def expected_views(self, a: Apple, proj: np.ndarray | None = None) -> int:
+        """Mapped frames around the apple's track whose camera sees it: in front, inside the image by a margin.
+        ``proj``: the camera matrices as one (N, 3, 4) array, when the caller asks for many apples."""
+        proj = np.asarray(self._proj).reshape(-1, 3, 4) if proj is None else proj
+        lo, hi = max(0, a.first_frame - self.VIEW_SEARCH), min(len(proj), a.last_frame + self.VIEW_SEARCH + 1)
+        if hi <= lo:
             return 0
-        x = np.asarray(P) @ np.append(a.X, 1.0)
+        x = proj[lo:hi] @ np.append(a.X, 1.0)
         z = x[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             u, v = x[:, 0] / z, x[:, 1] / z
@@ -411,11 +412,12 @@ class GroundPipeline:
         if self.s.min_radius_ratio > 0 and ok.sum() >= self.MIN_SIZED:
             drop |= ok & (r < self.s.min_radius_ratio * np.median(r[ok]))
         self.size_rejected = int(drop.sum())
-        if self.s.min_view_ratio > 0 and self.camera is not None:
+        if self.s.min_view_ratio > 0 and self.camera is not None and ids:
+            proj = np.asarray(self._proj).reshape(-1, 3, 4)
             for k, i in enumerate(ids):
                 if not drop[k]:
                     a = self.apples[i]
-                    drop[k] = a.n_observations < self.s.min_view_ratio * self.expected_views(a)
+                    drop[k] = a.n_observations < self.s.min_view_ratio * self.expected_views(a, proj)
         self.views_rejected = int(drop.sum()) - self.size_rejected
         return [i for i, d in zip(ids, drop) if not d]
 
