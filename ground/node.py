@@ -315,6 +315,18 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
     last_msg = time.monotonic()
     last_progress = time.monotonic()
     claim = None  # (the status saying the flight ended, when it came)
+
+    def contradicted(m: wire.StatusMessage) -> bool:
+        """An end claim that says fewer frames were sent than arrived: counted, logged, and to be ignored (the flight
+        then ends at the idle timeout)."""
+        have = node.pipe.counters["frames"] + node.pipe.counters["late_frames"]
+        if have <= m.frames_processed:
+            return False
+        node.ignored_end_claims += 1
+        log.warning("a %r status says %d frames were sent, but %d arrived: ignored; the flight ends at the idle "
+                    "timeout", m.state, m.frames_processed, have)
+        return True
+
     last_frame = 0.0  # when the last frame message came
     report = None
     try:
@@ -336,11 +348,7 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
                         log.info("the drone says the flight is %s (%d frames processed)", m.state, m.frames_processed)
                         # judged as it comes, not only the batch's last: a false claim followed by the true one in
                         # the same batch is still seen for what it is
-                        if node.pipe.counters["frames"] + node.pipe.counters["late_frames"] > m.frames_processed:
-                            node.ignored_end_claims += 1
-                            log.warning("a %r status says %d frames were sent, but more arrived: ignored", m.state,
-                                        m.frames_processed)
-                        else:
+                        if not contradicted(m):
                             claim = (m, now)
                 node.step()
             if claim is not None:
@@ -348,10 +356,7 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
                 said = claim[0].frames_processed
                 if have == said and now - max(claim[1], last_frame) >= end_quiet_s:
                     break
-                if have > said:
-                    node.ignored_end_claims += 1
-                    log.warning("a %r status says %d frames were sent, but %d arrived: ignored; the flight ends "
-                                "at the idle timeout", claim[0].state, said, have)
+                if contradicted(claim[0]):
                     claim = None
                 elif have < said and now - claim[1] > idle_timeout_s:
                     log.warning("%d of the %d frames the drone sent arrived; finishing", have, said)
