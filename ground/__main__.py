@@ -56,11 +56,13 @@ def _cmd_register(args) -> int:
 def _settings(args):
     from ground.association import AssociationParams
     from ground.pipeline import GroundSettings
+    from ground.tracking import TrackingSettings
 
     return GroundSettings(association=AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom,
                                                         min_inliers=args.min_inliers, cross_pass=not args.no_cross_pass),
                           registration=_registration_settings(args),
-                          max_wait_s=args.max_wait_s, max_lag_s=args.max_lag_s, max_keyframe_gap=args.max_keyframe_gap,
+                          max_wait_s=args.max_wait_s, mapping=args.mapping,
+                          tracking=TrackingSettings(min_tracked_share=args.min_tracked_share),
                           min_score=args.min_score,
                           confirm_score=args.confirm_score, confirm_views=args.confirm_views,
                           tree_spacing_m=args.tree_spacing_m, min_radius_ratio=args.min_radius_ratio,
@@ -134,12 +136,12 @@ def _cmd_replay(args) -> int:
                    "--min-inliers", str(args.min_inliers)] + (["--no-cross-pass"] if args.no_cross_pass else []) + [
                    "--max-features", str(args.max_features), "--match-window", str(args.match_window),
                    "--sift", args.sift, "--max-wait-s", str(args.max_wait_s),
-                   "--max-keyframe-gap", str(args.max_keyframe_gap),
+                   "--min-tracked-share", str(args.min_tracked_share),
                    "--min-score", str(args.min_score), "--confirm-score", str(args.confirm_score),
                    "--confirm-views", str(args.confirm_views), "--tree-spacing-m", str(args.tree_spacing_m),
                    "--min-radius-ratio", str(args.min_radius_ratio), "--min-view-ratio", str(args.min_view_ratio)] \
         + (["--upright"] if args.upright else []) \
-        + (["--max-lag-s", str(args.max_lag_s)] if args.realtime else [])  # lock-step: replay() sets 0
+        + (["--mapping", args.mapping] if args.realtime or (args.recorded and args.speed > 0) else [])  # lock-step: inline
     keyframe_every = args.keyframe_every or (1 if args.realtime else 2)
     try:
         rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
@@ -156,7 +158,7 @@ def _cmd_replay(args) -> int:
     print()
     print(f"flight {rep['flight_id']}: {rep['apples']} apples in {len(rep['rows'])} rows; "
           f"{rep['frames']['frames']} frames ({rep['frames']['registered']} registered, "
-          f"{rep['frames']['interpolated']} interpolated, {rep['frames']['telemetry']} telemetry poses)")
+          f"{rep['frames'].get('tracked', 0)} tracked, {rep['frames']['interpolated']} interpolated, {rep['frames']['telemetry']} telemetry poses)")
     for r in rep["rows"]:
         print(f"  row {r['row']}: {r['count']} apples over {r['length_m']:.1f} m")
     ob = rep.get("onboard", {})
@@ -168,7 +170,8 @@ def _cmd_replay(args) -> int:
     if tm.get("frame_delay_median_s") is not None:
         print(f"ground: frames mapped {tm['frame_delay_median_s']:.1f} s after they arrived (median; p95 "
               f"{tm['frame_delay_p95_s']:.1f} s, max {tm['frame_delay_max_s']:.1f} s); {fr['registered']} of "
-              f"{fr['keyframes']} keyframes registered, {fr.get('skipped_keyframes', 0)} skipped to keep up")
+              f"{fr['keyframes']} images registered as mapping keyframes, {fr.get('tracked', 0)} frames tracked, "
+              f"{rep['tracking']['failed']} tracking failures")
     if ob and played:
         print(f"player: {ob['frames_processed']} frames of {ob['recording']} at {ob['speed']:g}x in {ob['seconds']:.1f} s "
               f"({ob['flight_seconds']:.1f} s of flight)")
@@ -227,12 +230,13 @@ def _ground_options(p):
     _registration_options(p)
     p.add_argument("--max-wait-s", type=float, default=5.0,
                    help="frames wait for the keyframe after them unless no keyframe came for this long (s)")
-    p.add_argument("--max-lag-s", type=float, default=g.max_lag_s,
-                   help="when the keyframes waiting for registration lag the newest frame by more than this (flight "
-                        "seconds), skip those not needed to keep --max-keyframe-gap; 0 = never skip (replay sets 0 "
-                        "in lock-step)")
-    p.add_argument("--max-keyframe-gap", type=int, default=g.max_keyframe_gap,
-                   help="frames between registered keyframes when some are skipped")
+    p.add_argument("--mapping", choices=("process", "inline"), default="process",
+                   help="process: mapping keyframes are registered in a process of their own, and every frame is "
+                        "tracked against the map meanwhile (live); inline: each is registered before the frames after it go "
+                        "on (deterministic; a lock-step replay uses it)")
+    p.add_argument("--min-tracked-share", type=float, default=g.tracking.min_tracked_share,
+                   help="a frame becomes a mapping keyframe when it holds less than this share of the points of the "
+                        "last one")
     p.add_argument("--min-score", type=float, default=0.0, help="ignore detections scored below this")
     p.add_argument("--confirm-score", type=float, default=g.confirm_score,
                    help="an apple counts once --confirm-views of its views scored this much")

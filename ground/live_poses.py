@@ -1,12 +1,16 @@
-"""Camera poses for a live flight: keyframes registered one at a time, georeferenced as the model grows.
+"""Camera poses for a live flight: the one pose interface the pipeline hands its frames to.
 
-:class:`LivePoses` is fed each frame's telemetry and each keyframe's image as they arrive; it says
-when a frame's pose can be decided (the next keyframe after it has been through registration, or
-the keyframes stopped coming) and gives that pose with its source and uncertainty:
+Behind it, two modules: :mod:`ground.tracking` gives every frame that carries an image a pose from its own
+pixels against the map (KLT + PnP, milliseconds), and :mod:`ground.mapping` registers the *mapping
+keyframes* the tracker proposes (pycolmap, in its own process when live) and georeferences the model. Fed each
+frame's telemetry and each image in frame order, it says when a frame's pose can be decided and gives it
+with its source and uncertainty:
 
-- ``registered``: a keyframe the model registered;
-- ``interpolated``: between two registered keyframes at most ``max_interp_gap`` frames apart
-  (centre linearly, rotation by slerp);
+- ``registered``: a mapping keyframe the model registered;
+- ``tracked``: a frame tracked against the map;
+- ``interpolated``: a frame without an image (or whose tracking failed, then flagged in
+  ``tracking_failed``) between two posed frames at most ``max_interp_gap`` apart (centre linearly,
+  rotation by slerp);
 - ``telemetry``: GPS + gimbal attitude alone.
 
 Poses come in the *association frame*: the model's coordinates taken through the first good
@@ -19,14 +23,19 @@ from __future__ import annotations
 
 import bisect
 import logging
+import time
+from collections import deque
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from ground.georeference import fit_similarity, georeference_poses
+from ground.georeference import georeference_poses
+from ground.mapping import Mapper, MapperProcess, compose
 from ground.poses import camera_rotations
-from ground.registration import IncrementalRegistrar, RegistrationSettings
+from ground.registration import RegistrationSettings
+from ground.tracking import Tracker, TrackingSettings
 from pomar.align import Similarity
 from pomar.camera import Camera
 from pomar.geo import Origin
@@ -34,11 +43,6 @@ from pomar.geo import Origin
 log = logging.getLogger(__name__)
 
 IDENTITY = Similarity(1.0, np.eye(3), np.zeros(3))
-
-
-def compose(a: Similarity, b: Similarity) -> Similarity:
-    """a after b: x -> a(b(x))."""
-    return Similarity(a.scale * b.scale, a.R @ b.R, a.scale * a.R @ b.t + a.t)
 
 
 def inverse(a: Similarity) -> Similarity:
@@ -61,29 +65,50 @@ class Pose:
 
 
 class LivePoses:
+    #: Images kept while the first model is made; beyond, they are dropped (their frames get telemetry poses).
+    MAX_WAITING = 300
+
     def __init__(self, camera: Camera, workdir, keyframe_width: int | None = None,
                  settings: RegistrationSettings | None = None, origin: Origin | None = None,
-                 max_interp_gap: int = 10,
-                 sigma_att_deg: float = 0.5):
+                 max_interp_gap: int = 10, sigma_att_deg: float = 0.5, in_process: bool = False,
+                 tracking: TrackingSettings | None = None):
         self.cam = camera
         self.kf_cam = camera if not keyframe_width else self._scaled(camera, keyframe_width)
-        self.registrar = IncrementalRegistrar(self.kf_cam, workdir, settings)
+        # live, mapping runs in its own process: pycolmap holds the GIL, and tracking must not wait for it
+        self.mapper = (MapperProcess if in_process else Mapper)(self.kf_cam, camera, workdir, settings, sigma_att_deg)
+        self.tracker = Tracker(self.kf_cam, tracking)
         self.origin = origin
         self.max_interp_gap = max_interp_gap
         self.sigma_att = np.radians(sigma_att_deg)
         self.tel: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}  # frame -> (enu, q_gimbal, h_acc)
-        self.model_pose: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # registered keyframes, model coords
-        self.kf_processed = -1  # index of the newest keyframe through registration
-        self.fit: Similarity | None = None  # model -> ENU, current
+        self.tracked: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # tracked frames, model frame
+        self.tracking_failed: list[int] = []  # frames with an image that tracking could not place
+        self.kf_processed = -1  # the newest frame whose image went through tracking
+        self._last_image = -1
+        self._untracked: deque[tuple[int, np.ndarray]] = deque()  # images waiting for the first model
+        self._refs: deque = deque()  # keyframes handed over that the images have not reached yet
+        self._first_ref = self._last_ref = None  # frames of the first and the newest keyframe handed over
         self.frozen: Similarity | None = None  # model -> association frame (a fit frozen), or None
         self.assoc_from_enu: Similarity | None = None  # set when the association frame is ENU itself
-        self.fit_residual_m = float("nan")
-        self._kf_sorted: list[int] = []  # the keys of model_pose, in order (kept, not re-sorted per frame)
+        self.seconds = {"tracking": 0.0, "mapping_inline": 0.0}
 
     @staticmethod
     def _scaled(cam: Camera, width: int) -> Camera:
         s = width / cam.width
         return Camera(int(round(cam.width * s)), int(round(cam.height * s)), cam.fx * s, cam.fy * s, cam.cx * s, cam.cy * s)
+
+    # the mapper's state, as the rest of the ground reads it
+    @property
+    def model_pose(self):
+        return self.mapper.model_pose
+
+    @property
+    def fit(self) -> Similarity | None:
+        return self.mapper.fit
+
+    @property
+    def fit_residual_m(self) -> float:
+        return self.mapper.fit_residual_m
 
     # -- inputs
     def add_telemetry(self, frame: int, lat: float, lon: float, alt: float, q_gimbal, h_acc: float) -> None:
@@ -93,54 +118,91 @@ class LivePoses:
                else np.full(3, np.nan))
         self.tel[frame] = (enu, np.asarray(q_gimbal, float), float(h_acc) if np.isfinite(h_acc) and h_acc > 0 else 2.0)
 
-    def add_keyframe(self, frame: int, image_bgr: np.ndarray) -> bool:
-        """Register a keyframe (in frame order); returns whether it has a pose."""
-        if frame <= self.kf_processed:
-            log.warning("keyframe %d arrived after keyframe %d was registered: skipped", frame, self.kf_processed)
-            return False
-        if image_bgr.shape[1] != self.kf_cam.width:
-            import cv2
-
-            image_bgr = cv2.resize(image_bgr, (self.kf_cam.width, self.kf_cam.height), interpolation=cv2.INTER_AREA)
-        try:
-            ok = self.registrar.add_keyframe(frame, image_bgr)
-        except Exception as exc:  # one keyframe that breaks the mapper must not stop the flight
-            log.warning("keyframe %d failed to register: %s", frame, exc)
-            self.registrar.failed.append(frame)
-            ok = False
-        self.kf_processed = frame
-        if ok:
-            self._refresh_model_poses()
-            self._refit()
-        return ok
-
-    def _refresh_model_poses(self):
-        """Poses of the current sub-model's recent keyframes (local refinement moves them a little)."""
-        reg = self.registrar
-        sm = reg.submodels[-1]
-        names = sm.names if len(self.model_pose) < 3 * reg.s.init_frames else sm.names[-(reg.s.match_window + 2):]
-        for name in names:
-            m = sm.rec.find_image_with_name(name).cam_from_world().matrix()
-            R, t = georeference_poses(m[None, :, :3], m[None, :, 3], sm.to_first)
-            f = reg.frame_of[name]
-            if f not in self.model_pose:
-                bisect.insort(self._kf_sorted, f)
-            self.model_pose[f] = (R[0], t[0])
-
-    def _refit(self):
-        frames = [f for f in self._kf_sorted[-400:] if f in self.tel and np.isfinite(self.tel[f][0]).all()
-                  and np.isfinite(self.tel[f][1]).all()]
-        if len(frames) < 3:
+    def add_image(self, frame: int, image_bgr: np.ndarray) -> None:
+        """A frame's image, in frame order: tracked against the map once there is one (until then it waits, and goes
+        to the mapper: the first model needs every image it can get); proposed to the mapper when the tracker asks
+        for a keyframe."""
+        if frame <= self._last_image:
+            log.warning("image of frame %d arrived after frame %d's: skipped", frame, self._last_image)
             return
-        # bounded cost: the recent stretch of the flight (the last 400 registered keyframes)
-        R_m = np.array([self.model_pose[f][0] for f in frames])
-        t_m = np.array([self.model_pose[f][1] for f in frames])
-        c_m = -np.einsum("nji,nj->ni", R_m, t_m)
-        g = np.array([self.tel[f][0] for f in frames])
-        sig = np.array([self.tel[f][2] for f in frames])
-        R_tel = camera_rotations(np.array([self.tel[f][1] for f in frames]), self.cam)
-        fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att)
-        self.fit, self.fit_residual_m = fit.similarity, fit.position_rms_m
+        self._last_image = frame
+        if image_bgr.shape[1] != self.kf_cam.width:
+            image_bgr = cv2.resize(image_bgr, (self.kf_cam.width, self.kf_cam.height), interpolation=cv2.INTER_AREA)
+        self._untracked.append((frame, image_bgr))
+        if self.mapper.reference() is None:
+            self._map(frame, image_bgr)
+        self.catch_up()
+
+    def _map(self, frame: int, image_bgr: np.ndarray) -> None:
+        t0 = time.perf_counter()
+        self.mapper.add(frame, image_bgr, self.tel.get(frame, (np.full(3, np.nan), np.full(4, np.nan), 2.0)))
+        self.seconds["mapping_inline"] += time.perf_counter() - t0
+
+    def _collect_references(self) -> None:
+        """Keep each keyframe the mapper hands over, in order, until the images reach it."""
+        ref = self.mapper.reference()
+        if ref is not None and (self._last_ref is None or ref.frame > self._last_ref):
+            self._first_ref = ref.frame if self._first_ref is None else self._first_ref
+            self._last_ref = ref.frame
+            self._refs.append(ref)
+
+    def catch_up(self) -> None:
+        """Track the images waiting, in order, once the mapper has handed over a keyframe; drop them if the first
+        model never came (their frames then get telemetry poses). An image is tracked against the keyframes handed
+        over up to its own frame, never a later one (the motion prediction would run backwards)."""
+        self._collect_references()
+        if self._first_ref is None:
+            if self.mapper.attempts >= 3 * self.mapper.settings.init_frames or len(self._untracked) > self.MAX_WAITING:
+                while self._untracked:
+                    self.kf_processed = self._untracked.popleft()[0]
+            return
+        while self._untracked:
+            frame, image_bgr = self._untracked.popleft()
+            self.kf_processed = frame
+            if frame < self._first_ref:  # before the first keyframe handed over: tracked against the first model's nearest
+                self._track_early(frame, image_bgr)
+                continue
+            t0 = time.perf_counter()
+            self._collect_references()
+            while self._refs and self._refs[0].frame <= frame:
+                self.tracker.set_reference(self._refs.popleft())
+            grey = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY) if image_bgr.ndim == 3 else image_bgr
+            r = self.tracker.track(frame, grey)
+            self.seconds["tracking"] += time.perf_counter() - t0
+            if r.R is not None:
+                self.tracked[frame] = (r.R, r.t)
+            else:
+                self.tracking_failed.append(frame)
+                log.info("frame %d: tracking failed (%s)", frame, r.why)
+            # while the mapper is at work on the last proposal, only a frame that could not be tracked is proposed;
+            # never one older than what it has mapped already
+            if (r.R is None or (r.keyframe and not self.mapper.busy())) and frame > self.mapper.processed:
+                self._map(frame, image_bgr)
+
+    def _track_early(self, frame: int, image_bgr: np.ndarray) -> None:
+        """A frame before the first reference: tracked from the nearest keyframe of the first model (none is far:
+        the first model is made of the first images the mapper took)."""
+        refs = self.mapper.first_references
+        if not refs or frame in self.model_pose:
+            return
+        ref = min(refs, key=lambda r: abs(r.frame - frame))
+        tracker = Tracker(self.kf_cam, self.tracker.s)
+        tracker.set_reference(ref)
+        grey = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY) if image_bgr.ndim == 3 else image_bgr
+        r = tracker.track(frame, grey)
+        if r.R is not None:
+            self.tracked[frame] = (r.R, r.t)
+        else:
+            self.tracking_failed.append(frame)
+            log.info("frame %d: tracking failed (%s)", frame, r.why)
+
+    def settle(self) -> None:
+        """The end of the flight: let the mapper finish what it was handed, and track the images still waiting."""
+        self.mapper.wait()
+        self.catch_up()
+
+    def close(self) -> None:
+        self.mapper.close()
 
     # -- the association frame
     def _freeze(self):
@@ -169,30 +231,59 @@ class LivePoses:
 
     # -- decisions
     def ready(self, frame: int, final: bool = False, stalled: bool = False) -> bool:
-        """Whether frame's pose can be decided now: the keyframe at or after it went through registration
-        (and the model exists, or bootstrapping had its chances), or the keyframes stopped coming (``stalled``)."""
+        """Whether frame's pose can be decided now: the image at or after it went through tracking, and the model
+        exists (or bootstrapping had its chances), or the images stopped coming (``stalled``)."""
+        self.catch_up()
         if final or stalled:
             return True
         if frame > self.kf_processed:
             return False
-        if self.model_pose or self.frozen is not None or self.assoc_from_enu is not None:
+        if self.mapper.has_model or self.frozen is not None or self.assoc_from_enu is not None:
             return True
-        return len(self.registrar.seconds) >= 3 * self.registrar.s.init_frames
+        return self.mapper.attempts >= 3 * self.mapper.settings.init_frames
+
+    def _model_frame_pose(self, frame: int, model_pose) -> tuple[np.ndarray, np.ndarray, str] | None:
+        if frame in model_pose:
+            return (*model_pose[frame], "registered")
+        if frame in self.tracked:
+            return (*self.tracked[frame], "tracked")
+        return None
+
+    def _neighbours(self, frame: int, kf_sorted: list[int]) -> tuple[int, int] | None:
+        """The nearest posed frames (registered or tracked) before and after ``frame``, within max_interp_gap."""
+        lo = hi = None
+        for f in range(frame - 1, frame - self.max_interp_gap - 1, -1):
+            if f in self.tracked or self._has(kf_sorted, f):
+                lo = f
+                break
+        if lo is None:
+            return None
+        for f in range(frame + 1, lo + self.max_interp_gap + 1):
+            if f in self.tracked or self._has(kf_sorted, f):
+                hi = f
+                break
+        return None if hi is None else (lo, hi)
+
+    @staticmethod
+    def _has(sorted_frames: list[int], f: int) -> bool:
+        k = bisect.bisect_left(sorted_frames, f)
+        return k < len(sorted_frames) and sorted_frames[k] == f
 
     def pose(self, frame: int) -> Pose | None:
         """The frame's pose in the association frame (call once :meth:`ready`); None without telemetry either."""
         self._freeze()
         m2a = self.model_to_assoc()
-        if m2a is not None and self.model_pose:
-            if frame in self.model_pose:
-                R, t = georeference_poses(self.model_pose[frame][0][None], self.model_pose[frame][1][None], m2a)
-                return Pose(frame, R[0], t[0], "registered", 0.01, 0.05)
-            kf = self._kf_sorted
-            k = bisect.bisect_left(kf, frame)
-            if 0 < k < len(kf) and kf[k] - kf[k - 1] <= self.max_interp_gap:
-                a, b = int(kf[k - 1]), int(kf[k])
-                R2, t2 = georeference_poses(np.array([self.model_pose[a][0], self.model_pose[b][0]]),
-                                            np.array([self.model_pose[a][1], self.model_pose[b][1]]), m2a)
+        model_pose, kf_sorted, _ = self.mapper.registered()
+        if m2a is not None and (model_pose or self.tracked):
+            own = self._model_frame_pose(frame, model_pose)
+            if own is not None:
+                R, t = georeference_poses(own[0][None], own[1][None], m2a)
+                return Pose(frame, R[0], t[0], own[2], 0.01 if own[2] == "registered" else 0.015, 0.05)
+            ab = self._neighbours(frame, kf_sorted)
+            if ab is not None:
+                a, b = ab
+                pa, pb = self._model_frame_pose(a, model_pose), self._model_frame_pose(b, model_pose)
+                R2, t2 = georeference_poses(np.array([pa[0], pb[0]]), np.array([pa[1], pb[1]]), m2a)
                 C = -np.einsum("nji,nj->ni", R2, t2)
                 w = (frame - a) / (b - a)
                 R = Slerp([0.0, 1.0], Rotation.from_matrix(R2))([w]).as_matrix()[0]
@@ -207,27 +298,13 @@ class LivePoses:
         R, t = georeference_poses(R_enu[None], (-R_enu @ enu)[None], e2a)
         return Pose(frame, R[0], t[0], "telemetry", h_acc, np.degrees(self.sigma_att))
 
-    def sparse_points(self, max_points: int = 4000, min_track: int = 3, max_error_px: float = 2.0,
-                      seed: int = 0) -> dict[int, np.ndarray]:
-        """The structure-from-motion points of the sub-models still in memory, in ENU: sub-model index -> (n, 3),
-        points seen in at least ``min_track`` keyframes within ``max_error_px``, at most ``max_points`` (an even
-        random sample) per sub-model."""
-        out: dict[int, np.ndarray] = {}
-        if self.fit is None:
-            return out
-        rng = np.random.default_rng(seed)
-        for k, sm in enumerate(self.registrar.submodels):
-            if sm.rec is None or sm.to_first is None:
-                continue
-            pts = [p for p in sm.rec.points3D.values() if p.track.length() >= min_track and p.error <= max_error_px]
-            if len(pts) > max_points:
-                pts = [pts[i] for i in np.sort(rng.choice(len(pts), max_points, replace=False))]
-            xyz = np.array([p.xyz for p in pts], float).reshape(-1, 3)
-            out[k] = compose(self.fit, sm.to_first).apply(xyz)
-        return out
+    def sparse_points(self, **kw) -> dict[int, np.ndarray]:
+        return self.mapper.sparse_points(**kw)
 
     def forget_before(self, frame: int):
-        """Drop telemetry older than ``frame`` (memory stays bounded over long flights)."""
+        """Drop telemetry and tracked poses older than ``frame`` (memory stays bounded over long flights)."""
         for f in [f for f in self.tel if f < frame]:
             if f not in self.model_pose:
                 del self.tel[f]
+        for f in [f for f in self.tracked if f < frame]:
+            del self.tracked[f]

@@ -50,7 +50,7 @@ def rss_mb() -> float:
         return peak_rss_mb()
 
 
-POSE_SOURCES = ("registered", "interpolated", "telemetry", "frames_without_pose")
+POSE_SOURCES = ("registered", "tracked", "interpolated", "telemetry", "frames_without_pose")
 
 
 class GroundNode:
@@ -204,7 +204,7 @@ class GroundNode:
     def report(self, table, rows, final) -> dict:
         p = self.pipe
         st = p.status
-        reg = p.poses.registrar if p.poses is not None else None
+        reg = p.poses.mapper.stats() if p.poses is not None else None
         r = {
             "flight_id": p.flight_id, "drone_id": p.drone_id, "final": final,
             "apples": int(len(table["id"])), "rows": rows,
@@ -215,23 +215,38 @@ class GroundNode:
             # what share of the mapped frames got each kind of pose
             "pose_shares": {k: p.counters[k] / max(1, sum(p.counters[j] for j in POSE_SOURCES)) for k in POSE_SOURCES},
             "registration": {
-                "keyframes_processed": len(reg.seconds) if reg else 0,
+                "keyframes_processed": reg["keyframes_processed"] if reg else 0,
                 "registered": len(p.poses.model_pose) if p.poses else 0,
-                "failed": len(reg.failed) if reg else 0,
-                "submodels": len(reg.submodels) if reg else 0,
-                "seconds_per_keyframe_median": float(np.median(reg.seconds)) if reg and reg.seconds else None,
+                "failed": reg["failed"] if reg else 0,
+                "submodels": reg["submodels"] if reg else 0,
+                "seconds_per_keyframe_median": float(np.median(reg["seconds"])) if reg and reg["seconds"] else None,
+                "stage_seconds_median": reg["stage_seconds_median"] if reg else None,
+                "mapping": self.settings.mapping,
+                # proposals the mapping process replaced with a newer one before it was free
+                "proposals_skipped": p.poses.mapper.skipped if p.poses else 0,
                 "georeference_gps_rms_m": p.poses.fit_residual_m if p.poses else None,
                 "origin": p.poses.origin.as_dict() if p.poses and p.poses.origin else None,
             },
+            "tracking": {"tracked": p.poses.tracker.tracked if p.poses else 0,
+                         "failed": p.poses.tracker.failed if p.poses else 0,
+                         "failed_frames": p.poses.tracking_failed[-100:] if p.poses else []},
             "association": {"params": vars(self.settings.association).copy(), "stats": dict(p.assoc.stats),
                             "strong_views_needed": p.views_needed()},
             "timings": {"wall_seconds": time.monotonic() - self.t_start,
-                        "registration_seconds": p.seconds["registration"],
+                        "pose_seconds": p.seconds["poses"],
+                        "tracking_seconds": p.poses.seconds["tracking"] if p.poses else 0.0,
+                        "inline_mapping_seconds": p.poses.seconds["mapping_inline"] if p.poses else 0.0,
+                        "mapping_seconds": float(sum(reg["seconds"])) if reg else 0.0,
                         "association_seconds": p.seconds["association"],
                         "ground_latency_median_s": float(np.median(self.latency)) if self.latency else None,
                         # how long frames waited on the ground, from their message's arrival to being mapped
                         **delay_stats(self.pipe.frame_delays),
-                        "peak_rss_mb": peak_rss_mb(), "rss_mb_by_frames_mapped": self.memory,
+                        # the same, of the frames that came once the first model was made (no wait for it)
+                        **{f"{k}_after_first_model": v for k, v in delay_stats(self.pipe.frame_delays_mapped).items()},
+                        "peak_rss_mb": peak_rss_mb(),
+                        # the mapping process's (live), once it has ended: its own peak, beside the ground's
+                        "mapping_peak_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0,
+                        "rss_mb_by_frames_mapped": self.memory,
                         "frames_mapped_by_wall_s": self.progress},
             "onboard_status": vars(st).copy() if st else None,
             "link": self.link_stats(),
@@ -248,7 +263,7 @@ class GroundNode:
             log.exception("finishing the flight failed: %s", exc)
             self.errors.append(f"finish: {exc}")
         report = self.refresh(final=True)
-        if self.pipe.poses is not None and self.pipe.poses.registrar.submodels:
+        if self.pipe.poses is not None and self.pipe.poses.mapper.submodels():
             self.write_model()
         if self.rr is not None:
             self.rr.close()
@@ -259,12 +274,12 @@ class GroundNode:
         import pycolmap
 
         poses = self.pipe.poses
-        for k, sm in enumerate(poses.registrar.submodels):
+        for k, sm in enumerate(poses.mapper.submodels()):
             d = self.out / "model" / str(k)
             d.mkdir(parents=True, exist_ok=True)
             rec = pycolmap.Reconstruction(sm.reconstruction())
             if poses.fit is not None:
-                from ground.live_poses import compose
+                from ground.mapping import compose
 
                 S = compose(poses.fit, sm.to_first)
                 rec.transform(pycolmap.Sim3d(S.scale, pycolmap.Rotation3d(S.R), S.t))
@@ -335,8 +350,7 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
             now = time.monotonic()
             if msg is not None:
                 last_msg = now
-                # take everything queued up meanwhile, then process once: a ground that lags sees all the
-                # keyframes waiting and can skip some (GroundSettings.max_lag_s)
+                # take everything queued up meanwhile, then process once
                 batch = [msg]
                 while len(batch) < 1000 and (more := sub.recv(timeout=0)) is not None:
                     batch.append(more)
@@ -351,6 +365,8 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
                         if not contradicted(m):
                             claim = (m, now)
                 node.step()
+            elif node.pipe.pending:
+                node.step()  # frames may wait on the mapping process (its first model)
             if claim is not None:
                 have = node.pipe.counters["frames"] + node.pipe.counters["late_frames"]
                 said = claim[0].frames_processed

@@ -1,4 +1,4 @@
-"""The ground's processing, fed wire messages one at a time: registration -> poses -> windowed association.
+"""The ground's processing, fed wire messages one at a time: poses (tracking, mapping) -> windowed association.
 
     pipe = GroundPipeline(workdir)
     for msg in messages:          # pomar.wire messages, in any order, repeats allowed
@@ -10,8 +10,8 @@
 Frames are de-duplicated and released to the association in index order, once their pose can be
 decided (:class:`ground.live_poses.LivePoses`). A frame that arrives after a later one was
 released is counted as late and dropped (the association only moves forward); missing frame
-indices are reported as gaps. A keyframe that does not decode or register is logged, and its
-frame gets an interpolated or telemetry pose: nothing stops the flight.
+indices are reported as gaps. An image that does not decode or track is logged, and its frame gets an
+interpolated or telemetry pose: nothing stops the flight.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ import numpy as np
 from ground.association import Apple, AssociationParams, FrameDetections, WindowedAssociation
 from ground.live_poses import LivePoses, Pose
 from ground.registration import RegistrationSettings
+from ground.tracking import TrackingSettings
 from ground.rows import direction_rows
 from pomar import wire
 from pomar.camera import Camera
@@ -48,15 +49,10 @@ class GroundSettings:
     #: with interpolated or telemetry poses.
     max_wait_s: float = 5.0
     max_interp_gap: int = 10
-    #: Live, the ground must not fall ever further behind the drone. When the keyframes waiting for
-    #: registration lag the newest frame by more than max_lag_s (flight time), only as many are
-    #: registered as keep registered keyframes at most max_keyframe_gap frames apart (the others' frames
-    #: get interpolated poses). 0 = register every keyframe, however late (lock-step replays). Slerp
-    #: between keyframes 4 frames apart misses the bundled flight's camera by 0.04 deg (median; 0.15 deg
-    #: at 8 apart, where tracks break: 0.17 deg of attitude wobble per frame, which the telemetry's
-    #: 0.3 deg noise cannot follow).
-    max_lag_s: float = 2.0
-    max_keyframe_gap: int = 4
+    #: "inline": each mapping keyframe is registered before the frames after it go on (lock-step replays:
+    #: deterministic); "process": mapping runs in its own process and never holds up tracking (live).
+    mapping: str = "inline"
+    tracking: TrackingSettings = field(default_factory=TrackingSettings)
     min_score: float = 0.0  # detections below this score are not used
     #: An apple is counted once at least confirm_views of its views scored confirm_score or more (the
     #: shipped detector's operating threshold). Weaker detections still extend and place it: an
@@ -109,24 +105,25 @@ class GroundPipeline:
         self._proj: list[np.ndarray] = []  # association frame -> its camera matrix
         self._confirmed: dict[int, int] = {}  # apple id -> views scored confirm_score or more
         self.pending: dict[int, wire.FrameMessage] = {}
-        self.keyframes: dict[int, bytes] = {}  # waiting for registration
+        self.keyframes: dict[int, bytes] = {}  # images waiting for tracking (and mapping)
         self._kf_for_event: dict[int, bytes] = {}
         self._kf_seen: set[int] = set()
         self._last_kf_t = time.monotonic()
         self._last_kf_capture = float("nan")  # capture time of the last keyframe's frame (or of the first frame)
-        self._last_kf: int | None = None  # the last keyframe given to registration
         self.released = -1
         self.status: wire.StatusMessage | None = None
         self.counters = {"frames": 0, "keyframes": 0, "late_frames": 0, "gaps": 0, "missing_frames": 0,
-                         "bad_keyframes": 0, "skipped_keyframes": 0, "frames_without_pose": 0, "detections": 0,
-                         "registered": 0, "interpolated": 0, "telemetry": 0}
-        self.seconds = {"registration": 0.0, "association": 0.0}
+                         "bad_keyframes": 0, "frames_without_pose": 0, "detections": 0,
+                         "registered": 0, "tracked": 0, "interpolated": 0, "telemetry": 0}
+        self.seconds = {"poses": 0.0, "association": 0.0}
         self.gaps: list[tuple[int, int]] = []
         self.frame_times: dict[int, float] = {}
         self.newest_t = float("-inf")  # the latest capture time of any frame received
         self._arrived: dict[int, float] = {}  # frame -> when its message came (monotonic clock)
         self._steps: deque[int] = deque(maxlen=20)  # frame-index steps between the last frames mapped
         self.frame_delays: list[float] = []  # per mapped frame: seconds from its message's arrival to its release
+        self.frame_delays_mapped: list[float] = []  # ... of the frames that arrived once the first model existed
+        self._t_model: float | None = None  # when the first model was there
         self.frame_poses: dict[int, Pose] = {}  # every released frame's pose (association frame)
         self._seq_frame: list[int] = []  # association frame number -> frame index
 
@@ -154,8 +151,8 @@ class GroundPipeline:
 
     def _make_poses(self, kf_width: int):
         self.poses = LivePoses(self.camera, self.workdir, keyframe_width=kf_width, settings=self.s.registration,
-                               origin=self.origin,
-                               max_interp_gap=self.s.max_interp_gap)
+                               origin=self.origin, max_interp_gap=self.s.max_interp_gap,
+                               in_process=self.s.mapping == "process", tracking=self.s.tracking)
         for f in sorted(self.pending):
             t = self.pending[f].telemetry
             self.poses.add_telemetry(f, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc)
@@ -189,49 +186,24 @@ class GroundPipeline:
 
     # -- processing
     def step(self, final: bool = False) -> list[FrameEvent]:
-        """Register waiting keyframes, then release every frame whose pose can be decided."""
+        """Hand the waiting images to the poses (tracking; mapping keyframes), then release every frame whose pose
+        can be decided."""
         if self.camera is None:
             return []
         if self.poses is None:
             if not self.keyframes and not final and not self._stalled():
                 return []
+            if self.s.mapping not in ("inline", "process"):
+                raise ValueError(f"GroundSettings.mapping must be 'inline' or 'process', got {self.s.mapping!r}")
             self._make_poses(self._first_keyframe_width())
         events = []
-        self._thin_keyframes()
-        # keyframes in order, but never ahead of the frames: a frame needs the keyframe after it
+        # images in order, but never ahead of the frames: a frame needs the image after it
         for f in sorted(self.keyframes):
             jpeg = self.keyframes.pop(f)
-            self._register(f, jpeg)
+            self._add_image(f, jpeg)
             events += self._release(final=False)
         events += self._release(final)
         return events
-
-    def _thin_keyframes(self) -> None:
-        """When the waiting keyframes lag the newest frame by more than max_lag_s, drop those not needed to keep
-        the registered ones at most max_keyframe_gap frames apart (greedily: the furthest reachable each time;
-        the newest is always kept)."""
-        waiting = sorted(self.keyframes)
-        if not self.s.max_lag_s or len(waiting) < 2:
-            return
-        t_first = self.frame_times.get(waiting[0])
-        lag = self.newest_t - t_first if t_first is not None else float("nan")
-        if not lag > self.s.max_lag_s:  # NaN (a frame without a capture time) never thins
-            return
-        keep, cur, i = [], self._last_kf, 0
-        while i < len(waiting):
-            j = i
-            while cur is not None and j + 1 < len(waiting) and waiting[j + 1] - cur <= self.s.max_keyframe_gap:
-                j += 1
-            keep.append(waiting[j])
-            cur, i = waiting[j], j + 1
-        kept = set(keep)
-        skipped = [f for f in waiting if f not in kept]
-        for f in skipped:
-            del self.keyframes[f]
-        if skipped:
-            self.counters["skipped_keyframes"] += len(skipped)
-            log.info("the ground lags the drone by %.1f s: %d of %d waiting keyframes skipped",
-                     lag, len(skipped), len(waiting))
 
     def _stalled(self) -> bool:
         """No keyframe for max_wait_s, while the frames went on for max_wait_s of flight past the last one: the
@@ -247,17 +219,16 @@ class GroundPipeline:
                 return img.shape[1]
         return None
 
-    def _register(self, frame: int, jpeg: bytes):
+    def _add_image(self, frame: int, jpeg: bytes):
         img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
         if img is None:
             self.counters["bad_keyframes"] += 1
             log.warning("keyframe %d: JPEG does not decode; the frame gets an interpolated or telemetry pose", frame)
             return
         t0 = time.perf_counter()
-        self.poses.add_keyframe(frame, img)
-        self._last_kf = frame
-        self.seconds["registration"] += time.perf_counter() - t0
-        self._last_kf_t = time.monotonic()  # the wait is counted from when registration is free again
+        self.poses.add_image(frame, img)
+        self.seconds["poses"] += time.perf_counter() - t0
+        self._last_kf_t = time.monotonic()  # the wait is counted from when the poses are free again
         self._kf_for_event[frame] = jpeg
 
     def _release(self, final: bool) -> list[FrameEvent]:
@@ -271,8 +242,12 @@ class GroundPipeline:
                 break
             msg = self.pending.pop(f)
             arrived = self._arrived.pop(f, None)
+            if self._t_model is None and self.poses.mapper.has_model:
+                self._t_model = time.monotonic()
             if arrived is not None:
                 self.frame_delays.append(time.monotonic() - arrived)
+                if self._t_model is not None and arrived >= self._t_model:
+                    self.frame_delays_mapped.append(self.frame_delays[-1])
             if self.released >= 0:
                 self._steps.append(f - self.released)
             if f > self.released + 1 and self.released >= 0:
@@ -314,7 +289,12 @@ class GroundPipeline:
 
     def finish(self) -> list[FrameEvent]:
         """End of the flight: register what is left, release every frame, close every track."""
+        if self.poses is not None:
+            self.step()
+            self.poses.settle()
         events = self.step(final=True) if self.camera is not None else []
+        if self.poses is not None:
+            self.poses.close()  # maps what is waiting: the model files are written from it
         self._confirm(self.assoc.finish())
         self._kf_for_event.clear()
         return events

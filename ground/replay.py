@@ -187,8 +187,8 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
                        "--flight-id", meta.flight_id, "--linger", "600", "--summary", str(out / "onboard.json")]
     ground_cmd = [py, "-m", "ground", "run", "--flight-id", meta.flight_id, "--connect", endpoint, "--out", str(out),
                   "--fresh", "--expected-frames", str(-(-meta.frame_count // every))] + ([] if rrd else ["--no-rrd"]) \
-        + ([] if realtime or (recorded is not None and speed > 0) else ["--max-lag-s", "0"]) \
-        + (ground_args or [])  # lock-step (and --speed 0): every keyframe registered
+        + ([] if realtime or (recorded is not None and speed > 0) else ["--mapping", "inline"]) \
+        + (ground_args or [])  # lock-step (and --speed 0): mapping inline, deterministic
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     t0 = time.monotonic()
     logs = {name: open(out / f"{name}.log", "w") for name in ("onboard", "ground")}

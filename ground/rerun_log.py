@@ -173,9 +173,11 @@ def summary_markdown(report: dict, live: dict) -> str:
     gps = reg.get("georeference_gps_rms_m")
     gps_txt = f", GPS fit {gps:.2f} m" if gps is not None and np.isfinite(gps) else ""
     lines.append("")
-    lines.append(f"**Registration** {reg.get('registered', 0)} of {reg.get('keyframes_processed', 0)} keyframes, "
-                 f"{reg.get('failed', 0)} failed, {reg.get('submodels', 0)} sub-model(s){gps_txt}. Frame poses: "
-                 f"{fr.get('registered', 0)} registered, {fr.get('interpolated', 0)} interpolated, "
+    trk = report.get("tracking", {})
+    lines.append(f"**Registration** {reg.get('registered', 0)} of {reg.get('keyframes_processed', 0)} mapping "
+                 f"keyframes, {reg.get('failed', 0)} failed, {reg.get('submodels', 0)} sub-model(s){gps_txt}. Frame "
+                 f"poses: {fr.get('registered', 0)} registered, {fr.get('tracked', 0)} tracked "
+                 f"({trk.get('failed', 0)} failed to track), {fr.get('interpolated', 0)} interpolated, "
                  f"{fr.get('telemetry', 0)} from telemetry alone, {fr.get('frames_without_pose', 0)} without")
     link = report.get("link", {})
     onboard = report.get("onboard_status") or {}

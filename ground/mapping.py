@@ -1,0 +1,386 @@
+"""Mapping keyframes: pycolmap registration (:class:`ground.registration.IncrementalRegistrar`) and the
+georeferencing fit, on the caller's thread (:class:`Mapper`: lock-step replays, deterministic) or in a
+process of its own (:class:`MapperProcess`: live, so that mapping never holds up per-frame tracking;
+pycolmap's feature extraction and mapper hold Python's GIL, so a thread would).
+
+    mapper = Mapper(kf_camera, camera, workdir, settings)    # or MapperProcess(...): the same interface
+    mapper.add(frame, image_bgr, telemetry)   # a keyframe proposed by the tracker (or, before a model, any)
+    mapper.reference()                        # the newest registered keyframe to track against (Reference)
+    mapper.registered()                       # registered keyframes (model frame), in order, model -> ENU
+
+The process maps one keyframe at a time; the newest proposal waits meanwhile, replacing any that came
+before it (counted in ``skipped``): mapping falls behind by at most one keyframe's work, and the
+keyframes it maps are further apart when it is slow. After each keyframe it sends back what tracking
+and the pose interface read: the registered poses it moved, the fit, the reference.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import multiprocessing as mp
+import queue
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ground.georeference import fit_similarity, georeference_poses
+from ground.poses import camera_rotations
+from ground.registration import IncrementalRegistrar, RegistrationSettings, Submodel
+from ground.tracking import Reference
+from pomar.align import Similarity
+from pomar.camera import Camera
+
+log = logging.getLogger(__name__)
+
+
+def compose(a: Similarity, b: Similarity) -> Similarity:
+    """a after b: x -> a(b(x))."""
+    return Similarity(a.scale * b.scale, a.R @ b.R, a.scale * a.R @ b.t + a.t)
+
+
+class Mapper:
+    #: The reference handed to tracking holds the keyframe's points seen in at least min_track keyframes within
+    #: max_point_error_px (all of its points when fewer than 100 are).
+    min_track = 2
+    max_point_error_px = 1.5
+
+    def __init__(self, kf_camera: Camera, camera: Camera, workdir, settings: RegistrationSettings | None = None,
+                 sigma_att_deg: float = 0.5):
+        self.kf_cam, self.cam = kf_camera, camera
+        self.registrar = IncrementalRegistrar(kf_camera, workdir, settings)
+        self.settings = self.registrar.s
+        self.sigma_att = np.radians(sigma_att_deg)
+        self.tel: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}  # keyframe -> (enu, q_gimbal, h_acc)
+        self.model_pose: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # registered keyframes, model frame
+        self.kf_sorted: list[int] = []
+        self.fit: Similarity | None = None  # model -> ENU
+        self.fit_residual_m = float("nan")
+        self._ref: Reference | None = None
+        self.processed = -1  # the newest keyframe through registration
+        self.attempts = 0
+        self.skipped = 0  # always 0 here: only the process replaces proposals
+        self.changed: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # poses the last keyframe moved
+        # the keyframes' images until the first model: it places all of them at once, and tracking the frames
+        # between them needs their points (first_references)
+        self._early: dict[int, np.ndarray] = {}
+        self.first_references: list[Reference] = []
+
+    # -- inputs
+    def busy(self) -> bool:
+        return False
+
+    def wait(self, timeout_s: float = 0.0) -> None:
+        """Nothing to wait for: mapping is done on the caller's thread."""
+
+    def add(self, frame: int, image_bgr: np.ndarray, tel) -> bool:
+        """Map this keyframe now; returns whether it registered."""
+        return self._map(frame, image_bgr, tel)
+
+    def close(self) -> None:
+        self.registrar.close()
+
+    # -- mapping
+    def _map(self, frame: int, image_bgr: np.ndarray, tel) -> bool:
+        if frame <= self.processed:
+            log.warning("keyframe %d came after keyframe %d was mapped: skipped", frame, self.processed)
+            return False
+        if image_bgr.shape[1] != self.kf_cam.width:
+            image_bgr = cv2.resize(image_bgr, (self.kf_cam.width, self.kf_cam.height), interpolation=cv2.INTER_AREA)
+        self.tel[frame] = tel
+        self.attempts += 1
+        if not self.model_pose:
+            self._early[frame] = image_bgr
+            for f in sorted(self._early)[:-2 * self.settings.init_frames]:
+                del self._early[f]
+        self.changed = {}
+        try:
+            ok = self.registrar.add_keyframe(frame, image_bgr)
+        except Exception as exc:  # one keyframe that breaks the mapper must not stop the flight
+            log.warning("keyframe %d failed to register: %s", frame, exc)
+            self.registrar.failed.append(frame)
+            ok = False
+        self.processed = frame
+        if not ok:
+            return False
+        first = not self.model_pose
+        self.changed = self._model_poses()
+        self._update(self.changed, self._refit({**self.model_pose, **self.changed}), self._reference(frame, image_bgr))
+        if first:
+            refs = [self._reference(f, self._early[f]) for f in sorted(self._early) if f in self.changed and f != frame]
+            self.first_references = [r for r in refs if r is not None] + ([self._ref] if self._ref else [])
+            self._early.clear()
+        return True
+
+    def _update(self, poses, fit, ref) -> None:
+        for f in poses:
+            if f not in self.model_pose:
+                bisect.insort(self.kf_sorted, f)
+        self.model_pose.update(poses)
+        if fit is not None:
+            self.fit, self.fit_residual_m = fit
+        if ref is not None:
+            self._ref = ref
+
+    def _model_poses(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """Poses of the current sub-model's recent keyframes (local refinement moves them a little)."""
+        reg = self.registrar
+        sm = reg.submodels[-1]
+        names = sm.names if len(self.model_pose) < 3 * reg.s.init_frames else sm.names[-(reg.s.match_window + 2):]
+        out = {}
+        for name in names:
+            m = sm.rec.find_image_with_name(name).cam_from_world().matrix()
+            R, t = georeference_poses(m[None, :, :3], m[None, :, 3], sm.to_first)
+            out[reg.frame_of[name]] = (R[0], t[0])
+        return out
+
+    def _reference(self, frame: int, image_bgr: np.ndarray) -> Reference | None:
+        """The keyframe just registered, as tracking needs it: grey image, keypoints with a 3-D point (model frame)."""
+        sm = self.registrar.submodels[-1]
+        im = sm.rec.find_image_with_name(f"{frame:06d}.jpg")
+        if im is None or not im.has_pose:
+            return None
+        pts = sm.rec.points3D
+        obs = [(p.xy, pts[p.point3D_id]) for p in im.get_observation_points2D()]
+        # points seen in few keyframes have poorly known depth, and would pull the tracked poses off the model's
+        good = [(xy, q) for xy, q in obs if q.track.length() >= self.min_track and q.error <= self.max_point_error_px]
+        obs = good if len(good) >= 100 else obs
+        if not obs:
+            return None
+        xy = np.array([o[0] for o in obs], float) - 0.5  # COLMAP's pixel centres to OpenCV's
+        X = sm.to_first.apply(np.array([o[1].xyz for o in obs], float))
+        m = im.cam_from_world().matrix()
+        R, t = georeference_poses(m[None, :, :3], m[None, :, 3], sm.to_first)
+        grey = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY) if image_bgr.ndim == 3 else image_bgr
+        return Reference(frame, grey, xy, X, R[0], t[0])
+
+    def _refit(self, model_pose) -> tuple[Similarity, float] | None:
+        """The model -> ENU similarity from the recent registered keyframes (the last 400: a bounded cost)."""
+        frames = [f for f in sorted(model_pose)[-400:] if f in self.tel and np.isfinite(self.tel[f][0]).all()
+                  and np.isfinite(self.tel[f][1]).all()]
+        if len(frames) < 3:
+            return None
+        R_m = np.array([model_pose[f][0] for f in frames])
+        t_m = np.array([model_pose[f][1] for f in frames])
+        c_m = -np.einsum("nji,nj->ni", R_m, t_m)
+        g = np.array([self.tel[f][0] for f in frames])
+        sig = np.array([self.tel[f][2] for f in frames])
+        R_tel = camera_rotations(np.array([self.tel[f][1] for f in frames]), self.cam)
+        fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att)
+        return fit.similarity, fit.position_rms_m
+
+    # -- reading
+    @property
+    def has_model(self) -> bool:
+        return bool(self.model_pose)
+
+    def reference(self) -> Reference | None:
+        return self._ref
+
+    def registered(self) -> tuple[dict, list[int], Similarity | None]:
+        """(frame -> (R, t) in the model frame, the frames in order, the fit model -> ENU)."""
+        return self.model_pose, self.kf_sorted, self.fit
+
+    def stats(self) -> dict:
+        reg = self.registrar
+        st = np.asarray(reg.stage_seconds, float).reshape(-1, 3)
+        return {"keyframes_processed": len(reg.seconds), "failed": len(reg.failed), "submodels": len(reg.submodels),
+                "seconds": list(reg.seconds),
+                "stage_seconds_median": dict(zip(("features", "matching", "mapping"),
+                                                 np.median(st, 0).tolist() if len(st) else [None] * 3))}
+
+    def submodels(self) -> list[Submodel]:
+        return self.registrar.submodels
+
+    def sparse_points(self, max_points: int = 4000, min_track: int = 3, max_error_px: float = 2.0,
+                      seed: int = 0) -> dict[int, np.ndarray]:
+        """The structure-from-motion points of the sub-models still in memory, in ENU: sub-model index -> (n, 3),
+        points seen in at least ``min_track`` keyframes within ``max_error_px``, at most ``max_points`` (an even
+        random sample) per sub-model."""
+        out: dict[int, np.ndarray] = {}
+        if self.fit is None:
+            return out
+        rng = np.random.default_rng(seed)
+        for k, sm in enumerate(self.registrar.submodels):
+            if sm.rec is None or sm.to_first is None:
+                continue
+            pts = [p for p in sm.rec.points3D.values() if p.track.length() >= min_track and p.error <= max_error_px]
+            if len(pts) > max_points:
+                pts = [pts[i] for i in np.sort(rng.choice(len(pts), max_points, replace=False))]
+            xyz = np.array([p.xyz for p in pts], float).reshape(-1, 3)
+            out[k] = compose(self.fit, sm.to_first).apply(xyz)
+        return out
+
+
+def _serve(jobs, results, kf_camera, camera, workdir, settings, sigma_att_deg, points_every) -> None:
+    """The mapping process: map each job, send back what changed; on None, write the sub-models to disk and say
+    where."""
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s [mapping]: %(message)s")
+    m = Mapper(kf_camera, camera, workdir, settings, sigma_att_deg)
+    parent = mp.parent_process()
+    while True:
+        try:  # one at a time: the parent holds the newest proposal while this one is mapped
+            job = jobs.get(timeout=1.0)
+        except queue.Empty:
+            if parent is not None and not parent.is_alive():  # the ground died: nobody to map for
+                log.warning("the ground process is gone: the mapping process stops")
+                return
+            continue
+        if job is None:
+            break
+        frame, jpeg, tel = job
+        first = not m.has_model
+        img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        ok = m.add(frame, img, tel) if img is not None else False
+        points = m.sparse_points() if ok and points_every and len(m.model_pose) % points_every == 1 else None
+        results.put({"frame": frame, "ok": ok, "poses": m.changed, "fit": (m.fit, m.fit_residual_m),
+                     "ref": m.reference() if ok else None, "points": points, "stats": m.stats(),
+                     "first_refs": m.first_references if ok and first else None,
+                     "processed": m.processed, "attempts": m.attempts})
+    m.close()
+    points = m.sparse_points()
+    subs = []
+    for k, sm in enumerate(m.registrar.submodels):
+        if sm.rec is not None:
+            sm.offload(Path(workdir) / "submodels" / str(k))
+        subs.append(Submodel(None, sm.names, sm.to_first, sm.path, sm._frozen))
+    results.put({"closed": subs, "points": points, "stats": m.stats(),
+                 "frame_of": m.registrar.frame_of})
+
+
+class MapperProcess:
+    """:class:`Mapper` in a process of its own (spawned: the ground's zenoh threads must not be forked), with the
+    same reading interface; what it sends back is taken in whenever the caller reads."""
+
+    def __init__(self, kf_camera: Camera, camera: Camera, workdir, settings: RegistrationSettings | None = None,
+                 sigma_att_deg: float = 0.5, points_every: int = 10):
+        ctx = mp.get_context("spawn")
+        self.settings = settings or RegistrationSettings()
+        self._jobs, self._results = ctx.Queue(), ctx.Queue()
+        self._proc = ctx.Process(target=_serve, name="pomar-mapping", daemon=True,
+                                 args=(self._jobs, self._results, kf_camera, camera, str(workdir), self.settings,
+                                       sigma_att_deg, points_every))
+        self._proc.start()
+        self.model_pose: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.kf_sorted: list[int] = []
+        self.fit: Similarity | None = None
+        self.fit_residual_m = float("nan")
+        self._ref: Reference | None = None
+        self.first_references: list[Reference] = []
+        self._points: dict[int, np.ndarray] = {}
+        self._stats = {"keyframes_processed": 0, "failed": 0, "submodels": 0, "seconds": [],
+                       "stage_seconds_median": dict.fromkeys(("features", "matching", "mapping"))}
+        self._submodels: list[Submodel] = []
+        self.processed = -1
+        self.attempts = self.skipped = self.sent = self.answered = 0
+        self._held = None  # the newest proposal, while the process maps the one before
+        self._closed = False
+
+    def add(self, frame: int, image_bgr: np.ndarray, tel) -> None:
+        """Hand over a keyframe: sent now if the process is free, else held, replacing any held before it (the
+        process's pipe would otherwise queue them, and the newest could not win)."""
+        if self._closed:
+            return
+        ok, jpeg = cv2.imencode(".jpg", image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        if self._held is not None:
+            self.skipped += 1
+        self._held = (frame, jpeg.tobytes(), tel)
+        self._poll()
+        self._send()
+
+    def _send(self) -> None:
+        if self._held is not None and self.answered == self.sent:
+            self._jobs.put(self._held)
+            self._held = None
+            self.sent += 1
+
+    def busy(self) -> bool:
+        """Whether a keyframe handed over is still being mapped, or waiting to be."""
+        self._poll()
+        return self.answered < self.sent or self._held is not None
+
+    def wait(self, timeout_s: float = 120.0) -> None:
+        """Until every keyframe handed over is mapped (or the process died, or timeout_s passed)."""
+        t_end = time.monotonic() + timeout_s
+        while self.busy() and self._proc is not None and self._proc.is_alive() and time.monotonic() < t_end:
+            self._poll(timeout=0.5)
+
+    def _poll(self, timeout: float | None = 0.0) -> bool:
+        """Take in what the process sent; ``timeout``: wait that long for one message (None: for ever)."""
+        got = False
+        while True:
+            try:
+                r = self._results.get(timeout=timeout) if timeout != 0.0 else self._results.get_nowait()
+            except queue.Empty:
+                return got
+            got, timeout = True, 0.0
+            self._stats = r["stats"]
+            if r.get("points") is not None:
+                self._points = r["points"]
+            if "closed" in r:
+                self._submodels, self.frame_of = r["closed"], r["frame_of"]
+                self._closed = True
+                return got
+            self.answered += 1
+            if log.isEnabledFor(logging.DEBUG):  # how far the mapper moved the keyframes it had already placed
+                moved = [np.linalg.norm(self.model_pose[f][0].T @ self.model_pose[f][1] - R.T @ t)
+                         for f, (R, t) in r["poses"].items() if f in self.model_pose]
+                log.debug("keyframe %d mapped (%s): the keyframes before it moved up to %.4f model units",
+                          r["frame"], r["ok"], max(moved, default=0.0))
+            for f in r["poses"]:
+                if f not in self.model_pose:
+                    bisect.insort(self.kf_sorted, f)
+            self.model_pose.update(r["poses"])
+            if r["fit"][0] is not None:
+                self.fit, self.fit_residual_m = r["fit"]
+            if r["ref"] is not None:
+                self._ref = r["ref"]
+            if r["first_refs"]:
+                self.first_references = r["first_refs"]
+            self.processed, self.attempts = r["processed"], r["attempts"]
+            self._send()
+
+    @property
+    def has_model(self) -> bool:
+        self._poll()
+        return bool(self.model_pose)
+
+    def reference(self) -> Reference | None:
+        self._poll()
+        return self._ref
+
+    def registered(self):
+        self._poll()
+        return self.model_pose, self.kf_sorted, self.fit
+
+    def stats(self) -> dict:
+        self._poll()
+        return self._stats
+
+    def submodels(self) -> list[Submodel]:
+        return self._submodels
+
+    def sparse_points(self, **kw) -> dict[int, np.ndarray]:
+        self._poll()
+        return self._points
+
+    def close(self, timeout_s: float = 600.0) -> None:
+        """Map what is waiting, take in the results and the sub-models (written to disk), stop the process."""
+        if self._proc is None:
+            return
+        while self._held is not None and self._proc.is_alive():  # the last proposal is mapped too
+            self._poll(timeout=1.0)
+            self._send()
+        self._jobs.put(None)
+        t_end = time.monotonic() + timeout_s
+        while not self._closed and time.monotonic() < t_end:
+            if not self._poll(timeout=1.0) and not self._proc.is_alive():
+                log.error("the mapping process ended without its results (exit code %s)", self._proc.exitcode)
+                break
+        self._proc.join(timeout=10)
+        if self._proc.is_alive():
+            self._proc.kill()
+            self._proc.join()
+        self._proc = None
