@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
 
 from pomar.apple_scale import SCALE_HELP, scale_argument
@@ -61,7 +62,7 @@ def _settings(args):
     return GroundSettings(association=AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom,
                                                         min_inliers=args.min_inliers, cross_pass=not args.no_cross_pass),
                           registration=_registration_settings(args),
-                          max_wait_s=args.max_wait_s, mapping=args.mapping,
+                          max_wait_s=args.max_wait_s, mapping=args.mapping, init_spacing_s=args.init_spacing_s,
                           tracking=TrackingSettings(min_tracked_share=args.min_tracked_share),
                           min_score=args.min_score,
                           confirm_score=args.confirm_score, confirm_views=args.confirm_views,
@@ -201,6 +202,8 @@ def _registration_options(p):
                    help="registration: match each keyframe against this many previous ones")
     p.add_argument("--sift", choices=["opencv", "colmap"], default=RegistrationSettings.sift,
                    help="registration: SIFT implementation (the mapper reads only keypoints and verified matches)")
+    p.add_argument("--init-frames", type=int, default=RegistrationSettings.init_frames,
+                   help="registration: keyframes the first model is made from (live, frames wait for it)")
     p.add_argument("--upright", action="store_true",
                    help="registration: SIFT without orientation (faster; for a camera that does not rotate in the image plane)")
 
@@ -210,7 +213,7 @@ def _registration_settings(args, **extra):
 
     try:
         return RegistrationSettings(max_num_features=args.max_features, match_window=args.match_window, sift=args.sift,
-                                    upright=args.upright, **extra)
+                                    upright=args.upright, init_frames=args.init_frames, **extra)
     except ValueError as exc:  # a bad combination of options: say so, without a traceback
         raise SystemExit(f"ground: {exc}") from None
 
@@ -234,6 +237,8 @@ def _ground_options(p):
                    help="process: mapping keyframes are registered in a process of their own, and every frame is "
                         "tracked against the map meanwhile (live); inline: each is registered before the frames after it go "
                         "on (deterministic; a lock-step replay uses it)")
+    p.add_argument("--init-spacing-s", type=float, default=g.init_spacing_s,
+                   help="before the first model, the mapper takes images at least this far apart (capture time, s)")
     p.add_argument("--min-tracked-share", type=float, default=g.tracking.min_tracked_share,
                    help="a frame becomes a mapping keyframe when it holds less than this share of the points of the "
                         "last one")
@@ -365,7 +370,7 @@ def main(argv=None) -> int:
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(func=_cmd_register)
     args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
+    logging.basicConfig(level=os.environ.get("POMAR_LOG_LEVEL", "INFO").upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
     from ground.journal import JournalError
     from pomar.flight import FlightFormatError
     from pomar.transport import TransportError

@@ -55,7 +55,7 @@ class Pose:
     frame: int
     R: np.ndarray  # association-frame-to-camera rotation
     t: np.ndarray
-    source: str  # registered | interpolated | telemetry
+    source: str  # registered | tracked | interpolated | telemetry
     sigma_m: float
     sigma_deg: float
 
@@ -67,11 +67,13 @@ class Pose:
 class LivePoses:
     #: Images kept while the first model is made; beyond, they are dropped (their frames get telemetry poses).
     MAX_WAITING = 300
+    #: How long an image that could not be tracked waits for the mapper's answer on it, at most.
+    MAX_RETRY_WAIT_S = 30.0
 
     def __init__(self, camera: Camera, workdir, keyframe_width: int | None = None,
                  settings: RegistrationSettings | None = None, origin: Origin | None = None,
                  max_interp_gap: int = 10, sigma_att_deg: float = 0.5, in_process: bool = False,
-                 tracking: TrackingSettings | None = None):
+                 tracking: TrackingSettings | None = None, init_spacing_s: float = 0.0):
         self.cam = camera
         self.kf_cam = camera if not keyframe_width else self._scaled(camera, keyframe_width)
         # live, mapping runs in its own process: pycolmap holds the GIL, and tracking must not wait for it
@@ -79,6 +81,8 @@ class LivePoses:
         self.tracker = Tracker(self.kf_cam, tracking)
         self.origin = origin
         self.max_interp_gap = max_interp_gap
+        self.init_spacing_s = init_spacing_s
+        self._t_init = float("-inf")  # capture time of the last image handed to the mapper for the first model
         self.sigma_att = np.radians(sigma_att_deg)
         self.tel: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}  # frame -> (enu, q_gimbal, h_acc)
         self.tracked: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # tracked frames, model frame
@@ -88,6 +92,11 @@ class LivePoses:
         self._untracked: deque[tuple[int, np.ndarray]] = deque()  # images waiting for the first model
         self._refs: deque = deque()  # keyframes handed over that the images have not reached yet
         self._first_ref = self._last_ref = None  # frames of the first and the newest keyframe handed over
+        self._retry: int | None = None  # an image that could not be tracked, waiting for the mapper to map it
+        self._retry_since = 0.0
+        self.retried = 0  # images tracked again once the mapper had mapped them
+        self._due: tuple[int, np.ndarray] | None = None  # a keyframe waiting for the mapper to be free
+        self.waits_for_mapper = 0  # times the frames waited for the mapper (it fell behind the flight)
         self.frozen: Similarity | None = None  # model -> association frame (a fit frozen), or None
         self.assoc_from_enu: Similarity | None = None  # set when the association frame is ENU itself
         self.seconds = {"tracking": 0.0, "mapping_inline": 0.0}
@@ -118,10 +127,10 @@ class LivePoses:
                else np.full(3, np.nan))
         self.tel[frame] = (enu, np.asarray(q_gimbal, float), float(h_acc) if np.isfinite(h_acc) and h_acc > 0 else 2.0)
 
-    def add_image(self, frame: int, image_bgr: np.ndarray) -> None:
+    def add_image(self, frame: int, image_bgr: np.ndarray, t_capture: float = float("nan")) -> None:
         """A frame's image, in frame order: tracked against the map once there is one (until then it waits, and goes
-        to the mapper: the first model needs every image it can get); proposed to the mapper when the tracker asks
-        for a keyframe."""
+        to the mapper if it was taken ``init_spacing_s`` or more after the last one it went: the first model needs a
+        baseline); proposed to the mapper when the tracker asks for a keyframe."""
         if frame <= self._last_image:
             log.warning("image of frame %d arrived after frame %d's: skipped", frame, self._last_image)
             return
@@ -129,7 +138,8 @@ class LivePoses:
         if image_bgr.shape[1] != self.kf_cam.width:
             image_bgr = cv2.resize(image_bgr, (self.kf_cam.width, self.kf_cam.height), interpolation=cv2.INTER_AREA)
         self._untracked.append((frame, image_bgr))
-        if self.mapper.reference() is None:
+        if self.mapper.reference() is None and not t_capture - self._t_init < self.init_spacing_s:  # NaN: mapped
+            self._t_init = t_capture
             self._map(frame, image_bgr)
         self.catch_up()
 
@@ -157,9 +167,17 @@ class LivePoses:
                     self.kf_processed = self._untracked.popleft()[0]
             return
         while self._untracked:
-            frame, image_bgr = self._untracked.popleft()
-            self.kf_processed = frame
+            if self._due is not None:  # a keyframe the mapper was too busy to take: the frames wait until it can
+                if self.mapper.busy():
+                    return
+                self._map(*self._due)
+                self._due = None
+            frame, image_bgr = self._untracked[0]
+            if frame == self._retry and self._waiting_for_mapper(frame):
+                return  # the frames after it wait too: they are tracked in order
+            self._untracked.popleft()
             if frame < self._first_ref:  # before the first keyframe handed over: tracked against the first model's nearest
+                self.kf_processed = frame
                 self._track_early(frame, image_bgr)
                 continue
             t0 = time.perf_counter()
@@ -169,25 +187,58 @@ class LivePoses:
             grey = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY) if image_bgr.ndim == 3 else image_bgr
             r = self.tracker.track(frame, grey)
             self.seconds["tracking"] += time.perf_counter() - t0
+            if r.R is None and frame != self._retry and frame > self.mapper.processed:
+                # the map did not reach this frame (mapping fell behind, or the view changed fast): the frame goes to
+                # the mapper, and it and the frames after it wait for the answer, then it is tracked again
+                self._map(frame, image_bgr)
+                self._retry, self._retry_since = frame, time.monotonic()
+                self._untracked.appendleft((frame, image_bgr))
+                log.info("frame %d: tracking failed (%s); waiting for the mapper", frame, r.why)
+                continue
+            self.kf_processed = frame
+            if frame == self._retry:
+                self._retry = None
+                self.retried += 1
             if r.R is not None:
                 self.tracked[frame] = (r.R, r.t)
             else:
                 self.tracking_failed.append(frame)
                 log.info("frame %d: tracking failed (%s)", frame, r.why)
-            # while the mapper is at work on the last proposal, only a frame that could not be tracked is proposed;
-            # never one older than what it has mapped already
-            if (r.R is None or (r.keyframe and not self.mapper.busy())) and frame > self.mapper.processed:
-                self._map(frame, image_bgr)
+            # while the mapper is at work on the last proposal, a frame is not proposed, unless the map is falling
+            # behind (then it is due, and the frames after it wait); never one older than what it has mapped already
+            if r.R is not None and r.keyframe and frame > self.mapper.processed:
+                if not self.mapper.busy():
+                    self._map(frame, image_bgr)
+                elif r.share < self.tracker.s.min_share_to_go_on:
+                    self._due = (frame, image_bgr)
+                    self.waits_for_mapper += 1
+
+    def _waiting_for_mapper(self, frame: int) -> bool:
+        """Whether the mapper has yet to answer for the frame it was handed when tracking failed (at most
+        MAX_RETRY_WAIT_S: a mapping process that died must not hold the flight)."""
+        self._collect_references()
+        if self.mapper.processed >= frame:
+            return False
+        if time.monotonic() - self._retry_since > self.MAX_RETRY_WAIT_S:
+            log.warning("frame %d: no answer from the mapper in %.0f s; the frame goes on untracked", frame,
+                        self.MAX_RETRY_WAIT_S)
+            return False
+        return True
 
     def _track_early(self, frame: int, image_bgr: np.ndarray) -> None:
-        """A frame before the first reference: tracked from the nearest keyframe of the first model (none is far:
-        the first model is made of the first images the mapper took)."""
+        """A frame before the first reference: tracked from the keyframes of the first model on either side of it
+        (the pose between them is where tracking starts)."""
         refs = self.mapper.first_references
         if not refs or frame in self.model_pose:
             return
-        ref = min(refs, key=lambda r: abs(r.frame - frame))
+        # the nearest keyframe before and after it: their points, and a motion between them to start from
+        before = [r for r in refs if r.frame < frame]
+        after = [r for r in refs if r.frame > frame]
+        near = ([max(before, key=lambda r: r.frame)] if before else []) + ([min(after, key=lambda r: r.frame)]
+                                                                             if after else [])
         tracker = Tracker(self.kf_cam, self.tracker.s)
-        tracker.set_reference(ref)
+        for ref in near:
+            tracker.set_reference(ref)
         grey = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY) if image_bgr.ndim == 3 else image_bgr
         r = tracker.track(frame, grey)
         if r.R is not None:
@@ -198,8 +249,12 @@ class LivePoses:
 
     def settle(self) -> None:
         """The end of the flight: let the mapper finish what it was handed, and track the images still waiting."""
-        self.mapper.wait()
-        self.catch_up()
+        while True:
+            self.mapper.wait()
+            waiting = len(self._untracked)
+            self.catch_up()
+            if not self._untracked or (len(self._untracked) == waiting and not self.mapper.busy()):
+                return
 
     def close(self) -> None:
         self.mapper.close()
@@ -290,6 +345,8 @@ class LivePoses:
                 c = (1 - w) * C[0] + w * C[1]
                 return Pose(frame, R, -R @ c, "interpolated", 0.02, 0.1)
         # telemetry alone
+        log.debug("frame %d: telemetry pose (model %s, %d registered, %d tracked, first reference %s)", frame,
+                  m2a is not None, len(model_pose), len(self.tracked), self._first_ref)
         if frame not in self.tel or not np.isfinite(self.tel[frame][0]).all():
             return None
         enu, qg, h_acc = self.tel[frame]

@@ -20,6 +20,7 @@ import bisect
 import logging
 import multiprocessing as mp
 import queue
+import threading
 import time
 from pathlib import Path
 
@@ -219,15 +220,12 @@ def _serve(jobs, results, kf_camera, camera, workdir, settings, sigma_att_deg, p
     where."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s [mapping]: %(message)s")
     m = Mapper(kf_camera, camera, workdir, settings, sigma_att_deg)
-    parent = mp.parent_process()
     while True:
         try:  # one at a time: the parent holds the newest proposal while this one is mapped
-            job = jobs.get(timeout=1.0)
-        except queue.Empty:
-            if parent is not None and not parent.is_alive():  # the ground died: nobody to map for
-                log.warning("the ground process is gone: the mapping process stops")
-                return
-            continue
+            job = jobs.recv()
+        except EOFError:  # the ground died (the pipe's only writer): nobody to map for
+            log.warning("the ground process is gone: the mapping process stops")
+            return
         if job is None:
             break
         frame, jpeg, tel = job
@@ -258,11 +256,18 @@ class MapperProcess:
                  sigma_att_deg: float = 0.5, points_every: int = 10):
         ctx = mp.get_context("spawn")
         self.settings = settings or RegistrationSettings()
-        self._jobs, self._results = ctx.Queue(), ctx.Queue()
+        # jobs go down a one-way pipe whose writing end only this process holds: if it dies, even mid-message, the
+        # mapping process reads EOF and stops (a Queue's pipe has both ends in both processes, and would hang it)
+        jobs_in, self._jobs = ctx.Pipe(duplex=False)
+        self._results = ctx.Queue()
         self._proc = ctx.Process(target=_serve, name="pomar-mapping", daemon=True,
-                                 args=(self._jobs, self._results, kf_camera, camera, str(workdir), self.settings,
+                                 args=(jobs_in, self._results, kf_camera, camera, str(workdir), self.settings,
                                        sigma_att_deg, points_every))
         self._proc.start()
+        jobs_in.close()
+        # a pipe's send blocks until the other side reads (the process starts in seconds): a thread sends instead
+        self._outbox: queue.SimpleQueue = queue.SimpleQueue()
+        threading.Thread(target=self._sender, daemon=True, name="mapping-jobs").start()
         self.model_pose: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.kf_sorted: list[int] = []
         self.fit: Similarity | None = None
@@ -290,9 +295,20 @@ class MapperProcess:
         self._poll()
         self._send()
 
+    def _sender(self) -> None:
+        while True:
+            job = self._outbox.get()
+            try:
+                self._jobs.send(job)
+            except OSError:  # the mapping process is gone; close() reports it
+                return
+            if job is None:
+                self._jobs.close()
+                return
+
     def _send(self) -> None:
         if self._held is not None and self.answered == self.sent:
-            self._jobs.put(self._held)
+            self._outbox.put(self._held)
             self._held = None
             self.sent += 1
 
@@ -373,7 +389,7 @@ class MapperProcess:
         while self._held is not None and self._proc.is_alive():  # the last proposal is mapped too
             self._poll(timeout=1.0)
             self._send()
-        self._jobs.put(None)
+        self._outbox.put(None)
         t_end = time.monotonic() + timeout_s
         while not self._closed and time.monotonic() < t_end:
             if not self._poll(timeout=1.0) and not self._proc.is_alive():

@@ -228,7 +228,12 @@ class GroundNode:
                 "origin": p.poses.origin.as_dict() if p.poses and p.poses.origin else None,
             },
             "tracking": {"tracked": p.poses.tracker.tracked if p.poses else 0,
-                         "failed": p.poses.tracker.failed if p.poses else 0,
+                         # frames that tracking could not place, even after the mapper had mapped them (flagged)
+                         "failed": len(p.poses.tracking_failed) if p.poses else 0,
+                         # frames tracked once the mapper, handed them when tracking failed, had mapped them
+                         "retried_after_mapping": p.poses.retried if p.poses else 0,
+                         # times the frames waited for a busy mapper to take a keyframe (mapping behind the flight)
+                         "waits_for_mapper": p.poses.waits_for_mapper if p.poses else 0,
                          "failed_frames": p.poses.tracking_failed[-100:] if p.poses else []},
             "association": {"params": vars(self.settings.association).copy(), "stats": dict(p.assoc.stats),
                             "strong_views_needed": p.views_needed()},
@@ -243,9 +248,13 @@ class GroundNode:
                         **delay_stats(self.pipe.frame_delays),
                         # the same, of the frames that came once the first model was made (no wait for it)
                         **{f"{k}_after_first_model": v for k, v in delay_stats(self.pipe.frame_delays_mapped).items()},
+                        # from the first frame's arrival to the first model (frames before it wait for it)
+                        "first_model_after_s": (p.t_first_model - p.t_first_frame
+                                                if p.t_first_model and p.t_first_frame else None),
                         "peak_rss_mb": peak_rss_mb(),
                         # the mapping process's (live), once it has ended: its own peak, beside the ground's
-                        "mapping_peak_rss_mb": resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0,
+                        "mapping_peak_rss_mb": (resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+                                                if self.settings.mapping == "process" else None),
                         "rss_mb_by_frames_mapped": self.memory,
                         "frames_mapped_by_wall_s": self.progress},
             "onboard_status": vars(st).copy() if st else None,

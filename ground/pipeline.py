@@ -53,6 +53,9 @@ class GroundSettings:
     #: deterministic); "process": mapping runs in its own process and never holds up tracking (live).
     mapping: str = "inline"
     tracking: TrackingSettings = field(default_factory=TrackingSettings)
+    #: Before the first model, the mapper takes images at least this far apart in capture time (a baseline from
+    #: few images: live, frames wait for the first model).
+    init_spacing_s: float = 0.0
     min_score: float = 0.0  # detections below this score are not used
     #: An apple is counted once at least confirm_views of its views scored confirm_score or more (the
     #: shipped detector's operating threshold). Weaker detections still extend and place it: an
@@ -123,14 +126,16 @@ class GroundPipeline:
         self._steps: deque[int] = deque(maxlen=20)  # frame-index steps between the last frames mapped
         self.frame_delays: list[float] = []  # per mapped frame: seconds from its message's arrival to its release
         self.frame_delays_mapped: list[float] = []  # ... of the frames that arrived once the first model existed
-        self._t_model: float | None = None  # when the first model was there
+        self.t_first_model: float | None = None  # when the first model was there
+        self.t_first_frame: float | None = None  # when the first frame message came
+        self._newest_frame = -1  # the highest frame index received
         self.frame_poses: dict[int, Pose] = {}  # every released frame's pose (association frame)
         self._seq_frame: list[int] = []  # association frame number -> frame index
 
     # -- inputs
     def feed(self, msg, step: bool = True) -> list[FrameEvent]:
-        """Take one message; ``step=False`` only stores it (the node feeds what has queued up, then steps once,
-        so that the keyframes waiting can be thinned out when the ground lags)."""
+        """Take one message; ``step=False`` only stores it (the node feeds what has queued up, then steps
+        once for all of them)."""
         if isinstance(msg, wire.CameraMessage):
             self.on_camera(msg)
         elif isinstance(msg, wire.FrameMessage):
@@ -152,7 +157,8 @@ class GroundPipeline:
     def _make_poses(self, kf_width: int):
         self.poses = LivePoses(self.camera, self.workdir, keyframe_width=kf_width, settings=self.s.registration,
                                origin=self.origin, max_interp_gap=self.s.max_interp_gap,
-                               in_process=self.s.mapping == "process", tracking=self.s.tracking)
+                               in_process=self.s.mapping == "process", tracking=self.s.tracking,
+                               init_spacing_s=self.s.init_spacing_s)
         for f in sorted(self.pending):
             t = self.pending[f].telemetry
             self.poses.add_telemetry(f, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc)
@@ -166,7 +172,10 @@ class GroundPipeline:
         self.pending[msg.frame] = msg
         self.frame_times[msg.frame] = msg.t_capture
         self.newest_t = max(self.newest_t, msg.t_capture)
+        self._newest_frame = max(self._newest_frame, msg.frame)
         self._arrived[msg.frame] = time.monotonic()
+        if self.t_first_frame is None:
+            self.t_first_frame = self._arrived[msg.frame]
         if self.counters["frames"] == 0 and not self._kf_seen:
             self._last_kf_t = time.monotonic()  # the wait for keyframes starts with the first frame
             self._last_kf_capture = msg.t_capture
@@ -197,8 +206,12 @@ class GroundPipeline:
                 raise ValueError(f"GroundSettings.mapping must be 'inline' or 'process', got {self.s.mapping!r}")
             self._make_poses(self._first_keyframe_width())
         events = []
-        # images in order, but never ahead of the frames: a frame needs the image after it
+        # images in order, but never ahead of the frames: a frame needs the image after it. An image waits for its
+        # frame's message (the telemetry the mapper's georeferencing needs; the streams do not keep each other's
+        # order), unless a later frame's came (then it was lost)
         for f in sorted(self.keyframes):
+            if f not in self.frame_times and f > self._newest_frame and not final:
+                break
             jpeg = self.keyframes.pop(f)
             self._add_image(f, jpeg)
             events += self._release(final=False)
@@ -226,7 +239,7 @@ class GroundPipeline:
             log.warning("keyframe %d: JPEG does not decode; the frame gets an interpolated or telemetry pose", frame)
             return
         t0 = time.perf_counter()
-        self.poses.add_image(frame, img)
+        self.poses.add_image(frame, img, self.frame_times.get(frame, float("nan")))
         self.seconds["poses"] += time.perf_counter() - t0
         self._last_kf_t = time.monotonic()  # the wait is counted from when the poses are free again
         self._kf_for_event[frame] = jpeg
@@ -235,18 +248,17 @@ class GroundPipeline:
         events = []
         while self.pending:
             f = min(self.pending)
-            # wait for a keyframe at or after f that has arrived but is not registered yet
-            if not final and any(k >= f for k in self.keyframes):
-                break
+            # (the poses say when: an image at or after f went through tracking; the images still waiting in
+            # self.keyframes are after it, as step hands them over in order)
             if not self.poses.ready(f, final, self._stalled()):
                 break
             msg = self.pending.pop(f)
             arrived = self._arrived.pop(f, None)
-            if self._t_model is None and self.poses.mapper.has_model:
-                self._t_model = time.monotonic()
+            if self.t_first_model is None and self.poses.mapper.has_model:  # seen as the next frame is released
+                self.t_first_model = time.monotonic()
             if arrived is not None:
                 self.frame_delays.append(time.monotonic() - arrived)
-                if self._t_model is not None and arrived >= self._t_model:
+                if self.t_first_model is not None and arrived >= self.t_first_model:
                     self.frame_delays_mapped.append(self.frame_delays[-1])
             if self.released >= 0:
                 self._steps.append(f - self.released)

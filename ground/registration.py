@@ -52,9 +52,10 @@ class RegistrationSettings:
     # camera barely rotate in the image plane, and skipping orientation saves a quarter of extraction; on
     # the bundled flight it cost some accuracy (true apples 0.99 against 0.83 px after a similarity)
     upright: bool = False
-    # Ceres solves a bundle adjustment on one thread below this many residuals (COLMAP's default is 50,000,
-    # more than a local adjustment of 6 keyframes has): at 1,000 the local adjustment takes two cores
-    ba_threads_min_residuals: int = 1000
+    # Ceres solves a bundle adjustment on one thread below this many residuals. On more threads its sums come in
+    # another order each run and a flight's keyframes drift apart between runs; on one, a lock-step replay repeats
+    # bit for bit, and the ground is no slower (benchmarks/live_ground.py)
+    ba_threads_min_residuals: int = 10**9
     # finished sub-models kept in memory (the newest is chained to the one before it); older ones are written to
     # the work directory and read back only for the final model files
     keep_submodels: int = 2
@@ -114,6 +115,7 @@ class IncrementalRegistrar:
         self._mopts.mapper.init_min_tri_angle = self.s.init_min_tri_angle
         self._mopts.mapper.init_min_num_inliers = 50
         self._mopts.ba_min_num_residuals_for_cpu_multi_threading = self.s.ba_threads_min_residuals
+        self._mopts.random_seed = 0  # RANSAC's samples the same each run
         self._open_database()
 
     # -- features and matches
@@ -139,6 +141,7 @@ class IncrementalRegistrar:
         self._cv_sift = None if colmap else cv2.SIFT_create(nfeatures=self.s.max_num_features)
         self._pool = ThreadPoolExecutor(2, thread_name_prefix="two-view")
         self._two_view = pycolmap.TwoViewGeometryOptions()
+        self._two_view.ransac.random_seed = 0
         self._recent = deque(maxlen=max(self.s.match_window, 1))  # (image id, keypoint xy, unit descriptors)
 
     def _extract(self, name: str, image_bgr: np.ndarray):

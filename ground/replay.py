@@ -177,8 +177,8 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
     onboard_cmd = [py, "-m", "onboard", "run", str(flight.path), "--listen", endpoint, "--detector", detector,
                    "--keyframe-every", str(keyframe_every), "--keyframe-width", str(keyframe_width),
                    "--every", str(every), "--linger", "600", "--summary", str(out / "onboard.json")]
-    if realtime:
-        onboard_cmd.append("--realtime")
+    if realtime:  # still waits for its ground: a replay has no reason to start before the ground listens
+        onboard_cmd += ["--realtime", "--wait-for-ground", "30"]
     if model:
         onboard_cmd += ["--model", str(model)]
     onboard_cmd += onboard_args or []

@@ -36,6 +36,9 @@ class TrackingSettings:
     max_fb_px: float = 1.0
     #: A frame is proposed as a mapping keyframe when it holds less than this share of the reference's points.
     min_tracked_share: float = 0.8
+    #: Below this share, and with the mapper still busy, the frames wait for the mapper to take this one: the map
+    #: must not fall so far behind that the frames can no longer be tracked (live, when mapping is slower than flight).
+    min_share_to_go_on: float = 0.5
     win_px: int = 21
     levels: int = 3
     #: At most this many points of each reference are followed (an even sample): KLT's cost grows with them.

@@ -95,9 +95,7 @@ def _cmd_run(args) -> int:
         return 2
     session, pub = _publisher(args, meta.flight_id, meta.drone_id)
     node.pub = pub
-    if not args.realtime and args.wait_for_ground > 0:
-        if not pub.wait_for_subscriber(args.wait_for_ground):
-            print(f"no ground subscribed within {args.wait_for_ground:g} s: publishing anyway", file=sys.stderr)
+    _wait_for_ground(pub, args.wait_for_ground if args.wait_for_ground is not None else 0.0 if args.realtime else 30.0)
     try:
         summary = node.run()
         print(json.dumps(summary, indent=2))
@@ -139,6 +137,13 @@ def _detector(args, flight_dir=None):
     return TruthReplayDetector(flight_dir)
 
 
+def _wait_for_ground(pub, seconds: float) -> None:
+    """Hold the first frame until a ground subscribes (at most ``seconds``): a ground that joins as the first
+    samples go out can miss them (zenoh's history recovers only after the first sample a subscriber gets)."""
+    if seconds > 0 and not pub.wait_for_subscriber(seconds):
+        print(f"no ground subscribed within {seconds:g} s: publishing anyway", file=sys.stderr)
+
+
 def _cmd_live(args) -> int:
     import json
 
@@ -151,6 +156,7 @@ def _cmd_live(args) -> int:
     camera = Camera.load(args.camera_json).to_dict()
     telemetry = LiveTelemetry(args.mavlink, max_gap_s=args.max_gap_s)
     session, pub = _publisher(args, args.flight_id, args.drone_id)
+    _wait_for_ground(pub, args.wait_for_ground)
     try:
         summary = run_live(args.camera, telemetry, camera, args.flight_id, args.drone_id, pub, detector,
                            KeyframePolicy(args.keyframe_every, args.keyframe_every_s, args.keyframe_every_m),
@@ -220,9 +226,9 @@ def main(argv=None) -> int:
     r.add_argument("--clock-offset-s", type=float, default=0.0,
                    help="camera clock minus the log's clock, for logs without camera events")
     _link_options(r)
-    r.add_argument("--wait-for-ground", type=float, default=30.0,
-                   help="lock-step: wait up to this many seconds for a ground to subscribe before the first frame "
-                        "(0 = do not wait)")
+    r.add_argument("--wait-for-ground", type=float, default=None,
+                   help="wait up to this many seconds for a ground to subscribe before the first frame (0 = do not "
+                        "wait; default 30 lock-step, 0 with --realtime)")
     r.add_argument("--summary", help="also write the run's summary (JSON) here")
     r.set_defaults(func=_cmd_run)
     lv = sub.add_parser("live", help="a camera or stream + a live MAVLink link -> detector -> zenoh")
@@ -240,6 +246,9 @@ def main(argv=None) -> int:
     lv.add_argument("--play-fps", type=float, help="play a video file at this rate (a camera sets its own)")
     lv.add_argument("--max-frames", type=int, help="stop after this many processed frames")
     lv.add_argument("--duration", type=float, help="stop after this many seconds")
+    lv.add_argument("--wait-for-ground", type=float, default=0.0,
+                    help="wait up to this many seconds for a ground to subscribe before the first frame (0 = do not "
+                         "wait: a drone flies whether or not a ground listens)")
     lv.set_defaults(func=_cmd_live)
     t = sub.add_parser("telemetry", help="read a log (.tlog, .bin, .ulg, .SRT): streams, clock, gaps, problems, and "
                                          "each frame's sample")

@@ -74,8 +74,8 @@ def test_killed_ground_resumes_with_every_frame(replay_test_flight, tmp_path):
     out = tmp_path / "ground"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     onboard = subprocess.Popen([sys.executable, "-m", "onboard", "run", str(replay_test_flight.path), "--listen", endpoint,
-                                "--detector", "truth-replay", "--realtime", "--keyframe-every", "1",
-                                "--keyframe-width", "0", "--linger", "120", "--summary", str(tmp_path / "onboard.json")],
+                                "--detector", "truth-replay", "--realtime", "--wait-for-ground", "30",
+                                "--keyframe-every", "1", "--keyframe-width", "0", "--linger", "120", "--summary", str(tmp_path / "onboard.json")],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
     ground_cmd = [sys.executable, "-m", "ground", "run", "--flight-id", "sim-replay-test", "--connect", endpoint,
                   "--out", str(out), "--no-rrd", "--idle-timeout", "30"]
@@ -226,6 +226,25 @@ def test_every_frame_tracked_keyframes_mapped_and_a_failed_track_falls_back_flag
     assert len(pipe.apples) > 0
 
 
+def test_lock_step_repeats_bit_for_bit(replay_test_flight, tmp_path):
+    """The same messages, fed twice (mapping inline, as a lock-step replay does; the second time in one batch, as a
+    ground node takes what queued up): the same poses and the same apples, to the bit."""
+    from ground.pipeline import GroundPipeline, GroundSettings
+
+    msgs = _onboard_messages(replay_test_flight, keyframe_every=1)
+    runs = []
+    for k, batched in enumerate((False, True)):
+        pipe = GroundPipeline(tmp_path / f"work{k}", GroundSettings())
+        for m in msgs:
+            pipe.feed(m, step=not batched)
+        pipe.finish()
+        poses = {f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.frame_poses.items()}
+        runs.append((poses, {i: a.X.copy() for i, a in pipe.apples.items()}))
+    (p0, a0), (p1, a1) = runs
+    assert p0.keys() == p1.keys() and all(np.array_equal(p0[f], p1[f]) for f in p0)
+    assert a0.keys() == a1.keys() and len(a0) > 0 and all(np.array_equal(a0[i], a1[i]) for i in a0)
+
+
 def test_mapping_in_its_own_process_maps_every_frame(replay_test_flight, tmp_path):
     """Live, the mapper runs in its own process: frames are tracked meanwhile, every frame gets a pose, and the
     sub-models come back written to disk when the flight ends."""
@@ -243,6 +262,42 @@ def test_mapping_in_its_own_process_maps_every_frame(replay_test_flight, tmp_pat
     subs = pipe.poses.mapper.submodels()
     assert subs and all(sm.path is not None and (sm.path / "images.bin").is_file() for sm in subs)
     assert len(subs[0].reconstruction().images) >= 3
+
+
+_MAPPING_OWNER = """
+import sys, time
+import numpy as np
+from ground.mapping import MapperProcess
+from pomar.camera import Camera
+
+cam = Camera(320, 180, 300.0, 300.0, 160.0, 90.0)
+m = MapperProcess(cam, cam, sys.argv[1])
+rng = np.random.default_rng(0)
+for f in range(3):
+    m.add(f, rng.integers(0, 255, (180, 320, 3), dtype=np.uint8), (np.zeros(3), np.array([1.0, 0, 0, 0]), 2.0))
+print(m._proc.pid, flush=True)
+time.sleep(600)
+"""
+
+
+def test_a_killed_ground_leaves_no_mapping_process_behind(tmp_path):
+    """The mapping process stops by itself when the ground that spawned it is killed (SIGKILL: no clean-up runs)."""
+    owner = subprocess.Popen([sys.executable, "-c", _MAPPING_OWNER, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    try:
+        child = int(owner.stdout.readline())
+        os.kill(owner.pid, signal.SIGKILL)
+        owner.wait(10)
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 60 and os.path.exists(f"/proc/{child}") and \
+                open(f"/proc/{child}/stat").read().split()[2] != "Z":
+            time.sleep(0.2)
+        gone = not os.path.exists(f"/proc/{child}") or open(f"/proc/{child}/stat").read().split()[2] == "Z"
+        if not gone:
+            os.kill(child, signal.SIGKILL)
+        assert gone, "the mapping process outlived its ground"
+    finally:
+        if owner.poll() is None:
+            owner.kill()
 
 
 def test_apples_need_fewer_strong_views_when_frames_come_sparser(replay_test_flight, tmp_path):

@@ -40,7 +40,7 @@ def _fly(flight, out: Path, inject: bool) -> tuple[dict, dict, dict | None]:
             procs.append(injector)
             assert injector.stdout.readline().strip() == "ready"
         onboard = subprocess.Popen([sys.executable, "-m", "onboard", "run", str(flight.path), "--listen", drone_ep,
-                                    "--detector", "truth-replay", "--realtime", "--keyframe-every", "1",
+                                    "--detector", "truth-replay", "--realtime", "--wait-for-ground", "30", "--keyframe-every", "1",
                                     "--keyframe-width", "0", "--linger", "120", "--summary", str(out / "onboard.json")],
                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
         procs.append(onboard)

@@ -52,7 +52,8 @@ def test_live_camera_and_mavlink_to_zenoh(replay_test_flight):
                              "--play-fps", "5", "--mavlink", f"udpin:127.0.0.1:{mav_port}",
                              "--camera-json", str(replay_test_flight.path / "camera.json"), "--flight-id", "live-test",
                              "--detector", "truth-replay", "--truth-flight", str(replay_test_flight.path),
-                             "--keyframe-every-s", "0.5", "--listen", endpoint, "--linger", "3"],
+                             "--keyframe-every-s", "0.5", "--listen", endpoint, "--linger", "3",
+                             "--wait-for-ground", "30"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     ap = threading.Thread(target=_autopilot, args=(replay_test_flight.tlog, f"udpout:127.0.0.1:{mav_port}", stop, heard),
                           daemon=True)

@@ -93,10 +93,9 @@ def test_finished_submodels_leave_memory_and_come_back_for_the_model_files(reg_f
     assert res["submodels"] >= 3
     written = sorted((tmp_path / "d" / "work" / "submodels").iterdir())
     assert len(written) == res["submodels"] - 1
-    # the poses as with every sub-model in memory: pycolmap's threads make no two runs bit-for-bit equal (the same
-    # settings twice differ by up to 0.13 deg in median rotation error); a sub-model lost or misplaced costs degrees
+    # the poses as with every sub-model in memory (RANSAC is seeded: runs repeat; the bound leaves room for the
+    # order of a multi-threaded bundle adjustment's sums)
     assert res["registered_fraction"] == all_in["registered_fraction"]
-    assert abs(res["rotation_error_median_deg"] - all_in["rotation_error_median_deg"]) < 0.25
-    assert max(res["rotation_error_median_deg"], all_in["rotation_error_median_deg"]) < 1.0
+    assert abs(res["rotation_error_median_deg"] - all_in["rotation_error_median_deg"]) < 0.01
     for k in range(res["submodels"]):
         assert (tmp_path / "d" / "model" / str(k) / "images.txt").exists()
