@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from ground.georeference import georeference_poses
-from ground.mapping import Mapper, MapperProcess, compose
+from ground.mapping import Mapper, MapperProcess, MappingWorker, compose
 from ground.poses import camera_rotations
 from ground.registration import RegistrationSettings
 from ground.tracking import Tracker, TrackingSettings
@@ -73,11 +73,13 @@ class LivePoses:
     def __init__(self, camera: Camera, workdir, keyframe_width: int | None = None,
                  settings: RegistrationSettings | None = None, origin: Origin | None = None,
                  max_interp_gap: int = 10, sigma_att_deg: float = 0.5, in_process: bool = False,
-                 tracking: TrackingSettings | None = None, init_spacing_s: float = 0.0):
+                 tracking: TrackingSettings | None = None, init_spacing_s: float = 0.0,
+                 mapping_worker: MappingWorker | None = None):
         self.cam = camera
         self.kf_cam = camera if not keyframe_width else self._scaled(camera, keyframe_width)
         # live, mapping runs in its own process: pycolmap holds the GIL, and tracking must not wait for it
-        self.mapper = (MapperProcess if in_process else Mapper)(self.kf_cam, camera, workdir, settings, sigma_att_deg)
+        self.mapper = (MapperProcess(self.kf_cam, camera, workdir, settings, sigma_att_deg, worker=mapping_worker)
+                       if in_process else Mapper(self.kf_cam, camera, workdir, settings, sigma_att_deg))
         self.tracker = Tracker(self.kf_cam, tracking)
         self.origin = origin
         self.max_interp_gap = max_interp_gap
@@ -251,10 +253,22 @@ class LivePoses:
         """The end of the flight: let the mapper finish what it was handed, and track the images still waiting."""
         while True:
             self.mapper.wait()
+            if self._first_ref is None:
+                self._bootstrap_rest()
             waiting = len(self._untracked)
             self.catch_up()
             if not self._untracked or (len(self._untracked) == waiting and not self.mapper.busy()):
                 return
+
+    def _bootstrap_rest(self) -> None:
+        """The flight ended before the first model: the images the mapper had no time for go to it now, in order, one
+        at a time, until it makes one (or has had its chances)."""
+        for frame, image_bgr in list(self._untracked):
+            if self.mapper.reference() is not None or self.mapper.attempts >= 3 * self.mapper.settings.init_frames:
+                break
+            if frame > self.mapper.processed:
+                self._map(frame, image_bgr)
+                self.mapper.wait()
 
     def close(self) -> None:
         self.mapper.close()

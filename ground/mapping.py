@@ -215,10 +215,17 @@ class Mapper:
         return out
 
 
-def _serve(jobs, results, kf_camera, camera, workdir, settings, sigma_att_deg, points_every) -> None:
-    """The mapping process: map each job, send back what changed; on None, write the sub-models to disk and say
-    where."""
+def _serve(jobs, results) -> None:
+    """The mapping process: take the mapper's settings, map each job, send back what changed; on None, write the
+    sub-models to disk and say where."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s [mapping]: %(message)s")
+    try:
+        config = jobs.recv()
+    except EOFError:
+        return
+    if config is None:  # stopped before it had anything to map
+        return
+    kf_camera, camera, workdir, settings, sigma_att_deg, points_every = config
     m = Mapper(kf_camera, camera, workdir, settings, sigma_att_deg)
     while True:
         try:  # one at a time: the parent holds the newest proposal while this one is mapped
@@ -248,26 +255,53 @@ def _serve(jobs, results, kf_camera, camera, workdir, settings, sigma_att_deg, p
                  "frame_of": m.registrar.frame_of})
 
 
+class MappingWorker:
+    """The mapping process, started ahead of its first keyframe (its imports take about half a second, which would
+    otherwise delay the first model), waiting for a :class:`MapperProcess` to give it its settings."""
+
+    def __init__(self):
+        ctx = mp.get_context("spawn")  # not forked: the ground's zenoh threads must not be copied
+        # jobs go down a one-way pipe whose writing end only the ground holds: if the ground dies, even mid-message,
+        # the mapping process reads EOF and stops (a Queue's pipe has both ends in both processes, and would hang it)
+        jobs_in, self.jobs = ctx.Pipe(duplex=False)
+        self.results = ctx.Queue()
+        self.proc = ctx.Process(target=_serve, name="pomar-mapping", daemon=True, args=(jobs_in, self.results))
+        self.proc.start()
+        jobs_in.close()
+        # a pipe's send blocks until the other side reads: a thread sends instead
+        self.outbox: queue.SimpleQueue = queue.SimpleQueue()
+        threading.Thread(target=self._sender, daemon=True, name="mapping-jobs").start()
+
+    def _sender(self) -> None:
+        while True:
+            job = self.outbox.get()
+            try:
+                self.jobs.send(job)
+            except OSError:  # the mapping process is gone; MapperProcess.close reports it
+                return
+            if job is None:
+                self.jobs.close()
+                return
+
+    def stop(self) -> None:
+        """Stop a worker that was never given a mapper."""
+        self.outbox.put(None)
+        self.proc.join(timeout=10)
+        if self.proc.is_alive():
+            self.proc.kill()
+            self.proc.join()
+
+
 class MapperProcess:
-    """:class:`Mapper` in a process of its own (spawned: the ground's zenoh threads must not be forked), with the
-    same reading interface; what it sends back is taken in whenever the caller reads."""
+    """:class:`Mapper` in a process of its own (a :class:`MappingWorker`, given or started here), with the same
+    reading interface; what it sends back is taken in whenever the caller reads."""
 
     def __init__(self, kf_camera: Camera, camera: Camera, workdir, settings: RegistrationSettings | None = None,
-                 sigma_att_deg: float = 0.5, points_every: int = 10):
-        ctx = mp.get_context("spawn")
+                 sigma_att_deg: float = 0.5, points_every: int = 10, worker: MappingWorker | None = None):
         self.settings = settings or RegistrationSettings()
-        # jobs go down a one-way pipe whose writing end only this process holds: if it dies, even mid-message, the
-        # mapping process reads EOF and stops (a Queue's pipe has both ends in both processes, and would hang it)
-        jobs_in, self._jobs = ctx.Pipe(duplex=False)
-        self._results = ctx.Queue()
-        self._proc = ctx.Process(target=_serve, name="pomar-mapping", daemon=True,
-                                 args=(jobs_in, self._results, kf_camera, camera, str(workdir), self.settings,
-                                       sigma_att_deg, points_every))
-        self._proc.start()
-        jobs_in.close()
-        # a pipe's send blocks until the other side reads (the process starts in seconds): a thread sends instead
-        self._outbox: queue.SimpleQueue = queue.SimpleQueue()
-        threading.Thread(target=self._sender, daemon=True, name="mapping-jobs").start()
+        worker = worker or MappingWorker()
+        self._proc, self._results, self._outbox = worker.proc, worker.results, worker.outbox
+        self._outbox.put((kf_camera, camera, str(workdir), self.settings, sigma_att_deg, points_every))
         self.model_pose: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.kf_sorted: list[int] = []
         self.fit: Similarity | None = None
@@ -294,17 +328,6 @@ class MapperProcess:
         self._held = (frame, jpeg.tobytes(), tel)
         self._poll()
         self._send()
-
-    def _sender(self) -> None:
-        while True:
-            job = self._outbox.get()
-            try:
-                self._jobs.send(job)
-            except OSError:  # the mapping process is gone; close() reports it
-                return
-            if job is None:
-                self._jobs.close()
-                return
 
     def _send(self) -> None:
         if self._held is not None and self.answered == self.sent:

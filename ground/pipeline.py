@@ -26,9 +26,10 @@ import numpy as np
 
 from ground.association import Apple, AssociationParams, FrameDetections, WindowedAssociation
 from ground.live_poses import LivePoses, Pose
+from ground.mapping import MappingWorker
 from ground.registration import RegistrationSettings
-from ground.tracking import TrackingSettings
 from ground.rows import direction_rows
+from ground.tracking import TrackingSettings
 from pomar import wire
 from pomar.camera import Camera
 
@@ -53,9 +54,9 @@ class GroundSettings:
     #: deterministic); "process": mapping runs in its own process and never holds up tracking (live).
     mapping: str = "inline"
     tracking: TrackingSettings = field(default_factory=TrackingSettings)
-    #: Before the first model, the mapper takes images at least this far apart in capture time (a baseline from
-    #: few images: live, frames wait for the first model).
-    init_spacing_s: float = 0.0
+    #: Before the first model, the mapper takes images at least this far apart in capture time: its baseline is
+    #: then the same at any frame rate (at 30 fps, 6 consecutive images span too little flight for a model).
+    init_spacing_s: float = 0.2
     min_score: float = 0.0  # detections below this score are not used
     #: An apple is counted once at least confirm_views of its views scored confirm_score or more (the
     #: shipped detector's operating threshold). Weaker detections still extend and place it: an
@@ -108,6 +109,10 @@ class GroundPipeline:
         self._proj: list[np.ndarray] = []  # association frame -> its camera matrix
         self._confirmed: dict[int, int] = {}  # apple id -> views scored confirm_score or more
         self.pending: dict[int, wire.FrameMessage] = {}
+        if self.s.mapping not in ("inline", "process"):
+            raise ValueError(f"GroundSettings.mapping must be 'inline' or 'process', got {self.s.mapping!r}")
+        # live, the mapping process starts now: its imports would otherwise hold up the first model
+        self._mapping_worker = MappingWorker() if self.s.mapping == "process" else None
         self.keyframes: dict[int, bytes] = {}  # images waiting for tracking (and mapping)
         self._kf_for_event: dict[int, bytes] = {}
         self._kf_seen: set[int] = set()
@@ -158,7 +163,7 @@ class GroundPipeline:
         self.poses = LivePoses(self.camera, self.workdir, keyframe_width=kf_width, settings=self.s.registration,
                                origin=self.origin, max_interp_gap=self.s.max_interp_gap,
                                in_process=self.s.mapping == "process", tracking=self.s.tracking,
-                               init_spacing_s=self.s.init_spacing_s)
+                               init_spacing_s=self.s.init_spacing_s, mapping_worker=self._mapping_worker)
         for f in sorted(self.pending):
             t = self.pending[f].telemetry
             self.poses.add_telemetry(f, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc)
@@ -202,8 +207,6 @@ class GroundPipeline:
         if self.poses is None:
             if not self.keyframes and not final and not self._stalled():
                 return []
-            if self.s.mapping not in ("inline", "process"):
-                raise ValueError(f"GroundSettings.mapping must be 'inline' or 'process', got {self.s.mapping!r}")
             self._make_poses(self._first_keyframe_width())
         events = []
         # images in order, but never ahead of the frames: a frame needs the image after it. An image waits for its
@@ -307,6 +310,8 @@ class GroundPipeline:
         events = self.step(final=True) if self.camera is not None else []
         if self.poses is not None:
             self.poses.close()  # maps what is waiting: the model files are written from it
+        elif self._mapping_worker is not None:  # no image ever came
+            self._mapping_worker.stop()
         self._confirm(self.assoc.finish())
         self._kf_for_event.clear()
         return events
