@@ -63,7 +63,8 @@ def _settings(args):
                                                         min_inliers=args.min_inliers, cross_pass=not args.no_cross_pass),
                           registration=_registration_settings(args),
                           max_wait_s=args.max_wait_s, mapping=args.mapping, init_spacing_s=args.init_spacing_s,
-                          tracking=TrackingSettings(min_tracked_share=args.min_tracked_share),
+                          tracking=TrackingSettings(min_tracked_share=args.min_tracked_share,
+                                                    min_share_to_go_on=args.min_share_to_go_on),
                           min_score=args.min_score,
                           confirm_score=args.confirm_score, confirm_views=args.confirm_views,
                           tree_spacing_m=args.tree_spacing_m, min_radius_ratio=args.min_radius_ratio,
@@ -193,7 +194,9 @@ def _cmd_replay(args) -> int:
     return 0
 
 
-def _registration_options(p):
+def _registration_options(p, init_frames: int | None = None):
+    """Registration's options; ``init_frames``: this command's default (the ground's live default differs from
+    a batch registration's)."""
     from ground.registration import RegistrationSettings
 
     p.add_argument("--max-features", type=int, default=RegistrationSettings.max_num_features,
@@ -202,8 +205,8 @@ def _registration_options(p):
                    help="registration: match each keyframe against this many previous ones")
     p.add_argument("--sift", choices=["opencv", "colmap"], default=RegistrationSettings.sift,
                    help="registration: SIFT implementation (the mapper reads only keypoints and verified matches)")
-    p.add_argument("--init-frames", type=int, default=RegistrationSettings.init_frames,
-                   help="registration: keyframes the first model is made from (live, frames wait for it)")
+    p.add_argument("--init-frames", type=int, default=init_frames or RegistrationSettings.init_frames,
+                   help="registration: keyframes the first model is made from (live, frames wait for it; default %(default)s)")
     p.add_argument("--upright", action="store_true",
                    help="registration: SIFT without orientation (faster; for a camera that does not rotate in the image plane)")
 
@@ -230,7 +233,7 @@ def _ground_options(p):
     p.add_argument("--no-cross-pass", action="store_true",
                    help="association: merge an apple only with apples of the last merge window (one pass), not with "
                         "the whole map (the behaviour before cross-pass identity; a baseline)")
-    _registration_options(p)
+    _registration_options(p, g.registration.init_frames)
     p.add_argument("--max-wait-s", type=float, default=5.0,
                    help="frames wait for the keyframe after them unless no keyframe came for this long (s)")
     p.add_argument("--mapping", choices=("process", "inline"), default="process",
@@ -239,6 +242,9 @@ def _ground_options(p):
                         "on (deterministic; a lock-step replay uses it)")
     p.add_argument("--init-spacing-s", type=float, default=g.init_spacing_s,
                    help="before the first model, the mapper takes images at least this far apart (capture time, s)")
+    p.add_argument("--min-share-to-go-on", type=float, default=g.tracking.min_share_to_go_on,
+                   help="live: below this share of the last keyframe's points, and with the mapper busy, the frames "
+                        "wait for the mapper (the map must not fall too far behind)")
     p.add_argument("--min-tracked-share", type=float, default=g.tracking.min_tracked_share,
                    help="a frame becomes a mapping keyframe when it holds less than this share of the points of the "
                         "last one")

@@ -35,7 +35,7 @@ class TrackingSettings:
     #: A point whose backward track lands further than this from where it started is dropped.
     max_fb_px: float = 1.0
     #: A frame is proposed as a mapping keyframe when it holds less than this share of the reference's points.
-    min_tracked_share: float = 0.8
+    min_tracked_share: float = 0.9
     #: Below this share, and with the mapper still busy, the frames wait for the mapper to take this one: the map
     #: must not fall so far behind that the frames can no longer be tracked (live, when mapping is slower than flight).
     min_share_to_go_on: float = 0.5
