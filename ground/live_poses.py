@@ -219,7 +219,7 @@ class LivePoses:
         """Whether the mapper has yet to answer for the frame it was handed when tracking failed (at most
         MAX_RETRY_WAIT_S: a mapping process that died must not hold the flight)."""
         self._collect_references()
-        if self.mapper.processed >= frame:
+        if self.mapper.processed >= frame or not self.mapper.alive:
             return False
         if time.monotonic() - self._retry_since > self.MAX_RETRY_WAIT_S:
             log.warning("frame %d: no answer from the mapper in %.0f s; the frame goes on untracked", frame,

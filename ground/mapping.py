@@ -73,6 +73,8 @@ class Mapper:
     def busy(self) -> bool:
         return False
 
+    alive = True  # mapping on the caller's thread cannot have died without it
+
     def wait(self, timeout_s: float = 0.0) -> None:
         """Nothing to wait for: mapping is done on the caller's thread."""
 
@@ -385,6 +387,11 @@ class MapperProcess:
     def has_model(self) -> bool:
         self._poll()
         return bool(self.model_pose)
+
+    @property
+    def alive(self) -> bool:
+        """Whether the mapping process still runs (it answers nothing more once it died)."""
+        return self._proc is not None and self._proc.is_alive()
 
     def reference(self) -> Reference | None:
         self._poll()
