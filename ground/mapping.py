@@ -224,6 +224,7 @@ def _serve(jobs, results) -> None:
     try:
         config = jobs.recv()
     except EOFError:
+        results.cancel_join_thread()
         return
     if config is None:  # stopped before it had anything to map
         return
@@ -234,6 +235,7 @@ def _serve(jobs, results) -> None:
             job = jobs.recv()
         except EOFError:  # the ground died (the pipe's only writer): nobody to map for
             log.warning("the ground process is gone: the mapping process stops")
+            results.cancel_join_thread()  # results nobody will read must not hold the exit
             return
         if job is None:
             break

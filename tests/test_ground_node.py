@@ -85,9 +85,11 @@ def test_killed_ground_resumes_with_every_frame(replay_test_flight, tmp_path):
         procs.append(first)
         journal = out / "journal.bin"
         _wait_for(lambda: journal.is_file() and len(read_journal(journal)) >= 12, 60, "the ground journals messages")
+        mapping = _children(first.pid)  # its mapping process, started with it
         first.send_signal(signal.SIGKILL)  # no clean shutdown: what survives is the journal
         first.wait(10)
         assert first.returncode == -signal.SIGKILL
+        assert mapping and _gone(mapping, 30), "the killed ground's mapping process lives on"
         before = len(read_journal(journal))
         second = subprocess.Popen(ground_cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, text=True)
         procs.append(second)
@@ -112,6 +114,38 @@ def test_killed_ground_resumes_with_every_frame(replay_test_flight, tmp_path):
     assert rep["frames"]["missing_frames"] <= sent["frames_dropped"] and rep["frames"]["late_frames"] == 0
     assert len(read_journal(out / "journal.bin")) > before
     assert rep["apples"] > 0
+
+
+def _children(pid: int) -> list[int]:
+    """The processes whose parent is ``pid`` (read from /proc)."""
+    out = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                stat = open(f"/proc/{d}/stat").read()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(d))
+    return out
+
+
+def _gone(pids: list[int], timeout_s: float) -> bool:
+    """Whether every one of ``pids`` has exited (or is a zombie) within ``timeout_s``."""
+    t0 = time.monotonic()
+    while True:
+        alive = []
+        for p in pids:
+            try:
+                if open(f"/proc/{p}/stat").read().rsplit(")", 1)[1].split()[0] != "Z":
+                    alive.append(p)
+            except OSError:
+                pass
+        if not alive or time.monotonic() - t0 > timeout_s:
+            for p in alive:
+                os.kill(p, signal.SIGKILL)
+            return not alive
+        time.sleep(0.2)
 
 
 def test_journal_skips_damaged_records_and_keeps_every_intact_one(tmp_path):
