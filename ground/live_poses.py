@@ -72,14 +72,14 @@ class LivePoses:
 
     def __init__(self, camera: Camera, workdir, keyframe_width: int | None = None,
                  settings: RegistrationSettings | None = None, origin: Origin | None = None,
-                 max_interp_gap: int = 10, sigma_att_deg: float = 0.5, in_process: bool = False,
-                 tracking: TrackingSettings | None = None, init_spacing_s: float = 0.0,
-                 mapping_worker: MappingWorker | None = None):
+                 max_interp_gap: int = 10, sigma_att_deg: float = 0.5, tracking: TrackingSettings | None = None,
+                 init_spacing_s: float = 0.0, mapping_worker: MappingWorker | None = None):
         self.cam = camera
         self.kf_cam = camera if not keyframe_width else self._scaled(camera, keyframe_width)
-        # live, mapping runs in its own process: pycolmap holds the GIL, and tracking must not wait for it
+        # live (a mapping worker given), mapping runs in its own process: pycolmap holds the GIL, and tracking must
+        # not wait for it; otherwise on this thread (lock-step)
         self.mapper = (MapperProcess(self.kf_cam, camera, workdir, settings, sigma_att_deg, worker=mapping_worker)
-                       if in_process else Mapper(self.kf_cam, camera, workdir, settings, sigma_att_deg))
+                       if mapping_worker is not None else Mapper(self.kf_cam, camera, workdir, settings, sigma_att_deg))
         self.tracker = Tracker(self.kf_cam, tracking)
         self.origin = origin
         self.max_interp_gap = max_interp_gap
@@ -91,7 +91,7 @@ class LivePoses:
         self.tracking_failed: list[int] = []  # frames with an image that tracking could not place
         self.kf_processed = -1  # the newest frame whose image went through tracking
         self._last_image = -1
-        self._untracked: deque[tuple[int, np.ndarray]] = deque()  # images waiting for the first model
+        self._untracked: deque[tuple[int, np.ndarray]] = deque()  # images waiting to be tracked, in frame order
         self._refs: deque = deque()  # keyframes handed over that the images have not reached yet
         self._first_ref = self._last_ref = None  # frames of the first and the newest keyframe handed over
         self._retry: int | None = None  # an image that could not be tracked, waiting for the mapper to map it
@@ -201,11 +201,7 @@ class LivePoses:
             if frame == self._retry:
                 self._retry = None
                 self.retried += 1
-            if r.R is not None:
-                self.tracked[frame] = (r.R, r.t)
-            else:
-                self.tracking_failed.append(frame)
-                log.info("frame %d: tracking failed (%s)", frame, r.why)
+            self._record(r)
             # while the mapper is at work on the last proposal, a frame is not proposed, unless the map is falling
             # behind (then it is due, and the frames after it wait); never one older than what it has mapped already
             if r.R is not None and r.keyframe and frame > self.mapper.processed:
@@ -242,12 +238,15 @@ class LivePoses:
         for ref in near:
             tracker.set_reference(ref)
         grey = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY) if image_bgr.ndim == 3 else image_bgr
-        r = tracker.track(frame, grey)
+        self._record(tracker.track(frame, grey))
+
+    def _record(self, r) -> None:
+        """A frame's tracking result: its pose, or a flag (the frame then gets an interpolated or telemetry pose)."""
         if r.R is not None:
-            self.tracked[frame] = (r.R, r.t)
+            self.tracked[r.frame] = (r.R, r.t)
         else:
-            self.tracking_failed.append(frame)
-            log.info("frame %d: tracking failed (%s)", frame, r.why)
+            self.tracking_failed.append(r.frame)
+            log.info("frame %d: tracking failed (%s)", r.frame, r.why)
 
     def settle(self) -> None:
         """The end of the flight: let the mapper finish what it was handed, and track the images still waiting."""

@@ -255,8 +255,7 @@ def _serve(jobs, results) -> None:
         if sm.rec is not None:
             sm.offload(Path(workdir) / "submodels" / str(k))
         subs.append(Submodel(None, sm.names, sm.to_first, sm.path, sm._frozen))
-    results.put({"closed": subs, "points": points, "stats": m.stats(),
-                 "frame_of": m.registrar.frame_of})
+    results.put({"closed": subs, "points": points, "stats": m.stats()})
 
 
 class MappingWorker:
@@ -363,7 +362,7 @@ class MapperProcess:
             if r.get("points") is not None:
                 self._points = r["points"]
             if "closed" in r:
-                self._submodels, self.frame_of = r["closed"], r["frame_of"]
+                self._submodels = r["closed"]
                 self._closed = True
                 return got
             self.answered += 1

@@ -45,9 +45,8 @@ class GroundSettings:
     #: before apples were triangulated about a camera and by least squares) gave -5.3 %, F1 0.837 on
     #: the bundled flight but -6.5 % on the second.
     association: AssociationParams = field(default_factory=lambda: AssociationParams(k=10))
-    #: The first model from 4 images 0.2 s apart (init_spacing_s), not 6: live, every frame waits for it (the first
-    #: model came 1.7-1.9 s after the first frame with 6, 1.1-1.3 s with 4), and lock-step F1 on the tuning flights
-    #: was the same within 0.012 either way.
+    #: The first model from 4 images 0.2 s apart (init_spacing_s), not the batch registration's 6: live, every frame
+    #: waits for it (README: "The ground alone, live").
     registration: RegistrationSettings = field(default_factory=lambda: RegistrationSettings(init_frames=4))
     #: Frames wait for the keyframe after them; when no keyframe has come for this long, they go on
     #: with interpolated or telemetry poses.
@@ -164,8 +163,7 @@ class GroundPipeline:
 
     def _make_poses(self, kf_width: int):
         self.poses = LivePoses(self.camera, self.workdir, keyframe_width=kf_width, settings=self.s.registration,
-                               origin=self.origin, max_interp_gap=self.s.max_interp_gap,
-                               in_process=self.s.mapping == "process", tracking=self.s.tracking,
+                               origin=self.origin, max_interp_gap=self.s.max_interp_gap, tracking=self.s.tracking,
                                init_spacing_s=self.s.init_spacing_s, mapping_worker=self._mapping_worker)
         for f in sorted(self.pending):
             t = self.pending[f].telemetry
@@ -254,8 +252,7 @@ class GroundPipeline:
         events = []
         while self.pending:
             f = min(self.pending)
-            # (the poses say when: an image at or after f went through tracking; the images still waiting in
-            # self.keyframes are after it, as step hands them over in order)
+            # the poses say when: once an image at or after f has been tracked
             if not self.poses.ready(f, final, self._stalled()):
                 break
             msg = self.pending.pop(f)
