@@ -32,22 +32,15 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from ground.georeference import georeference_poses
-from ground.mapping import Mapper, MapperProcess, MappingWorker, compose
+from ground.mapping import Mapper, MapperProcess, MappingWorker
 from ground.poses import camera_rotations
 from ground.registration import RegistrationSettings
 from ground.tracking import Tracker, TrackingSettings
-from pomar.align import Similarity
+from pomar.align import IDENTITY, Similarity, compose, inverse
 from pomar.camera import Camera
 from pomar.geo import Origin
 
 log = logging.getLogger(__name__)
-
-IDENTITY = Similarity(1.0, np.eye(3), np.zeros(3))
-
-
-def inverse(a: Similarity) -> Similarity:
-    Rt = a.R.T
-    return Similarity(1.0 / a.scale, Rt, -Rt @ a.t / a.scale)
 
 
 @dataclass

@@ -31,15 +31,10 @@ from ground.georeference import fit_similarity, georeference_poses
 from ground.poses import camera_rotations
 from ground.registration import IncrementalRegistrar, RegistrationSettings, Submodel
 from ground.tracking import Reference
-from pomar.align import Similarity
+from pomar.align import Similarity, compose
 from pomar.camera import Camera
 
 log = logging.getLogger(__name__)
-
-
-def compose(a: Similarity, b: Similarity) -> Similarity:
-    """a after b: x -> a(b(x))."""
-    return Similarity(a.scale * b.scale, a.R @ b.R, a.scale * a.R @ b.t + a.t)
 
 
 class Mapper:
@@ -99,8 +94,10 @@ class Mapper:
             for f in sorted(self._early)[:-2 * self.settings.init_frames]:
                 del self._early[f]
         self.changed = {}
+        enu, q, h_acc = tel
+        prior = (enu, camera_rotations(np.asarray(q, float)[None], self.cam)[0], h_acc) if np.isfinite(q).all() else None
         try:
-            ok = self.registrar.add_keyframe(frame, image_bgr)
+            ok = self.registrar.add_keyframe(frame, image_bgr, prior)
         except Exception as exc:  # one keyframe that breaks the mapper must not stop the flight
             log.warning("keyframe %d failed to register: %s", frame, exc)
             self.registrar.failed.append(frame)
@@ -190,6 +187,7 @@ class Mapper:
         reg = self.registrar
         st = np.asarray(reg.stage_seconds, float).reshape(-1, 3)
         return {"keyframes_processed": len(reg.seconds), "failed": len(reg.failed), "submodels": len(reg.submodels),
+                "revisits": reg.revisits, "reanchored": reg.reanchored, "rejoined": reg.rejoined,
                 "seconds": list(reg.seconds),
                 "stage_seconds_median": dict(zip(("features", "matching", "mapping"),
                                                  np.median(st, 0).tolist() if len(st) else [None] * 3))}

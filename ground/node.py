@@ -219,6 +219,11 @@ class GroundNode:
                 "registered": len(p.poses.model_pose) if p.poses else 0,
                 "failed": reg["failed"] if reg else 0,
                 "submodels": reg["submodels"] if reg else 0,
+                # across passes: keyframes matched to earlier keyframes of the same place, re-anchorings of a
+                # sub-model onto earlier passes' points, sub-models placed by telemetry after the chain broke
+                "revisits": reg["revisits"] if reg else 0,
+                "reanchored": reg["reanchored"] if reg else 0,
+                "rejoined": reg["rejoined"] if reg else 0,
                 "seconds_per_keyframe_median": float(np.median(reg["seconds"])) if reg and reg["seconds"] else None,
                 "stage_seconds_median": reg["stage_seconds_median"] if reg else None,
                 "mapping": self.settings.mapping,
@@ -288,7 +293,7 @@ class GroundNode:
             d.mkdir(parents=True, exist_ok=True)
             rec = pycolmap.Reconstruction(sm.reconstruction())
             if poses.fit is not None:
-                from ground.mapping import compose
+                from pomar.align import compose
 
                 S = compose(poses.fit, sm.to_first)
                 rec.transform(pycolmap.Sim3d(S.scale, pycolmap.Rotation3d(S.R), S.t))

@@ -386,8 +386,10 @@ class GroundPipeline:
     VIEW_MARGIN_PX = 10
 
     def expected_views(self, a: Apple, proj: np.ndarray | None = None) -> int:
-        """Mapped frames around the apple's track whose camera sees it: in front, inside the image by a margin.
-        ``proj``: the camera matrices as one (N, 3, 4) array, when the caller asks for many apples."""
+        """Mapped frames around the apple's track whose camera sees it (in front, inside the image by a margin), in the
+        runs of such frames that hold one of its detections: a pass that only flew past it (another pass of a
+        whole-plot flight, which may see the other side of the row, where leaves hide it) is not a pass that missed
+        it. ``proj``: the camera matrices as one (N, 3, 4) array, when the caller asks for many apples."""
         proj = np.asarray(self._proj).reshape(-1, 3, 4) if proj is None else proj
         lo, hi = max(0, a.first_frame - self.VIEW_SEARCH), min(len(proj), a.last_frame + self.VIEW_SEARCH + 1)
         if hi <= lo:
@@ -397,7 +399,11 @@ class GroundPipeline:
         with np.errstate(divide="ignore", invalid="ignore"):
             u, v = x[:, 0] / z, x[:, 1] / z
         m = self.VIEW_MARGIN_PX
-        return int(((z > 0.5) & (u > m) & (u < self.camera.width - m) & (v > m) & (v < self.camera.height - m)).sum())
+        sees = (z > 0.5) & (u > m) & (u < self.camera.width - m) & (v > m) & (v < self.camera.height - m)
+        run = np.cumsum(np.diff(sees.astype(np.int8), prepend=0) == 1) * sees  # 1, 2, ... per run of frames; 0 outside
+        seen = [f - lo for f, _ in a.observations if lo <= f < hi]
+        kept = np.unique(run[seen]) if seen else np.zeros(0, int)
+        return int(np.isin(run, kept[kept > 0]).sum())
 
     def counted_ids(self) -> list[int]:
         """The apples that count: those confirmed, less those too small for their size to be whole (size check) and

@@ -27,6 +27,7 @@ from ground.registration import IncrementalRegistrar, RegistrationSettings
 from pomar import flight as ff
 from pomar.camera import Camera
 from pomar.flight import FlightDir
+from pomar.geo import Origin
 from pomar.rotations import rotation_to_quat_wxyz
 from pomar.video import iter_frames
 
@@ -51,6 +52,19 @@ def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, set
         from tqdm import tqdm
 
         bar = tqdm(total=(n + every - 1) // every, unit="keyframe", desc="registering")
+    # telemetry at every frame: the keyframes' priors (they place a sub-model when the chain breaks), then the
+    # georeferencing and the fallback poses
+    tf, s = frame_telemetry(fl)
+    origin = fl.origin() if fl.has_truth else None
+    if origin is None:
+        ok = np.isfinite(s["lat"])
+        if not ok.any():
+            raise ValueError(f"{fl.tlog}: no position telemetry at any frame")
+        j = int(np.argmax(ok))
+        origin = Origin(float(s["lat"][j]), float(s["lon"][j]), float(s["alt"][j]))
+    prior_c = origin.to_enu(s["lat"], s["lon"], s["alt"])
+    prior_R = camera_rotations(s["q_gimbal"], cam)
+    prior_sig = np.where(np.isfinite(s["h_acc"]) & (s["h_acc"] > 0), s["h_acc"], 2.0)
     t0 = time.perf_counter()
     decoded = 0
     for i, img in iter_frames(fl.video):
@@ -62,7 +76,7 @@ def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, set
         if scale != 1.0:
             img = cv2.resize(img, (kcam.width, kcam.height), interpolation=cv2.INTER_AREA)
         try:
-            reg.add_keyframe(i, img)
+            reg.add_keyframe(i, img, (prior_c[i], prior_R[i], float(prior_sig[i])))
         except Exception as exc:  # one keyframe that breaks the mapper must not stop the flight
             log.warning("keyframe %d failed to register: %s", i, exc)
             reg.failed.append(i)
@@ -75,10 +89,6 @@ def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, set
     if decoded < n:
         log.error("%s: decoded %d of %d frames; the rest get telemetry poses", fl.video, decoded, n)
 
-    # telemetry at every frame, and its poses (the fallback)
-    tf, s = frame_telemetry(fl)
-    origin = fl.origin() if fl.has_truth else None
-
     P = reg.poses()  # model coordinates (first sub-model)
     kf = np.array(sorted(P))
     R = np.zeros((meta.frame_count, 3, 3))
@@ -89,12 +99,6 @@ def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, set
         R_m = np.array([P[f][0] for f in kf])
         t_m = np.array([P[f][1] for f in kf])
         c_m = -np.einsum("nji,nj->ni", R_m, t_m)
-        if origin is None:
-            from pomar.geo import Origin
-
-            ok = np.isfinite(s["lat"])
-            j = int(np.argmax(ok))
-            origin = Origin(float(s["lat"][j]), float(s["lon"][j]), float(s["alt"][j]))
         gps = origin.to_enu(s["lat"][kf], s["lon"][kf], s["alt"][kf])
         sig = np.where(np.isfinite(s["h_acc"][kf]) & (s["h_acc"][kf] > 0), s["h_acc"][kf], 2.0)
         good = np.isfinite(gps).all(1) & np.isfinite(s["q_gimbal"][kf]).all(1)
@@ -152,7 +156,8 @@ def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, set
     keyframes = (n + every - 1) // every
     result = {
         "flight": str(fl.path), "keyframes": keyframes, "registered": int(len(kf)),
-        "registered_fraction": len(kf) / max(keyframes, 1), "submodels": len(reg.submodels),
+        "registered_fraction": len(kf) / max(keyframes, 1), "submodels": len(reg.submodels), "rejoined": reg.rejoined,
+        "revisits": reg.revisits, "reanchored": reg.reanchored,
         "sources": {src: int((source == src).sum()) for src in SOURCES},
         "seconds": seconds, "seconds_per_keyframe": float(np.mean(reg.seconds)) if reg.seconds else float("nan"),
         "seconds_per_keyframe_median": float(np.median(reg.seconds)) if reg.seconds else float("nan"),

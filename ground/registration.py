@@ -1,11 +1,19 @@
 """Incremental registration of keyframes with pycolmap, one keyframe at a time, at a bounded cost.
 
-For each keyframe: SIFT features, matching against the previous ``match_window`` keyframes, then the
+For each keyframe: SIFT features, matching against the previous ``match_window`` keyframes and against the earlier
+keyframes that look at the same place (another pass of a whole-plot flight: :mod:`ground.revisit`), then the
 incremental mapper registers it into the current sub-model (2D-3D pose), triangulates its new points
 and refines locally; a global refinement runs every ``global_ba_every`` keyframes. A sub-model holds
 at most ``submodel_size`` keyframes: then a new one is bootstrapped from the last ``overlap`` keyframes
 and chained to the previous one by a similarity over the cameras they share. The database cache is
 built over the current sub-model only, so the cost per keyframe does not grow with the flight.
+
+Across passes: an earlier keyframe of the same place in the current sub-model takes part in the new one's
+registration (their matches are in the database); one in a finished sub-model re-anchors the current sub-model
+onto its 3-D points (a similarity over the points they share), so that a pass lands where the earlier passes put
+the same trees. When the chain breaks (``break_after`` keyframes in a row fail, e.g. a turn over bare ground), a
+new sub-model is made from them and placed by their GPS and attitude against the model's, then re-anchored as
+soon as it sees a place seen before: the flight stays one map.
 """
 
 from __future__ import annotations
@@ -23,7 +31,8 @@ import numpy as np
 import pycolmap
 
 from ground.matching import match_descriptors, unit_descriptors
-from pomar.align import Similarity
+from ground.revisit import Places, robust_similarity
+from pomar.align import IDENTITY, Similarity, compose, inverse
 from pomar.camera import Camera
 
 log = logging.getLogger(__name__)
@@ -59,6 +68,13 @@ class RegistrationSettings:
     # finished sub-models kept in memory (the newest is chained to the one before it); older ones are written to
     # the work directory and read back only for the final model files
     keep_submodels: int = 2
+    # matching against earlier keyframes of the same place (other passes): look points within revisit_radius of the
+    # viewing depth; a sub-model is re-anchored on them once revisit_min_points 3-D points are shared
+    revisit: bool = True
+    revisit_radius: float = 0.4
+    revisit_min_points: int = 40
+    # keyframes in a row that fail to register before a new sub-model is made from them (placed by telemetry)
+    break_after: int = 3
 
     def __post_init__(self):
         if self.sift not in ("colmap", "opencv"):
@@ -74,6 +90,9 @@ class Submodel:
     to_first: Similarity | None = None  # maps this sub-model's coordinates into the first sub-model's
     path: Path | None = None
     _frozen: np.ndarray | None = None  # (n, 3, 4) cam_from_world of ``names``, kept when ``rec`` left memory
+    # 3-D points shared with finished sub-models (this sub-model's frame, the first's): what re-anchors it
+    revisit_src: list = field(default_factory=list, repr=False)
+    revisit_dst: list = field(default_factory=list, repr=False)
 
     def reconstruction(self) -> pycolmap.Reconstruction:
         """The sub-model, read back from disk if it left memory."""
@@ -108,6 +127,15 @@ class IncrementalRegistrar:
         self.failed: list[int] = []
         self.seconds: list[float] = []
         self.stage_seconds: list[tuple[float, float, float]] = []  # features, matching, mapping
+        self.places = Places(self.work / "places", radius=self.s.revisit_radius, min_gap=self.s.match_window + 3)
+        self.priors: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}  # keyframe -> (ENU centre, R, sigma m)
+        self._image_ids: dict[str, int] = {}
+        self._revisit_matches: dict[str, list[tuple[str, np.ndarray]]] = {}  # new keyframe -> (earlier one, matches)
+        self._last_place: tuple[np.ndarray, np.ndarray, float] | None = None  # look point, axis, depth
+        self._failing: list[str] = []  # keyframes in a row that failed to register
+        self.revisits = 0  # keyframes matched to an earlier keyframe of the same place
+        self.reanchored = 0  # times a sub-model was re-anchored onto earlier passes' points
+        self.rejoined = 0  # new sub-models placed by telemetry after the chain broke
         self._mopts = pycolmap.IncrementalPipelineOptions()
         self._mopts.ba_refine_focal_length = False
         self._mopts.ba_refine_principal_point = False
@@ -143,6 +171,7 @@ class IncrementalRegistrar:
         self._two_view = pycolmap.TwoViewGeometryOptions()
         self._two_view.ransac.random_seed = 0
         self._recent = deque(maxlen=max(self.s.match_window, 1))  # (image id, keypoint xy, unit descriptors)
+        self._order: dict[str, int] = {}  # keyframe -> its place in the flight's keyframes
 
     def _extract(self, name: str, image_bgr: np.ndarray):
         gray = np.ascontiguousarray(image_bgr if image_bgr.ndim == 2 else cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY))
@@ -165,20 +194,42 @@ class IncrementalRegistrar:
         self._db.write_frame(frame)
         self._db.write_keypoints(image_id, kp)
         self._db.write_descriptors(image_id, descriptors)
+        self._image_ids[name] = image_id
         return image_id, kp[:, :2].astype(np.float64), desc
 
-    def _match(self, new) -> None:
-        """Match the new keyframe against the previous ``match_window`` ones and verify each pair's geometry
-        (RANSAC in pycolmap releases the GIL: the pairs are verified on two threads)."""
+    def _match(self, name: str, new) -> None:
+        """Match the new keyframe against the previous ``match_window`` ones and the earlier keyframes of the place
+        it is expected to look at, and verify each pair's geometry (RANSAC in pycolmap releases the GIL: the pairs
+        are verified on two threads)."""
         image_id, xy, desc = new
         pairs = [(prev_id, prev_xy, match_descriptors(prev_desc, desc)) for prev_id, prev_xy, prev_desc in self._recent]
+        revisit = self._revisit_candidates(name)
+        for old in revisit:
+            old_id = self._image_ids[old]
+            old_desc = unit_descriptors(self._db.read_descriptors(old_id).data)
+            pairs.append((old_id, self._db.read_keypoints(old_id)[:, :2].astype(np.float64),
+                          match_descriptors(old_desc, desc)))
         pairs = [p for p in pairs if len(p[2])]
         geoms = self._pool.map(lambda p: pycolmap.estimate_calibrated_two_view_geometry(
             self._pcam, p[1], self._pcam, xy, p[2], self._two_view), pairs)
+        old_of = {self._image_ids[o]: o for o in revisit}
         for (prev_id, _, matches), geom in zip(pairs, geoms):
             self._db.write_matches(prev_id, image_id, matches)
             self._db.write_two_view_geometry(prev_id, image_id, geom)
+            inl = np.asarray(geom.inlier_matches).reshape(-1, 2)
+            if prev_id in old_of and len(inl) >= 30:
+                self._revisit_matches.setdefault(name, []).append((old_of[prev_id], inl))
+        if name in self._revisit_matches:
+            self.revisits += 1
         self._recent.append(new)
+
+    def _revisit_candidates(self, name: str) -> list[str]:
+        """Earlier keyframes, beyond the matching window, that look where the new keyframe should: about where the
+        last registered one looked (a keyframe moves a fraction of the view)."""
+        if not self.s.revisit or self._last_place is None:
+            return []
+        look, axis, depth = self._last_place
+        return self.places.near(look, axis, depth, self._order[name])
 
     def close(self) -> None:
         self._pool.shutdown(wait=True)
@@ -269,16 +320,22 @@ class IncrementalRegistrar:
         first = old.to_first or Similarity(1.0, np.eye(3), np.zeros(3))
         new.to_first = Similarity(first.scale * to_old.scale, first.R @ to_old.R, first.scale * first.R @ to_old.t + first.t)
 
-    def add_keyframe(self, frame: int, image_bgr: np.ndarray) -> bool:
-        """Register one keyframe; returns whether it has a pose now."""
+    def add_keyframe(self, frame: int, image_bgr: np.ndarray,
+                     prior: tuple[np.ndarray, np.ndarray, float] | None = None) -> bool:
+        """Register one keyframe; returns whether it has a pose now. ``prior``: where the telemetry puts the camera
+        (ENU centre, world(ENU)-to-camera rotation, position sigma in m), which places a new sub-model when the
+        chain breaks."""
         t0 = time.perf_counter()
         name = f"{frame:06d}.jpg"
         cv2.imwrite(str(self.work / "images" / name), image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
         features = self._extract(name, image_bgr)
         t1 = time.perf_counter()
+        self._order[name] = len(self.names)
         self.names.append(name)
         self.frame_of[name] = frame
-        self._match(features)
+        if prior is not None and all(np.isfinite(np.asarray(p, float)).all() for p in prior):
+            self.priors[name] = prior
+        self._match(name, features)
         t2 = time.perf_counter()
         ok = False
         sm = self.submodels[-1] if self.submodels else None
@@ -286,30 +343,178 @@ class IncrementalRegistrar:
             if len(self.names) >= self.s.init_frames:
                 sm = self._bootstrap(self.names[-self.s.init_frames * 2:])
                 if sm is not None:
-                    sm.to_first = Similarity(1.0, np.eye(3), np.zeros(3))
-                    self.submodels.append(sm)
+                    sm.to_first = IDENTITY
+                    self._start(sm)
                     ok = name in sm.names
         else:
             if len(sm.names) >= self.s.submodel_size:
                 new = self._bootstrap(sm.names[-self.s.overlap:] + [name])
                 if new is not None:
                     self._chain(new, sm)
-                    self.submodels.append(new)
+                    self._start(new)
                     ok = name in new.names
-                    for k, old in enumerate(self.submodels[:-self.s.keep_submodels]):
-                        if old.rec is not None:
-                            old.offload(self.work / "submodels" / str(k))
                 else:
                     ok = self._register_into(sm, name, False)
             else:
                 n = len(sm.names)
                 ok = self._register_into(sm, name, refine_global=(n % self.s.global_ba_every == 0))
+            if ok and name in self.submodels[-1].names:
+                self._registered_one(self.submodels[-1], name)
+            elif not ok:
+                ok = self._rejoin(name)
+        self._failing = [] if ok else self._failing + [name]
+        self._revisit_matches.pop(name, None)
         if not ok:
             self.failed.append(frame)
         t3 = time.perf_counter()
         self.seconds.append(t3 - t0)
         self.stage_seconds.append((t1 - t0, t2 - t1, t3 - t2))
         return ok
+
+    # -- across passes
+    def _start(self, sm: Submodel) -> None:
+        """A new sub-model: the one before it is finished (its keyframes' 3-D points kept as anchors for later passes),
+        and the oldest leave memory."""
+        if self.submodels:
+            self._keep_anchors(len(self.submodels) - 1, self.submodels[-1])
+        self.submodels.append(sm)
+        for k, old in enumerate(self.submodels[:-self.s.keep_submodels]):
+            if old.rec is not None:
+                old.offload(self.work / "submodels" / str(k))
+        for n in sm.names:
+            if n not in self.places:
+                self._add_place(sm, n)
+
+    def _keep_anchors(self, k: int, sm: Submodel) -> None:
+        if sm.rec is None:
+            return
+        anchors = {}
+        for n in sm.names:
+            im = sm.rec.find_image_with_name(n)
+            idx, X = [], []
+            for i, p in enumerate(im.points2D):
+                if p.has_point3D():
+                    q = sm.rec.points3D[p.point3D_id]
+                    if q.track.length() >= 3 and q.error <= 1.5:
+                        idx.append(i)
+                        X.append(q.xyz)
+            anchors[n] = (np.array(idx, np.int32), np.array(X, float).reshape(-1, 3))
+        self.places.keep_anchors(k, anchors)
+
+    def _add_place(self, sm: Submodel, name: str) -> None:
+        """Index a registered keyframe by the point it looks at (the median of its 3-D points) and its axis."""
+        im = sm.rec.find_image_with_name(name)
+        X = np.array([sm.rec.points3D[p.point3D_id].xyz for p in im.get_observation_points2D()], float).reshape(-1, 3)
+        if len(X) < 10:
+            return
+        X = sm.to_first.apply(X)
+        m = im.cam_from_world().matrix()
+        R = sm.to_first.R @ m[:, :3].T  # camera axes in the first frame (columns)
+        c = sm.to_first.apply(-m[:, :3].T @ m[:, 3])
+        look = np.median(X, 0)
+        self.places.add(name, self._order[name], look, R[:, 2])
+        self._last_place = (look, R[:, 2], float(np.median(np.linalg.norm(X - c, axis=1))))
+
+    def _registered_one(self, sm: Submodel, name: str) -> None:
+        """A keyframe registered into the current sub-model: index its place, and re-anchor the sub-model on the 3-D
+        points it shares with the earlier keyframes of that place in finished sub-models."""
+        if name not in self.places:
+            self._add_place(sm, name)
+        im = sm.rec.find_image_with_name(name)
+        for old, inl in self._revisit_matches.get(name, []):
+            if old in sm.names:
+                continue  # the mapper used these matches: the old keyframe is in this sub-model
+            a = self.places.anchors(old)
+            if a is None:
+                continue
+            k, idx, X_old = a
+            row = {int(i): r for r, i in enumerate(idx)}
+            src, dst = [], []
+            for i_old, i_new in inl:
+                r = row.get(int(i_old))
+                p = im.points2D[int(i_new)]
+                if r is None or not p.has_point3D():
+                    continue
+                q = sm.rec.points3D[p.point3D_id]
+                if q.track.length() >= 3:
+                    src.append(q.xyz)
+                    dst.append(X_old[r])
+            if src:
+                sm.revisit_src.append(np.array(src))
+                sm.revisit_dst.append(self.submodels[k].to_first.apply(np.array(dst)))
+        self._reanchor(sm)
+
+    def _reanchor(self, sm: Submodel) -> None:
+        n = sum(len(s) for s in sm.revisit_src)
+        if n < self.s.revisit_min_points or self._last_place is None:
+            return
+        src, dst = np.concatenate(sm.revisit_src), np.concatenate(sm.revisit_dst)
+        look, _, depth = self._last_place
+        fit = robust_similarity(src, dst, tol=0.01 * depth)
+        if fit is None:
+            return
+        S, inl = fit
+        if inl.sum() < self.s.revisit_min_points or inl.mean() < 0.5:
+            return
+        # a re-anchoring moves the sub-model by the chain's drift (cm, a fraction of a degree), or by the GPS error
+        # after a re-join: more than that is a false match between two look-alike places
+        here = inverse(sm.to_first).apply(look[None])[0]
+        shift = float(np.linalg.norm(S.apply(here[None])[0] - look))
+        turn = np.degrees(np.arccos(np.clip((np.trace(S.R @ sm.to_first.R.T) - 1) / 2, -1, 1)))
+        if shift > 0.1 * depth or turn > 3.0:
+            log.warning("re-anchoring refused: it would move the sub-model %.2f (%.0f%% of the depth) and turn it "
+                        "%.1f deg", shift, 100 * shift / depth, turn)
+            return
+        sm.to_first = S
+        self.reanchored += 1
+        log.debug("sub-model %d re-anchored on %d points shared with earlier passes: moved %.3f, turned %.3f deg",
+                  len(self.submodels) - 1, int(inl.sum()), shift, turn)
+
+    def _rejoin(self, name: str) -> bool:
+        """The chain broke: after ``break_after`` keyframes in a row failed, a new sub-model from them, placed where
+        their telemetry puts them against the model's registered keyframes' telemetry."""
+        failing = self._failing + [name]
+        if len(failing) < self.s.break_after or not all(n in self.priors for n in failing):
+            return False
+        new = self._bootstrap(failing[-2 * self.s.init_frames:])
+        if new is None:
+            return False
+        to_first = self._place_by_priors(new)
+        if to_first is None:
+            return False
+        new.to_first = to_first
+        self._start(new)
+        self.rejoined += 1
+        log.info("registration re-joined after %d keyframes that did not register: a new sub-model of %d placed by "
+                 "telemetry", len(failing), len(new.names))
+        return name in new.names
+
+    def _place_by_priors(self, new: Submodel) -> Similarity | None:
+        """new -> first frame, through ENU: each side fitted to its keyframes' telemetry (positions and axes)."""
+        from ground.georeference import fit_similarity, georeference_poses
+
+        def to_enu(sms: list[Submodel]) -> Similarity | None:
+            names, R, t = [], [], []
+            for sm in sms:
+                m = sm.cam_from_world()
+                Ri, ti = georeference_poses(m[:, :, :3], m[:, :, 3], sm.to_first or IDENTITY)
+                keep = [k for k, n in enumerate(sm.names) if n in self.priors]
+                names += [sm.names[k] for k in keep]
+                R.append(Ri[keep])
+                t.append(ti[keep])
+            names, R, t = names[-200:], np.concatenate(R)[-200:], np.concatenate(t)[-200:]
+            if len(names) < 3:
+                return None
+            pr = [self.priors[n] for n in names]
+            c = -np.einsum("nji,nj->ni", R, t)
+            return fit_similarity(c, np.array([p[0] for p in pr]), np.array([p[2] for p in pr]), R,
+                                  np.array([p[1] for p in pr]), np.radians(0.5)).similarity
+
+        first_to_enu = to_enu([sm for sm in self.submodels[-self.s.keep_submodels:] if sm.to_first is not None])
+        new_to_enu = to_enu([Submodel(new.rec, new.names, IDENTITY)])
+        if first_to_enu is None or new_to_enu is None:
+            return None
+        return compose(inverse(first_to_enu), new_to_enu)
 
     def poses(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """World-to-camera (R, t) of every registered keyframe, in the first sub-model's frame (the latest

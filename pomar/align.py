@@ -17,6 +17,19 @@ class Similarity:
         return self.scale * np.asarray(x) @ self.R.T + self.t
 
 
+IDENTITY = Similarity(1.0, np.eye(3), np.zeros(3))
+
+
+def compose(a: Similarity, b: Similarity) -> Similarity:
+    """a after b: x -> a(b(x))."""
+    return Similarity(a.scale * b.scale, a.R @ b.R, a.scale * a.R @ b.t + a.t)
+
+
+def inverse(a: Similarity) -> Similarity:
+    Rt = a.R.T
+    return Similarity(1.0 / a.scale, Rt, -Rt @ a.t / a.scale)
+
+
 def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> Similarity:
     """Least-squares similarity taking src (N, 3) onto dst (N, 3); N >= 3 non-collinear points."""
     src, dst = np.asarray(src, float), np.asarray(dst, float)
