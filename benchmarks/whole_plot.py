@@ -1,11 +1,16 @@
 """Whole-plot flights (serpentine passes): apples counted twice, counts and per-row counts against the truth, F1,
-and the ground's time per frame on each pass, with cross-pass identity and without it (the baseline).
+and the ground's time per frame on each pass, with registration across passes and cross-pass identity, and without
+them (the baseline).
 
     .venv/bin/python -m sim flight --config sim/configs/whole-plot.toml --out out/sim/whole-plot
-    .venv/bin/python benchmarks/whole_plot.py out/sim/whole-plot [more flights] [--out out/bench/whole-plot]
+    .venv/bin/python benchmarks/whole_plot.py out/sim/whole-plot [more flights] [--journals J ...] [--out DIR]
 
-Each flight is replayed lock-step through both processes (`python -m ground replay`, the shipped detector) twice:
-as is, and with ``--no-cross-pass``. Time nothing else meanwhile (2 cores).
+Each flight is replayed lock-step three times: as is; with ``--no-revisit`` (registration matches each keyframe only
+against the previous ones); and with ``--no-revisit --no-cross-pass`` as well (the association merges an apple
+only within its window of recent apples: the behaviour before issue 16). Without journals each replay runs both
+processes (``python -m ground replay``, the shipped detector, about 1 s a frame here); with ``--journals`` (one per
+flight, in order: the journal.bin of an earlier replay of it) the recorded stream is played instead and no detector
+runs. Time nothing else meanwhile (2 cores).
 """
 
 from __future__ import annotations
@@ -57,34 +62,48 @@ def seconds_per_frame_by_pass(rep: dict, passes: np.ndarray) -> list[float]:
     return out
 
 
+MODES = (("revisit+x-pass", []), ("x-pass only", ["--no-revisit"]), ("baseline", ["--no-revisit", "--no-cross-pass"]))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("flights", nargs="+", type=Path)
+    ap.add_argument("--journals", nargs="+", type=Path, help="a recorded stream per flight, in order (no detector runs)")
+    ap.add_argument("--modes", nargs="+", choices=[m for m, _ in MODES], default=[m for m, _ in MODES])
     ap.add_argument("--out", type=Path, default=Path("out/bench/whole-plot"))
     a = ap.parse_args(argv)
-    lines = []
-    for path in a.flights:
+    if a.journals and len(a.journals) != len(a.flights):
+        ap.error("give one journal per flight")
+    lines, row_lines = [], []
+    for n, path in enumerate(a.flights):
         flight = FlightDir(path)
         passes = pass_of_frames(flight)
-        for mode, extra in (("cross-pass", []), ("baseline", ["--no-cross-pass"])):
-            out = a.out / path.name / mode
+        source = ["--recorded", str(a.journals[n]), "--speed", "0"] if a.journals else []
+        for mode, extra in MODES:
+            if mode not in a.modes:
+                continue
+            out = a.out / path.name / mode.replace("+", "-").replace(" ", "-")
             print(f"{path.name}: replay ({mode}) ...", file=sys.stderr, flush=True)
-            subprocess.run([sys.executable, "-m", "ground", "replay", str(path), "--out", str(out), "--quiet"] + extra,
-                           check=True, stdout=subprocess.DEVNULL)
+            subprocess.run([sys.executable, "-m", "ground", "replay", str(path), "--out", str(out), "--quiet"] + source
+                           + extra, check=True, stdout=subprocess.DEVNULL)
             rep = json.loads((out / "report.json").read_text())
-            ev = rep["evaluation"]
+            ev, reg = rep["evaluation"], rep["registration"]
             rows = [r for r in ev["rows"] if r["truth_visible"] >= 30]
             row_err = [100.0 * (r["count"] - r["truth_visible"]) / r["truth_visible"] for r in rows]
             spf = seconds_per_frame_by_pass(rep, passes)
-            lines.append(f"{path.name:<16} {mode:<11} {ev['count']:>6} {ev['truth_count']:>6} {ev['count_error_pct']:>+7.1f} "
-                         f"{ev.get('duplicates', 0):>5} {max(np.abs(row_err)) if row_err else float('nan'):>8.1f} "
-                         f"{ev['f1']:>6.3f} {rep['association']['stats'].get('merged_across_passes', 0):>6}  "
-                         + " ".join(f"{x:.2f}" for x in spf))
-            lines.append("    rows (count / visible): " + ", ".join(f"{r['row']}: {r['count']}/{r['truth_visible']}"
-                                                            for r in ev["rows"]))
-    print(f"{'flight':<16} {'mode':<11} {'count':>6} {'truth':>6} {'err %':>7} {'dups':>5} {'row err':>8} {'F1':>6} "
-          f"{'x-pass':>6}  ground s/frame by pass")
+            lines.append(f"| {path.name} | {mode} | {ev['count']} | {ev['truth_count']} | {ev['count_error_pct']:+.1f} | "
+                         f"{ev.get('duplicates', 0)} | {max(np.abs(row_err)) if row_err else float('nan'):.1f} | "
+                         f"{ev['f1']:.3f} | {ev['median_error_m'] * 100:.1f} | {reg.get('revisits', 0)} / "
+                         f"{reg.get('reanchored', 0)} / {reg.get('rejoined', 0)} | "
+                         f"{rep['association']['stats'].get('merged_across_passes', 0)} | {rep['wall_seconds']:.0f} | "
+                         + " ".join(f"{x:.2f}" for x in spf) + " |")
+            row_lines.append(f"{path.name}, {mode}: rows (count / visible) "
+                             + ", ".join(f"{r['row']}: {r['count']}/{r['truth_visible']}" for r in ev["rows"]))
+    print("| flight | mode | count | visible | error % | counted twice | worst row % (30+) | F1 | median error cm | "
+          "revisits / re-anchored / re-joined | merged across passes | wall s | ground s/frame by pass |")
+    print("|" + " --- |" * 13)
     print("\n".join(lines))
+    print("\n" + "\n".join(row_lines))
     return 0
 
 

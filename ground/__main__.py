@@ -142,7 +142,7 @@ def _cmd_replay(args) -> int:
                    "--min-score", str(args.min_score), "--confirm-score", str(args.confirm_score),
                    "--confirm-views", str(args.confirm_views), "--tree-spacing-m", str(args.tree_spacing_m),
                    "--min-radius-ratio", str(args.min_radius_ratio), "--min-view-ratio", str(args.min_view_ratio)] \
-        + (["--upright"] if args.upright else []) \
+        + (["--upright"] if args.upright else []) + (["--no-revisit"] if args.no_revisit else []) \
         + (["--mapping", args.mapping] if args.realtime or (args.recorded and args.speed > 0) else [])  # lock-step: inline
     keyframe_every = args.keyframe_every or (1 if args.realtime else 2)
     try:
@@ -209,6 +209,9 @@ def _registration_options(p, init_frames: int | None = None):
                    help="registration: keyframes the first model is made from (live, frames wait for it; default %(default)s)")
     p.add_argument("--upright", action="store_true",
                    help="registration: SIFT without orientation (faster; for a camera that does not rotate in the image plane)")
+    p.add_argument("--no-revisit", action="store_true",
+                   help="registration: match keyframes only against the previous ones, not against earlier keyframes "
+                        "of the same place (other passes); a baseline for whole-plot flights")
 
 
 def _registration_settings(args, **extra):
@@ -216,7 +219,8 @@ def _registration_settings(args, **extra):
 
     try:
         return RegistrationSettings(max_num_features=args.max_features, match_window=args.match_window, sift=args.sift,
-                                    upright=args.upright, init_frames=args.init_frames, **extra)
+                                    upright=args.upright, init_frames=args.init_frames, revisit=not args.no_revisit,
+                                    **extra)
     except ValueError as exc:  # a bad combination of options: say so, without a traceback
         raise SystemExit(f"ground: {exc}") from None
 

@@ -13,29 +13,47 @@ from tests.conftest import ROOT
 
 
 @pytest.fixture(scope="module")
-def reg_flight(tmp_path_factory):
-    """A 480x270 flight of 23 frames with frame 12 blanked (unregisterable)."""
-    import imageio_ffmpeg
-
-    from pomar.flight import FlightDir
-    from pomar.video import iter_frames
+def reg_base(tmp_path_factory):
+    """A 480x270 flight of 23 frames (5 fps, 8 m of one pass)."""
     from sim import config
     from sim.flight import simulate_flight
 
     base = tmp_path_factory.mktemp("reg")
     simulate_flight(config.load(ROOT / "sim" / "configs" / "register-test.toml"), base / "flight", jobs=2, progress=False)
-    fl = FlightDir(base / "flight")
-    blank = base / "blank"
-    shutil.copytree(fl.path, blank)
+    return base / "flight"
+
+
+def blanked(src: Path, dst: Path, frames: range):
+    """A copy of the flight whose video has the given frames black (nothing to register)."""
+    import imageio_ffmpeg
+
+    from pomar.flight import FlightDir
+    from pomar.video import iter_frames
+
+    fl = FlightDir(src)
+    shutil.copytree(fl.path, dst)
     meta = fl.meta()
-    w = imageio_ffmpeg.write_frames(str(blank / "video.mp4"), (meta.width, meta.height), fps=meta.fps, codec="libx264",
+    w = imageio_ffmpeg.write_frames(str(dst / "video.mp4"), (meta.width, meta.height), fps=meta.fps, codec="libx264",
                                     pix_fmt_in="bgr24", quality=None, macro_block_size=2, ffmpeg_log_level="error",
                                     output_params=["-crf", "18"])
     w.send(None)
     for i, img in iter_frames(fl.video):
-        w.send(np.zeros_like(img) if i == 12 else img)
+        w.send(np.zeros_like(img) if i in frames else img)
     w.close()
-    return FlightDir(blank)
+    return FlightDir(dst)
+
+
+@pytest.fixture(scope="module")
+def reg_flight(reg_base):
+    """The flight with frame 12 blanked (unregisterable)."""
+    return blanked(reg_base, reg_base.parent / "blank", range(12, 13))
+
+
+@pytest.fixture(scope="module")
+def gap_flight(reg_base):
+    """The flight with frames 6-14 blanked: more keyframes in a row than the matching window, as a turn over bare
+    ground would leave."""
+    return blanked(reg_base, reg_base.parent / "gap", range(6, 15))
 
 
 def read_poses(path: Path):
@@ -99,3 +117,42 @@ def test_finished_submodels_leave_memory_and_come_back_for_the_model_files(reg_f
     assert abs(res["rotation_error_median_deg"] - all_in["rotation_error_median_deg"]) < 0.01
     for k in range(res["submodels"]):
         assert (tmp_path / "d" / "model" / str(k) / "images.txt").exists()
+
+
+def _offset_before_and_after(flight, out: Path, gap: range):
+    """Mean ENU error of the registered frames before the gap and after it (the GPS bias the map shares)."""
+    rows = read_poses(out / "poses.csv")
+    o, fr = flight.origin(), flight.truth_frames()
+    est = o.to_enu(*(np.array([float(r[k]) for r in rows]) for k in ("lat", "lon", "alt")))
+    err = est - o.to_enu(fr["lat"], fr["lon"], fr["alt"])
+    reg = np.array([r["source"] == "registered" for r in rows])
+    f = np.arange(len(rows))
+    before, after = reg & (f < gap.start), reg & (f >= gap.stop)
+    return err[before].mean(0), err[after].mean(0), int(after.sum())
+
+
+def test_a_broken_chain_rejoins_the_same_map(gap_flight, tmp_path):
+    """Nine black keyframes in a row break the chain (matching only the previous keyframes): the keyframes after
+    them make a new sub-model, placed by their telemetry against the model's, and the flight stays one map."""
+    from ground.register_flight import register_flight
+    from ground.registration import RegistrationSettings
+
+    res = register_flight(gap_flight.path, tmp_path / "r", every=1, settings=RegistrationSettings(revisit=False))
+    assert res["rejoined"] == 1 and res["submodels"] == 2
+    before, after, n_after = _offset_before_and_after(gap_flight, tmp_path / "r", range(6, 15))
+    assert n_after == 23 - 15  # every keyframe after the gap registered
+    # one map: both sides carry the same GPS bias, within the telemetry's error (the map alone would be metres off)
+    assert np.linalg.norm(before - after) < 0.5
+    assert res["rotation_error_median_deg"] < 0.5
+
+
+def test_an_earlier_keyframe_of_the_same_place_bridges_the_gap(gap_flight, tmp_path):
+    """With revisits, the first keyframe after the gap matches the keyframes before it that look at the same place:
+    the chain holds, one sub-model."""
+    from ground.register_flight import register_flight
+
+    res = register_flight(gap_flight.path, tmp_path / "v", every=1)
+    assert res["revisits"] >= 1 and res["rejoined"] == 0 and res["submodels"] == 1
+    before, after, n_after = _offset_before_and_after(gap_flight, tmp_path / "v", range(6, 15))
+    assert n_after == 23 - 15
+    assert np.linalg.norm(before - after) < 0.3
