@@ -63,6 +63,7 @@ class Mapper:
         # between them needs their points (first_references)
         self._early: dict[int, np.ndarray] = {}
         self.first_references: list[Reference] = []
+        self._reanchored = 0
 
     # -- inputs
     def busy(self) -> bool:
@@ -128,7 +129,11 @@ class Mapper:
         """Poses of the current sub-model's recent keyframes (local refinement moves them a little)."""
         reg = self.registrar
         sm = reg.submodels[-1]
-        names = sm.names if len(self.model_pose) < 3 * reg.s.init_frames else sm.names[-(reg.s.match_window + 2):]
+        # all of the sub-model's keyframes when it was just re-anchored (it moved as a whole), else the recent ones
+        moved = reg.reanchored != self._reanchored
+        self._reanchored = reg.reanchored
+        names = (sm.names if moved or len(self.model_pose) < 3 * reg.s.init_frames
+                 else sm.names[-(reg.s.match_window + 2):])
         out = {}
         for name in names:
             m = sm.rec.find_image_with_name(name).cam_from_world().matrix()
@@ -311,6 +316,7 @@ class MapperProcess:
         self.first_references: list[Reference] = []
         self._points: dict[int, np.ndarray] = {}
         self._stats = {"keyframes_processed": 0, "failed": 0, "submodels": 0, "seconds": [],
+                       "revisits": 0, "reanchored": 0, "rejoined": 0,
                        "stage_seconds_median": dict.fromkeys(("features", "matching", "mapping"))}
         self._submodels: list[Submodel] = []
         self.processed = -1

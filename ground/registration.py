@@ -69,10 +69,15 @@ class RegistrationSettings:
     # the work directory and read back only for the final model files
     keep_submodels: int = 2
     # matching against earlier keyframes of the same place (other passes): look points within revisit_radius of the
-    # viewing depth; a sub-model is re-anchored on them once revisit_min_points 3-D points are shared
+    # viewing depth; a sub-model is re-anchored on them once revisit_min_points 3-D points are shared, from
+    # revisit_min_pairs keyframe pairs
     revisit: bool = True
     revisit_radius: float = 0.4
-    revisit_min_points: int = 40
+    revisit_min_points: int = 150
+    revisit_min_pairs: int = 3  # keyframe pairs the shared points come from (one pair sees too small a patch)
+    # keyframes back before one may count as another pass's (nearer ones the matching window links already); while
+    # keyframes fail to register, any beyond the matching window counts
+    revisit_min_gap: int = 8
     # keyframes in a row that fail to register before a new sub-model is made from them (placed by telemetry)
     break_after: int = 3
 
@@ -93,6 +98,8 @@ class Submodel:
     # 3-D points shared with finished sub-models (this sub-model's frame, the first's): what re-anchors it
     revisit_src: list = field(default_factory=list, repr=False)
     revisit_dst: list = field(default_factory=list, repr=False)
+    anchored_on: int = 0  # shared points at its last re-anchoring
+    placed_by_telemetry: bool = False  # re-joined after the chain broke: metres off until re-anchored
 
     def reconstruction(self) -> pycolmap.Reconstruction:
         """The sub-model, read back from disk if it left memory."""
@@ -127,7 +134,7 @@ class IncrementalRegistrar:
         self.failed: list[int] = []
         self.seconds: list[float] = []
         self.stage_seconds: list[tuple[float, float, float]] = []  # features, matching, mapping
-        self.places = Places(self.work / "places", radius=self.s.revisit_radius, min_gap=self.s.match_window + 3)
+        self.places = Places(self.work / "places", radius=self.s.revisit_radius, min_gap=self.s.revisit_min_gap)
         self.priors: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}  # keyframe -> (ENU centre, R, sigma m)
         self._image_ids: dict[str, int] = {}
         self._revisit_matches: dict[str, list[tuple[str, np.ndarray]]] = {}  # new keyframe -> (earlier one, matches)
@@ -224,12 +231,14 @@ class IncrementalRegistrar:
         self._recent.append(new)
 
     def _revisit_candidates(self, name: str) -> list[str]:
-        """Earlier keyframes, beyond the matching window, that look where the new keyframe should: about where the
-        last registered one looked (a keyframe moves a fraction of the view)."""
+        """Earlier keyframes of other passes that look where the new keyframe should: about where the last registered
+        one looked (a keyframe moves a fraction of the view). Once keyframes fail to register (the chain is lost),
+        any earlier keyframe beyond the matching window may be the way back."""
         if not self.s.revisit or self._last_place is None:
             return []
         look, axis, depth = self._last_place
-        return self.places.near(look, axis, depth, self._order[name])
+        return self.places.near(look, axis, depth, self._order[name],
+                                min_gap=self.s.match_window + 1 if self._failing else None)
 
     def close(self) -> None:
         self._pool.shutdown(wait=True)
@@ -392,12 +401,11 @@ class IncrementalRegistrar:
         for n in sm.names:
             im = sm.rec.find_image_with_name(n)
             idx, X = [], []
-            for i, p in enumerate(im.points2D):
-                if p.has_point3D():
-                    q = sm.rec.points3D[p.point3D_id]
-                    if q.track.length() >= 3 and q.error <= 1.5:
-                        idx.append(i)
-                        X.append(q.xyz)
+            for i, p in zip(im.get_observation_point2D_idxs(), im.get_observation_points2D()):
+                q = sm.rec.points3D[p.point3D_id]
+                if q.track.length() >= 3 and q.error <= 1.5:
+                    idx.append(i)
+                    X.append(q.xyz)
             anchors[n] = (np.array(idx, np.int32), np.array(X, float).reshape(-1, 3))
         self.places.keep_anchors(k, anchors)
 
@@ -445,27 +453,33 @@ class IncrementalRegistrar:
         self._reanchor(sm)
 
     def _reanchor(self, sm: Submodel) -> None:
+        """Fit the sub-model onto the earlier passes' points it shares, once it shares revisit_min_points, then again
+        each time they grew by half (a few fits per sub-model: the cost stays flat, and the poses do not jitter)."""
         n = sum(len(s) for s in sm.revisit_src)
-        if n < self.s.revisit_min_points or self._last_place is None:
+        if (n < max(self.s.revisit_min_points, 1.5 * sm.anchored_on) or len(sm.revisit_src) < self.s.revisit_min_pairs
+                or self._last_place is None):
             return
         src, dst = np.concatenate(sm.revisit_src), np.concatenate(sm.revisit_dst)
         look, _, depth = self._last_place
+        sm.anchored_on = n
         fit = robust_similarity(src, dst, tol=0.01 * depth)
         if fit is None:
             return
         S, inl = fit
         if inl.sum() < self.s.revisit_min_points or inl.mean() < 0.5:
             return
-        # a re-anchoring moves the sub-model by the chain's drift (cm, a fraction of a degree), or by the GPS error
-        # after a re-join: more than that is a false match between two look-alike places
+        # a re-anchoring moves a chained sub-model by the chain's drift (cm, a tenth of a degree), one placed by
+        # telemetry by the GPS error: more than that is a false match between two look-alike places
         here = inverse(sm.to_first).apply(look[None])[0]
         shift = float(np.linalg.norm(S.apply(here[None])[0] - look))
         turn = np.degrees(np.arccos(np.clip((np.trace(S.R @ sm.to_first.R.T) - 1) / 2, -1, 1)))
-        if shift > 0.1 * depth or turn > 3.0:
+        max_shift, max_turn = (0.1, 3.0) if sm.placed_by_telemetry else (0.03, 0.5)
+        if shift > max_shift * depth or turn > max_turn:
             log.warning("re-anchoring refused: it would move the sub-model %.2f (%.0f%% of the depth) and turn it "
                         "%.1f deg", shift, 100 * shift / depth, turn)
             return
         sm.to_first = S
+        sm.placed_by_telemetry = False
         self.reanchored += 1
         log.debug("sub-model %d re-anchored on %d points shared with earlier passes: moved %.3f, turned %.3f deg",
                   len(self.submodels) - 1, int(inl.sum()), shift, turn)
@@ -482,7 +496,7 @@ class IncrementalRegistrar:
         to_first = self._place_by_priors(new)
         if to_first is None:
             return False
-        new.to_first = to_first
+        new.to_first, new.placed_by_telemetry = to_first, True
         self._start(new)
         self.rejoined += 1
         log.info("registration re-joined after %d keyframes that did not register: a new sub-model of %d placed by "

@@ -56,14 +56,15 @@ class Places:
         self._look = np.vstack([self._look, np.asarray(look, float).reshape(1, 3)])
         self._axis = np.vstack([self._axis, np.asarray(axis, float).reshape(1, 3)])
 
-    def near(self, look: np.ndarray, axis: np.ndarray, depth: float, order: int) -> list[str]:
-        """Earlier keyframes (at least ``min_gap`` before ``order``) whose look point lies within radius * depth of
-        ``look`` and whose axis is within max_angle of ``axis``: at most ``max_near``, nearest first."""
+    def near(self, look: np.ndarray, axis: np.ndarray, depth: float, order: int, min_gap: int | None = None) -> list[str]:
+        """Earlier keyframes (at least ``min_gap`` before ``order``; default the index's) whose look point lies within
+        radius * depth of ``look`` and whose axis is within max_angle of ``axis``: at most ``max_near``, nearest
+        first."""
         if not self.names:
             return []
         d = np.linalg.norm(self._look - np.asarray(look, float), axis=1)
         ok = (d <= self.radius * depth) & (self._axis @ np.asarray(axis, float) >= self.cos_max)
-        ok &= np.asarray(self._order) <= order - self.min_gap
+        ok &= np.asarray(self._order) <= order - (self.min_gap if min_gap is None else min_gap)
         idx = np.nonzero(ok)[0]
         return [self.names[i] for i in idx[np.argsort(d[idx])][: self.max_near]]
 
