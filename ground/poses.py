@@ -31,21 +31,24 @@ def camera_rotations(q_gimbal: np.ndarray, camera: Camera) -> np.ndarray:
     return np.swapaxes(camera_from_gimbal_attitude(quat_wxyz_to_rotation(q), camera.r_gimbal_from_camera), -1, -2)
 
 
+def telemetry_origin(flight: FlightDir, sample: dict) -> Origin:
+    """The flight's ENU origin: its truth's if it has one, else its first GPS fix (``sample``: frame_telemetry's)."""
+    if flight.has_truth:
+        return flight.origin()
+    ok = np.isfinite(sample["lat"])
+    if not ok.any():
+        raise ValueError(f"{flight.tlog}: no position telemetry at any frame")
+    i = int(np.argmax(ok))
+    return Origin(float(sample["lat"][i]), float(sample["lon"][i]), float(sample["alt"][i]))
+
+
 def telemetry_poses(flight: FlightDir, origin: Origin | None = None, clock_offset_s: float = 0.0,
                     sample: dict | None = None):
     """(R (F, 3, 3), t (F, 3), flags (F,)) for every frame of a flight, in the ENU frame of `origin`
     (default: the flight's truth origin if any, else its first GPS fix). `sample`: the output of
     :func:`frame_telemetry`, when already read."""
     s = sample if sample is not None else frame_telemetry(flight, clock_offset_s)[1]
-    if origin is None:
-        if flight.has_truth:
-            origin = flight.origin()
-        else:
-            ok = np.isfinite(s["lat"])
-            if not ok.any():
-                raise ValueError(f"{flight.tlog}: no position telemetry at any frame")
-            i = int(np.argmax(ok))
-            origin = Origin(float(s["lat"][i]), float(s["lon"][i]), float(s["alt"][i]))
+    origin = origin or telemetry_origin(flight, s)
     centre = origin.to_enu(s["lat"], s["lon"], s["alt"])
     R = camera_rotations(s["q_gimbal"], flight.camera())
     return R, -np.einsum("nij,nj->ni", R, centre), s["flags"]

@@ -22,12 +22,11 @@ import pycolmap
 from scipy.spatial.transform import Rotation, Slerp
 
 from ground.georeference import fit_similarity, georeference_poses
-from ground.poses import camera_rotations, frame_telemetry, telemetry_poses
+from ground.poses import camera_rotations, frame_telemetry, telemetry_origin, telemetry_poses
 from ground.registration import IncrementalRegistrar, RegistrationSettings
 from pomar import flight as ff
 from pomar.camera import Camera
 from pomar.flight import FlightDir
-from pomar.geo import Origin
 from pomar.rotations import rotation_to_quat_wxyz
 from pomar.video import iter_frames
 
@@ -55,15 +54,9 @@ def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, set
     # telemetry at every frame: the keyframes' priors (they place a sub-model when the chain breaks), then the
     # georeferencing and the fallback poses
     tf, s = frame_telemetry(fl)
-    origin = fl.origin() if fl.has_truth else None
-    if origin is None:
-        ok = np.isfinite(s["lat"])
-        if not ok.any():
-            raise ValueError(f"{fl.tlog}: no position telemetry at any frame")
-        j = int(np.argmax(ok))
-        origin = Origin(float(s["lat"][j]), float(s["lon"][j]), float(s["alt"][j]))
-    prior_c = origin.to_enu(s["lat"], s["lon"], s["alt"])
-    prior_R = camera_rotations(s["q_gimbal"], cam)
+    origin = telemetry_origin(fl, s)
+    R_tel, t_tel, tel_flags = telemetry_poses(fl, origin, sample=s)
+    prior_c, prior_R = -np.einsum("nji,nj->ni", R_tel, t_tel), R_tel
     prior_sig = np.where(np.isfinite(s["h_acc"]) & (s["h_acc"] > 0), s["h_acc"], 2.0)
     t0 = time.perf_counter()
     decoded = 0
@@ -122,7 +115,6 @@ def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, set
             R[f] = slerp([f]).as_matrix()[0]
             t[f] = -R[f] @ C
             source[f] = "interpolated"
-    R_tel, t_tel, tel_flags = telemetry_poses(fl, origin, sample=s)
     tel = source == "telemetry"
     R[tel], t[tel] = R_tel[tel], t_tel[tel]
     sigma_m = np.where(source == "registered", 0.01, np.where(source == "interpolated", 0.02,
