@@ -326,8 +326,7 @@ class IncrementalRegistrar:
         # it free, so their orientations take part in the fit (the same fit as georeferencing)
         spread = max(float(np.linalg.norm(c_old - c_old.mean(0), axis=1).mean()), 1e-9)
         to_old = fit_similarity(c_new, c_old, 0.01 * spread, m_new[:, :, :3], m_old[:, :, :3], np.radians(0.05)).similarity
-        first = old.to_first or Similarity(1.0, np.eye(3), np.zeros(3))
-        new.to_first = Similarity(first.scale * to_old.scale, first.R @ to_old.R, first.scale * first.R @ to_old.t + first.t)
+        new.to_first = compose(old.to_first or IDENTITY, to_old)
 
     def add_keyframe(self, frame: int, image_bgr: np.ndarray,
                      prior: tuple[np.ndarray, np.ndarray, float] | None = None) -> bool:
@@ -525,7 +524,7 @@ class IncrementalRegistrar:
                                   np.array([p[1] for p in pr]), np.radians(0.5)).similarity
 
         first_to_enu = to_enu([sm for sm in self.submodels[-self.s.keep_submodels:] if sm.to_first is not None])
-        new_to_enu = to_enu([Submodel(new.rec, new.names, IDENTITY)])
+        new_to_enu = to_enu([new])  # not yet placed: its own frame
         if first_to_enu is None or new_to_enu is None:
             return None
         return compose(inverse(first_to_enu), new_to_enu)
