@@ -46,7 +46,7 @@ class Mapper:
     def __init__(self, kf_camera: Camera, camera: Camera, workdir, settings: RegistrationSettings | None = None,
                  sigma_att_deg: float = 0.5):
         self.kf_cam, self.cam = kf_camera, camera
-        self.registrar = IncrementalRegistrar(kf_camera, workdir, settings)
+        self.registrar = IncrementalRegistrar(kf_camera, workdir, settings, sigma_att_deg)
         self.settings = self.registrar.s
         self.sigma_att = np.radians(sigma_att_deg)
         self.tel: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}  # keyframe -> (enu, q_gimbal, h_acc)

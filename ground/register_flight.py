@@ -44,7 +44,7 @@ def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, set
     out.mkdir(parents=True, exist_ok=True)
     kcam = Camera(int(round(cam.width * scale)), int(round(cam.height * scale)), cam.fx * scale, cam.fy * scale,
                   cam.cx * scale, cam.cy * scale)
-    reg = IncrementalRegistrar(kcam, out / "work", settings)
+    reg = IncrementalRegistrar(kcam, out / "work", settings, sigma_att_deg)
     n = meta.frame_count if frames_limit is None else min(frames_limit, meta.frame_count)
     bar = None
     if progress:

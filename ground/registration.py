@@ -121,8 +121,12 @@ class Submodel:
 
 
 class IncrementalRegistrar:
-    def __init__(self, camera: Camera, workdir: str | Path, settings: RegistrationSettings | None = None):
+    def __init__(self, camera: Camera, workdir: str | Path, settings: RegistrationSettings | None = None,
+                 sigma_att_deg: float = 0.5):
+        """sigma_att_deg: the telemetry's attitude error, which weighs the axes in placing a re-joined sub-model (the
+        same as in georeferencing)."""
         self.cam, self.s = camera, settings or RegistrationSettings()
+        self.sigma_att = np.radians(sigma_att_deg)
         self.work = Path(workdir)
         if self.work.exists():
             shutil.rmtree(self.work)
@@ -521,7 +525,7 @@ class IncrementalRegistrar:
             pr = [self.priors[n] for n in names]
             c = -np.einsum("nji,nj->ni", R, t)
             return fit_similarity(c, np.array([p[0] for p in pr]), np.array([p[2] for p in pr]), R,
-                                  np.array([p[1] for p in pr]), np.radians(0.5)).similarity
+                                  np.array([p[1] for p in pr]), self.sigma_att).similarity
 
         first_to_enu = to_enu([sm for sm in self.submodels[-self.s.keep_submodels:] if sm.to_first is not None])
         new_to_enu = to_enu([new])  # not yet placed: its own frame

@@ -40,9 +40,6 @@ class Places:
         self._file: dict[str, tuple[int, Path]] = {}  # keyframe -> (its finished sub-model, that sub-model's anchors)
         self._cache: tuple[Path, dict] | None = None
 
-    def __len__(self) -> int:
-        return len(self.names)
-
     def __contains__(self, name: str) -> bool:
         return name in self._row
 
