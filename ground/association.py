@@ -89,6 +89,8 @@ class Apple:
     reprojection_error: float  # mean over inliers, px
     #: Views kept to test a merge: (V, 3, 4) camera matrices and (V, 2) pixels, a sample of the inliers.
     views: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+    #: The frames of those views (V,): how a view's camera matrix is found again when the frame's pose is corrected.
+    view_frames: np.ndarray | None = field(default=None, repr=False)
     first_frame: int = field(init=False)
     last_frame: int = field(init=False)
 
@@ -272,7 +274,9 @@ class FruitAssociation:
                 for w in inset.intersection(adj[u]):
                     del adj[u][w]
             obs = [(frames[node_frame[u]].frame, int(node_det[u])) for u in inliers]
-            apples.append(Apple(len(apples), X, obs, err, views=sample_views(Ps[inliers], xs[inliers])))
+            sel = _sample_index(len(inliers), MERGE_VIEWS)
+            apples.append(Apple(len(apples), X, obs, err, views=(Ps[inliers][sel], xs[inliers][sel]),
+                                view_frames=np.array([obs[i][0] for i in sel])))
         n_found = len(apples)
         apples = merge_duplicates(apples, p)
         self.stats.update(nodes=len(xs), nodes_with_paths=nodes_with_paths, dfs_bound_hits=bound_hits,
@@ -284,9 +288,6 @@ class FruitAssociation:
 MERGE_VIEWS = 16  # views an apple keeps to test merges
 
 
-def sample_views(Ps: np.ndarray, xs: np.ndarray, n: int = MERGE_VIEWS) -> tuple[np.ndarray, np.ndarray]:
-    sel = np.unique(np.linspace(0, len(xs) - 1, min(len(xs), n)).round().astype(int))
-    return Ps[sel], xs[sel]
 
 
 def same_apple(a: Apple, b: Apple, tau_geom: float, min_inlier_ratio: float = 0.8,
@@ -317,7 +318,13 @@ def merge_into(a: Apple, b: Apple, X: np.ndarray | None = None) -> None:
     a.observations = sorted(set(a.observations) | set(b.observations))
     a.first_frame, a.last_frame = min(a.first_frame, b.first_frame), max(a.last_frame, b.last_frame)
     if a.views is not None and b.views is not None:
-        a.views = sample_views(np.concatenate([a.views[0], b.views[0]]), np.concatenate([a.views[1], b.views[1]]))
+        Ps, xs = np.concatenate([a.views[0], b.views[0]]), np.concatenate([a.views[1], b.views[1]])
+        sel = _sample_index(len(xs), MERGE_VIEWS)
+        a.views = Ps[sel], xs[sel]
+        if a.view_frames is not None and b.view_frames is not None:
+            a.view_frames = np.concatenate([a.view_frames, b.view_frames])[sel]
+        else:
+            a.view_frames = None
 
 
 def find_duplicate(apple: Apple, candidates: list[Apple], params: "AssociationParams", strict: bool = False):
@@ -392,6 +399,13 @@ class SpatialIndex:
         self._cells.setdefault(new, {})[a.id] = a
         self._where[a.id] = new
 
+    def remove(self, a: Apple) -> None:
+        key = self._where.pop(a.id, None)
+        if key is not None:
+            self._cells[key].pop(a.id, None)
+            if not self._cells[key]:
+                del self._cells[key]
+
     def near(self, X, r: float) -> list[Apple]:
         kx, ky, kz = self._key(X)
         X = np.asarray(X, float)
@@ -460,6 +474,16 @@ class _Track:
             self._views = (np.array([self.Ps[i] for i in sel]), np.array([self.xs[i] for i in sel]))
         return self._views
 
+    def repose(self, P: dict[int, np.ndarray]) -> None:
+        """Take the corrected camera matrices of its frames (frame -> P), and its normal matrix again from them."""
+        self.Ps = [P.get(f, Pk) for (f, _), Pk in zip(self.obs, self.Ps)]
+        self.M = np.zeros((4, 4))
+        for Pk, x in zip(self.Ps, self.xs):
+            rows = triangulation_rows(Pk, x, self.origin)
+            self.M = self.M + rows.T @ rows
+        self._X = None
+        self._views = None
+
     def copy(self) -> "_Track":
         t = _Track(self.root, self.origin)
         t.obs, t.Ps, t.xs = list(self.obs), list(self.Ps), list(self.xs)
@@ -482,8 +506,10 @@ class WindowedAssociation:
         self._recent: list[Apple] = []  # emitted apples that a later track may turn out to duplicate
         self._index = SpatialIndex(max(self.params.merge_search_m, 0.1))  # every apple, with cross_pass
         self._geom: dict[int, tuple] = {}  # recent frames' (P, centre, pseudo-inverse)
+        self._apples: dict[int, Apple] = {}  # every apple emitted and not merged away, by id
+        self._by_frame: dict[int, set[int]] = {}  # frame -> ids of the apples with a view in it
         self.stats = {"frames": 0, "branch_bound_hits": 0, "roots": 0, "tracks_closed": 0, "apples": 0, "merged": 0,
-                      "merged_across_passes": 0}
+                      "merged_across_passes": 0, "reposed": 0, "merged_after_repose": 0}
 
     # -- helpers
     def _emit(self, t: _Track) -> Apple | None:
@@ -496,7 +522,8 @@ class WindowedAssociation:
         if p.nonlinear:
             X, inl, err = polish(Ps, xs, X, inl, p.tau_geom, p.min_inliers)
         obs = [o for o, keep in zip(t.obs, inl) if keep]
-        return Apple(-1, X, obs, err, views=sample_views(Ps[inl], xs[inl]))
+        sel = _sample_index(len(obs), MERGE_VIEWS)
+        return Apple(-1, X, obs, err, views=(Ps[inl][sel], xs[inl][sel]), view_frames=np.array([obs[i][0] for i in sel]))
 
     def _close(self, frame: int, final: bool = False) -> list[Apple]:
         p = self.params
@@ -533,6 +560,7 @@ class WindowedAssociation:
                 self.stats["merged"] += 1
                 if p.cross_pass:
                     self._index.put(target)
+                self._note_views(target)
                 return target
         a.id = self._next_id
         self._next_id += 1
@@ -540,7 +568,79 @@ class WindowedAssociation:
         self._recent.append(a)
         if p.cross_pass:
             self._index.put(a)
+        self._apples[a.id] = a
+        self._note_views(a)
         return a
+
+    def _note_views(self, a: Apple) -> None:
+        for f in ([] if a.view_frames is None else a.view_frames.tolist()):
+            self._by_frame.setdefault(f, set()).add(a.id)
+
+    def repose(self, P: dict[int, np.ndarray]) -> tuple[list[Apple], list[int]]:
+        """Frames whose camera matrices were corrected (frame -> new P; the mapper refined the keyframes about them,
+        or re-anchored them on an earlier pass): the open tracks take the new matrices, and every apple with a view in
+        those frames is triangulated again from its views. Where two apples then triangulate together (one apple,
+        seen on two passes whose poses only now agree), the younger merges into the elder. Returns the apples that
+        moved or grew, and (id merged away, id it merged into) pairs."""
+        p = self.params
+        for t in self.tracks:
+            if any(f in P for f, _ in t.obs):
+                t.repose(P)
+        for f in P:
+            self._geom.pop(f, None)
+        ids = set().union(*(self._by_frame.get(f, ()) for f in P)) if P else set()
+        moved = []
+        for i in sorted(ids):
+            a = self._apples.get(i)
+            if a is None or a.view_frames is None:
+                continue
+            Ps = a.views[0].copy()
+            for k, f in enumerate(a.view_frames.tolist()):
+                if f in P:
+                    Ps[k] = P[f]
+            X = triangulate_nonlinear(Ps, a.views[1], a.X)
+            if not np.isfinite(X).all():
+                continue
+            err = reprojection_errors(Ps, a.views[1], X)
+            a.X, a.views = X, (Ps, a.views[1])
+            a.reprojection_error = float(err[err < p.tau_geom].mean()) if (err < p.tau_geom).any() else float(err.mean())
+            if p.cross_pass:
+                self._index.put(a)
+            moved.append(a)
+        self.stats["reposed"] += len(moved)
+        gone: dict[int, int] = {}
+        kept: dict[int, Apple] = {a.id: a for a in moved}
+        if p.merge_search_m > 0:
+            for a in moved:
+                if a.id in gone:
+                    continue
+                near = self._index.near(a.X, p.merge_search_m) if p.cross_pass else self._recent
+                target, X = find_duplicate(a, [c for c in near if c is not a and c.id not in gone], p, strict=True)
+                if target is None:
+                    continue
+                keep, drop = (target, a) if target.id < a.id else (a, target)
+                merge_into(keep, drop, X)
+                self._forget(drop)
+                if p.cross_pass:
+                    self._index.put(keep)
+                self._note_views(keep)
+                gone[drop.id] = keep.id
+                kept[keep.id] = keep
+                self.stats["merged"] += 1
+                self.stats["merged_after_repose"] += 1
+        return [a for i, a in kept.items() if i not in gone], list(gone.items())
+
+    def _forget(self, a: Apple) -> None:
+        """An apple merged into another: out of the index, the recent list and the frame lists."""
+        self._apples.pop(a.id, None)
+        self._index.remove(a)
+        self._recent = [r for r in self._recent if r is not a]
+        for f in ([] if a.view_frames is None else a.view_frames.tolist()):
+            s = self._by_frame.get(f)
+            if s is not None:
+                s.discard(a.id)
+                if not s:
+                    del self._by_frame[f]
 
     _VERIFY_VIEWS = 12  # views of a track checked when verifying an extension (first, last, evenly between)
 

@@ -361,6 +361,61 @@ class LivePoses:
         R, t = georeference_poses(R_enu[None], (-R_enu @ enu)[None], e2a)
         return Pose(frame, R[0], t[0], "telemetry", h_acc, np.degrees(self.sigma_att))
 
+    # -- corrections of poses already given
+    #: A frame is corrected by keyframes at most this many frames away.
+    MAX_CORRECTION_GAP = 40
+    #: Smaller corrections are left out (the association would redo its triangulations for nothing).
+    MIN_CORRECTION_M = 1e-3
+    MIN_CORRECTION_RAD = 2e-4
+
+    def take_moved(self) -> list[int]:
+        """The keyframes the mapper placed or moved since the last call."""
+        return self.mapper.take_moved()
+
+    def corrected(self, given: dict[int, Pose], frames) -> dict[int, Pose]:
+        """The poses given earlier for ``frames`` (from ``given``), moved as the mapper has since moved the keyframes
+        about them (bundle adjustment, a re-anchoring on an earlier pass): a keyframe to its pose now, another frame by
+        the corrections of the keyframes on either side of it, interpolated (rotation by slerp, centre linearly), or
+        of the nearest one. Telemetry poses, and any pose before the association frame was fixed, stay as they were;
+        only the poses that changed are returned."""
+        if self.frozen is None:
+            return {}
+        model_pose, kf_sorted, _ = self.mapper.registered()
+        frames = sorted(f for f in frames if f in given and given[f].source != "telemetry")
+        if not frames:
+            return {}
+        lo = bisect.bisect_left(kf_sorted, frames[0] - self.MAX_CORRECTION_GAP)
+        hi = bisect.bisect_right(kf_sorted, frames[-1] + self.MAX_CORRECTION_GAP)
+        kfs = [k for k in kf_sorted[lo:hi] if k in given and given[k].source != "telemetry"]
+        if not kfs:
+            return {}
+        R_now, t_now = georeference_poses(np.array([model_pose[k][0] for k in kfs]),
+                                          np.array([model_pose[k][1] for k in kfs]), self.frozen)
+        C_now = -np.einsum("nji,nj->ni", R_now, t_now)
+        R_was = np.array([given[k].R for k in kfs])
+        dC = C_now - np.array([given[k].centre for k in kfs])
+        Q = Rotation.from_matrix(np.einsum("nji,njk->nik", R_was, R_now))  # R_now = R_was @ Q
+        out = {}
+        for f in frames:
+            j = bisect.bisect_left(kfs, f)
+            a, b = (j, j) if j < len(kfs) and kfs[j] == f else (j - 1, j)
+            near = [i for i in dict.fromkeys((a, b)) if 0 <= i < len(kfs) and abs(kfs[i] - f) <= self.MAX_CORRECTION_GAP]
+            if not near:
+                continue
+            if len(near) == 2:
+                w = (f - kfs[a]) / (kfs[b] - kfs[a])
+                q = Slerp([0.0, 1.0], Q[[a, b]])([w])[0]
+                dc = (1 - w) * dC[a] + w * dC[b]
+            else:
+                q, dc = Q[near[0]], dC[near[0]]
+            p = given[f]
+            R = p.R @ q.as_matrix()
+            c = p.centre + dc
+            if np.linalg.norm(dc) < self.MIN_CORRECTION_M and q.magnitude() < self.MIN_CORRECTION_RAD:
+                continue
+            out[f] = Pose(f, R, -R @ c, p.source, p.sigma_m, p.sigma_deg)
+        return out
+
     def sparse_points(self, **kw) -> dict[int, np.ndarray]:
         return self.mapper.sparse_points(**kw)
 

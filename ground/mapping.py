@@ -19,6 +19,7 @@ from __future__ import annotations
 import bisect
 import logging
 import multiprocessing as mp
+import os
 import queue
 import threading
 import time
@@ -63,7 +64,8 @@ class Mapper:
         # between them needs their points (first_references)
         self._early: dict[int, np.ndarray] = {}
         self.first_references: list[Reference] = []
-        self._reanchored = 0
+        self._moved_all = (0, 0)  # the registrar's re-anchorings and global refinements, as last seen
+        self.moved: set[int] = set()  # keyframes whose poses changed since take_moved
 
     # -- inputs
     def busy(self) -> bool:
@@ -115,7 +117,13 @@ class Mapper:
             self._early.clear()
         return True
 
+    def take_moved(self) -> list[int]:
+        """The keyframes whose poses changed (or came) since the last call, in order."""
+        out, self.moved = sorted(self.moved), set()
+        return out
+
     def _update(self, poses, fit, ref) -> None:
+        self.moved.update(poses)
         for f in poses:
             if f not in self.model_pose:
                 bisect.insort(self.kf_sorted, f)
@@ -129,9 +137,10 @@ class Mapper:
         """Poses of the current sub-model's recent keyframes (local refinement moves them a little)."""
         reg = self.registrar
         sm = reg.submodels[-1]
-        # all of the sub-model's keyframes when it was just re-anchored (it moved as a whole), else the recent ones
-        moved = reg.reanchored != self._reanchored
-        self._reanchored = reg.reanchored
+        # all of the sub-model's keyframes when it was just re-anchored or globally refined (it moved as a whole), else
+        # the recent ones
+        now = (reg.reanchored, reg.global_adjustments)
+        moved, self._moved_all = now != self._moved_all, now
         names = (sm.names if moved or len(self.model_pose) < 3 * reg.s.init_frames
                  else sm.names[-(reg.s.match_window + 2):])
         out = {}
@@ -223,7 +232,10 @@ class Mapper:
 def _serve(jobs, results) -> None:
     """The mapping process: take the mapper's settings, map each job, send back what changed; on None, write the
     sub-models to disk and say where."""
-    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s [mapping]: %(message)s")
+    # the ground's level (POMAR_LOG_LEVEL, as ground's CLI reads it)
+    level = logging.getLevelName(os.environ.get("POMAR_LOG_LEVEL", "INFO").upper())
+    logging.basicConfig(level=level if isinstance(level, int) else logging.INFO,
+                        format="%(asctime)s %(levelname)s %(name)s [mapping]: %(message)s")
     try:
         config = jobs.recv()
     except EOFError:
@@ -319,6 +331,7 @@ class MapperProcess:
                        "revisits": 0, "reanchored": 0, "rejoined": 0,
                        "stage_seconds_median": dict.fromkeys(("features", "matching", "mapping"))}
         self._submodels: list[Submodel] = []
+        self.moved: set[int] = set()
         self.processed = -1
         self.attempts = self.skipped = self.sent = self.answered = 0
         self._held = None  # the newest proposal, while the process maps the one before
@@ -379,6 +392,7 @@ class MapperProcess:
                 if f not in self.model_pose:
                     bisect.insort(self.kf_sorted, f)
             self.model_pose.update(r["poses"])
+            self.moved.update(r["poses"])
             if r["fit"][0] is not None:
                 self.fit, self.fit_residual_m = r["fit"]
             if r["ref"] is not None:
@@ -401,6 +415,12 @@ class MapperProcess:
     def reference(self) -> Reference | None:
         self._poll()
         return self._ref
+
+    def take_moved(self) -> list[int]:
+        """The keyframes whose poses changed (or came) since the last call, in order."""
+        self._poll()
+        out, self.moved = sorted(self.moved), set()
+        return out
 
     def registered(self):
         self._poll()

@@ -240,6 +240,8 @@ class GroundNode:
                          # times the frames waited for a busy mapper to take a keyframe (mapping behind the flight)
                          "waits_for_mapper": p.poses.waits_for_mapper if p.poses else 0,
                          "failed_frames": p.poses.tracking_failed[-100:] if p.poses else []},
+            # poses given earlier, corrected as the mapper moved the keyframes about them; the apples triangulated again
+            "corrections": dict(p.corrections),
             "association": {"params": vars(self.settings.association).copy(), "stats": dict(p.assoc.stats),
                             "strong_views_needed": p.views_needed()},
             "timings": {"wall_seconds": time.monotonic() - self.t_start,
@@ -248,6 +250,7 @@ class GroundNode:
                         "inline_mapping_seconds": p.poses.seconds["mapping_inline"] if p.poses else 0.0,
                         "mapping_seconds": float(sum(reg["seconds"])) if reg else 0.0,
                         "association_seconds": p.seconds["association"],
+                        "correction_seconds": p.seconds["corrections"],
                         "ground_latency_median_s": float(np.median(self.latency)) if self.latency else None,
                         # how long frames waited on the ground, from their message's arrival to being mapped
                         **delay_stats(self.pipe.frame_delays),

@@ -125,7 +125,7 @@ class GroundPipeline:
         self.counters = {"frames": 0, "keyframes": 0, "late_frames": 0, "gaps": 0, "missing_frames": 0,
                          "bad_keyframes": 0, "frames_without_pose": 0, "detections": 0,
                          "registered": 0, "tracked": 0, "interpolated": 0, "telemetry": 0}
-        self.seconds = {"poses": 0.0, "association": 0.0}
+        self.seconds = {"poses": 0.0, "association": 0.0, "corrections": 0.0}
         self.gaps: list[tuple[int, int]] = []
         self.frame_times: dict[int, float] = {}
         self.newest_t = float("-inf")  # the latest capture time of any frame received
@@ -136,8 +136,10 @@ class GroundPipeline:
         self.t_first_model: float | None = None  # when the first model was there
         self.t_first_frame: float | None = None  # when the first frame message came
         self._newest_frame = -1  # the highest frame index received
-        self.frame_poses: dict[int, Pose] = {}  # every released frame's pose (association frame)
+        self.frame_poses: dict[int, Pose] = {}  # every released frame's pose (association frame), corrected since
         self._seq_frame: list[int] = []  # association frame number -> frame index
+        self._frame_seq: dict[int, int] = {}  # and back
+        self.corrections = {"rounds": 0, "frames": 0, "apples_moved": 0, "apples_merged": 0}
 
     # -- inputs
     def feed(self, msg, step: bool = True) -> list[FrameEvent]:
@@ -219,8 +221,44 @@ class GroundPipeline:
             jpeg = self.keyframes.pop(f)
             self._add_image(f, jpeg)
             events += self._release(final=False)
+            self._correct()
         events += self._release(final)
+        self._correct()
         return events
+
+    def _correct(self) -> None:
+        """The mapper moved keyframes (bundle adjustment, a re-anchoring on an earlier pass): the frames released about
+        them take their corrected poses, and the apples seen in those frames are triangulated again from them, then
+        merged where they turn out to be one apple (seen on two passes, whose poses only now agree)."""
+        if self.poses is None:
+            return
+        moved = self.poses.take_moved()
+        if not moved or not self._seq_frame:
+            return
+        gap = self.poses.MAX_CORRECTION_GAP
+        frames = [f for f in range(max(moved[0] - gap, 0), min(moved[-1] + gap, self.released) + 1)
+                  if f in self._frame_seq]
+        t0 = time.perf_counter()
+        new = self.poses.corrected(self.frame_poses, frames)
+        if not new:
+            return
+        P = {}
+        for f, pose in new.items():
+            self.frame_poses[f] = pose
+            seq = self._frame_seq[f]
+            P[seq] = self._proj[seq] = self.camera.K_opencv @ np.hstack([pose.R, pose.t[:, None]])
+        changed, merged = self.assoc.repose(P)
+        for gone, into in merged:
+            self._confirmed[into] = max(self._confirmed.get(into, 0), self._confirmed.pop(gone, 0))
+            self.apples.pop(gone, None)
+            self.radius_m.pop(gone, None)
+        self._confirm(changed)
+        self.seconds["corrections"] += time.perf_counter() - t0
+        c = self.corrections
+        c["rounds"] += 1
+        c["frames"] += len(new)
+        c["apples_moved"] += len(changed)
+        c["apples_merged"] += len(merged)
 
     def _stalled(self) -> bool:
         """No keyframe for max_wait_s, while the frames went on for max_wait_s of flight past the last one: the
@@ -287,6 +325,7 @@ class GroundPipeline:
                 # that drops frames sends indices with gaps, so the association counts frames, not indices.
                 seq = len(self._seq_frame)
                 self._seq_frame.append(f)
+                self._frame_seq[f] = seq
                 self._proj.append(P)
                 self._scores[seq] = np.asarray(msg.scores)[keep]
                 self._boxes[seq] = np.asarray(msg.boxes, float).reshape(-1, 4)[keep]
@@ -313,6 +352,7 @@ class GroundPipeline:
         elif self._mapping_worker is not None:  # no image ever came
             self._mapping_worker.stop()
         self._confirm(self.assoc.finish())
+        self._correct()  # the mapper's last answers
         self._kf_for_event.clear()
         return events
 

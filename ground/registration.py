@@ -147,6 +147,7 @@ class IncrementalRegistrar:
         self.revisits = 0  # keyframes matched to an earlier keyframe of the same place
         self.reanchored = 0  # times a sub-model was re-anchored onto earlier passes' points
         self.rejoined = 0  # new sub-models placed by telemetry after the chain broke
+        self.global_adjustments = 0  # global bundle adjustments of the current sub-model (they move all its keyframes)
         self._mopts = pycolmap.IncrementalPipelineOptions()
         self._mopts.ba_refine_focal_length = False
         self._mopts.ba_refine_principal_point = False
@@ -310,6 +311,7 @@ class IncrementalRegistrar:
             mapper.triangulate_image(tri, iid)
             mapper.iterative_local_refinement(self.s.local_refinements, 0.001, mo, self._mopts.get_local_bundle_adjustment(), tri, iid)
             if refine_global:
+                self.global_adjustments += 1
                 mapper.iterative_global_refinement(self.s.global_refinements, 0.0005, mo, self._mopts.get_global_bundle_adjustment(), tri, False)
         mapper.end_reconstruction(False)
         if ok:
@@ -484,7 +486,7 @@ class IncrementalRegistrar:
         sm.to_first = S
         sm.placed_by_telemetry = False
         self.reanchored += 1
-        log.debug("sub-model %d re-anchored on %d points shared with earlier passes: moved %.3f, turned %.3f deg",
+        log.info("sub-model %d re-anchored on %d points shared with earlier passes: moved %.3f, turned %.3f deg",
                   len(self.submodels) - 1, int(inl.sum()), shift, turn)
 
     def _rejoin(self, name: str) -> bool:

@@ -156,9 +156,12 @@ def test_rows_survive_a_wild_apple():
     assert abs(a2 - a) < np.radians(0.5) and (wild[:-1] == labels).all()
 
 
-def _two_passes(apples: np.ndarray, hide_first=(), hide_second=(), n: int = 70, gap: int = 40):
+def _two_passes(apples: np.ndarray, hide_first=(), hide_second=(), n: int = 70, gap: int = 40,
+                shift_second=(0.0, 0.0, 0.0), true_second: dict | None = None):
     """A pass north along x = 0 looking east, a turn of ``gap`` frames without detections, then a pass back south
-    along x = 16 looking west: the same apples from both sides, ``gap`` + a pass's frames apart."""
+    along x = 16 looking west: the same apples from both sides, ``gap`` + a pass's frames apart. ``shift_second``: the
+    second pass's cameras are given that far from where they took their pixels (a pose that drifted); their true
+    matrices go into ``true_second`` (frame -> P)."""
     from pomar.camera import Camera
     from pomar.rotations import R_GIMBAL_FROM_CAMERA_NOMINAL, camera_from_gimbal_attitude, ned_euler_to_rotation, world_to_camera
 
@@ -174,7 +177,12 @@ def _two_passes(apples: np.ndarray, hide_first=(), hide_second=(), n: int = 70, 
             uv, z = cam.project(apples, R[i], t[i])
             ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < 1279) & (uv[:, 1] >= 0) & (uv[:, 1] < 719)
             ok &= ~np.isin(np.arange(len(apples)), list(hidden))
-            frames.append(FrameDetections(f, cam.projection_matrix(R[i], t[i]), uv[ok]))
+            P = cam.projection_matrix(R[i], t[i])
+            if k == 1:
+                if true_second is not None:
+                    true_second[f] = P
+                P = cam.projection_matrix(R[i], t[i] - R[i] @ np.asarray(shift_second, float))
+            frames.append(FrameDetections(f, P, uv[ok]))
             f += 1
         if k == 0:  # the turn: frames with a pose and no apples
             for _ in range(gap):
@@ -203,3 +211,27 @@ def test_two_apples_5_cm_apart_on_different_passes_stay_two():
     frames = _two_passes(apples, hide_first=[1], hide_second=[0])
     found = WindowedAssociation(AssociationParams(k=5, merge_window=50)).run(frames)
     assert len(found) == 2 and np.max(nearest_errors(found, apples)) < 0.01
+
+
+def test_apples_merge_once_their_poses_are_corrected():
+    """The second pass's poses drifted 10 cm (the map had not yet been tied to the first pass): every apple comes out
+    twice. Given the corrected poses (the mapper's bundle adjustment), the association triangulates the apples of
+    those frames again and merges each into the first pass's, which keeps its id."""
+    rng = np.random.default_rng(17)
+    apples = np.stack([rng.uniform(6.0, 10.0, 25), rng.uniform(2.0, 12.0, 25), rng.uniform(0.8, 3.0, 25)], 1)
+    true_P: dict[int, np.ndarray] = {}
+    frames = _two_passes(apples, shift_second=(0.0, 0.10, 0.0), true_second=true_P)
+    assoc = WindowedAssociation(AssociationParams(k=5, merge_window=50))
+    found = {a.id: a for a in assoc.run(frames)}
+    assert len(found) >= 1.8 * len(apples)  # the drift keeps the passes apart
+    first_ids = {a.id for a in found.values() if a.last_frame < 70}
+    moved, merged = assoc.repose(true_P)
+    for gone, into in merged:
+        del found[gone]
+        assert into in first_ids
+    assert len(found) == len(apples), (len(found), len(apples))
+    assert np.max(nearest_errors(list(found.values()), apples)) < 0.01
+    assert sum(a.first_frame < 70 and a.last_frame >= 110 for a in found.values()) >= 0.8 * len(apples)
+    assert assoc.stats["merged_after_repose"] == len(merged) >= 0.8 * len(apples)
+    # poses that did not move leave the map as it is
+    assert assoc.repose({}) == ([], [])

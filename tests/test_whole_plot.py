@@ -35,6 +35,8 @@ def test_two_passes_count_every_apple_once_and_keep_one_model(two_pass_flight, t
     # second pass matched keyframes of the first where they look at the same place
     assert reg["submodels"] == 1 and reg["rejoined"] == 0 and reg["revisits"] >= 1
     assert rep["pose_shares"]["telemetry"] == 0
+    # the poses given out were corrected as the mapper refined the keyframes, and the apples seen in them with them
+    assert rep["corrections"]["frames"] > 0 and rep["corrections"]["apples_moved"] > 0
     # every apple once: none counted twice, and many of them seen from both passes (the frames on either side of
     # the turn, where the drone's direction along the rows reverses)
     assert ev["duplicates"] == 0
