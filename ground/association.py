@@ -46,9 +46,10 @@ class AssociationParams:
     #: They are merged when their views triangulate together within tau_geom and the estimates are
     #: within merge_search_m (short tracks are uncertain in depth); 0 = off (the paper as is).
     merge_search_m: float = 1.0
-    #: Without views (apples from elsewhere), estimates closer than this are merged (two apples'
-    #: centres are at least the sum of their radii, >= 6 cm, apart).
-    merge_m: float = 0.04
+    #: Estimates closer than this are one apple, whatever their views say: two apples' centres are at least the sum
+    #: of their radii (>= 6 cm) apart, and this is half that. It catches one apple seen from both sides of its row,
+    #: whose two caps' centres the views' test can keep apart.
+    merge_m: float = 0.03
     #: Windowed: how long (frames) an emitted apple stays a candidate for such a merge.
     merge_window: int = 600
     #: Windowed: every apple of the map stays a candidate (found through a spatial index, so the cost stays flat
@@ -290,16 +291,24 @@ MERGE_VIEWS = 16  # views an apple keeps to test merges
 
 
 
+def joint_point(a: Apple, b: Apple) -> np.ndarray | None:
+    """The point both apples' views triangulate to (None without views, or if it does not converge)."""
+    if a.views is None or b.views is None:
+        return None
+    X = triangulate_nonlinear(np.concatenate([a.views[0], b.views[0]]), np.concatenate([a.views[1], b.views[1]]))
+    return X if np.isfinite(X).all() else None
+
+
 def same_apple(a: Apple, b: Apple, tau_geom: float, min_inlier_ratio: float = 0.8,
                max_median_px: float | None = None) -> np.ndarray | None:
     """The point both apples' views triangulate to, if it reprojects within tau_geom in at least
     min_inlier_ratio of each apple's views (a few views of a long track fall outside by noise), and, with
     ``max_median_px``, within that in the median of each apple's views."""
+    X = joint_point(a, b)
+    if X is None:
+        return None
     Ps = np.concatenate([a.views[0], b.views[0]])
     xs = np.concatenate([a.views[1], b.views[1]])
-    X = triangulate_nonlinear(Ps, xs)
-    if not np.isfinite(X).all():
-        return None
     err = reprojection_errors(Ps, xs, X)
     inl = err < tau_geom
     na = len(a.views[1])
@@ -328,7 +337,7 @@ def merge_into(a: Apple, b: Apple, X: np.ndarray | None = None) -> None:
 
 
 def find_duplicate(apple: Apple, candidates: list[Apple], params: "AssociationParams", strict: bool = False):
-    """The candidate that apple duplicates, and their joint position: within merge_m, or within
+    """The candidate that apple duplicates, and their joint position (None: their mean): within merge_m, or within
     merge_search_m and consistent (their views triangulate together within tau_geom; ``strict``: also within
     tau_geom / 2 in the median of each one's views, for apples from another pass, which only their views can tell
     from a neighbour a few cm away)."""
@@ -340,12 +349,12 @@ def find_duplicate(apple: Apple, candidates: list[Apple], params: "AssociationPa
         if d[i] > params.merge_search_m:
             break
         c = candidates[i]
+        if d[i] < params.merge_m:
+            return c, joint_point(c, apple)
         if apple.views is not None and c.views is not None:
             X = same_apple(c, apple, params.tau_geom, max_median_px=params.tau_geom / 2 if strict else None)
             if X is not None:
                 return c, X
-        elif d[i] < params.merge_m:
-            return c, None
     return None, None
 
 

@@ -45,6 +45,10 @@ class RegistrationSettings:
     match_window: int = 5
     submodel_size: int = 60
     overlap: int = 10
+    # a full sub-model hands over to the next only where its last ``overlap`` keyframes look within this of the newest
+    # one's way, or at 1.5 x its size: the next one is chained on the cameras they share, and in a turn, whose views
+    # change fast, that chain was measured tilted by up to half a degree live (the last pass's apples 10-20 cm off)
+    chain_max_turn_deg: float = 15.0
     global_ba_every: int = 10
     init_frames: int = 6
     first_octave: int = 0
@@ -318,6 +322,12 @@ class IncrementalRegistrar:
             sm.names.append(name)
         return ok
 
+    def _straight(self, sm: Submodel) -> bool:
+        """Whether the sub-model's last ``overlap`` keyframes look within chain_max_turn_deg of the newest one's way."""
+        axes = np.array([sm.rec.find_image_with_name(n).cam_from_world().rotation.matrix()[2]
+                         for n in sm.names[-self.s.overlap:]])
+        return bool((axes @ axes[-1]).min() >= np.cos(np.radians(self.s.chain_max_turn_deg)))
+
     def _chain(self, new: Submodel, old: Submodel) -> None:
         shared = [n for n in new.names if n in old.names]
         if len(shared) < 3:
@@ -361,7 +371,8 @@ class IncrementalRegistrar:
                     self._start(sm)
                     ok = name in sm.names
         else:
-            if len(sm.names) >= self.s.submodel_size:
+            if len(sm.names) >= self.s.submodel_size and (self._straight(sm)
+                                                          or len(sm.names) >= 3 * self.s.submodel_size // 2):
                 new = self._bootstrap(sm.names[-self.s.overlap:] + [name])
                 if new is not None:
                     self._chain(new, sm)
