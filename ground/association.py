@@ -275,9 +275,8 @@ class FruitAssociation:
                 for w in inset.intersection(adj[u]):
                     del adj[u][w]
             obs = [(frames[node_frame[u]].frame, int(node_det[u])) for u in inliers]
-            sel = _sample_index(len(inliers), MERGE_VIEWS)
-            apples.append(Apple(len(apples), X, obs, err, views=(Ps[inliers][sel], xs[inliers][sel]),
-                                view_frames=np.array([obs[i][0] for i in sel])))
+            views, frames_ = sample_views(Ps[inliers], xs[inliers], [f for f, _ in obs])
+            apples.append(Apple(len(apples), X, obs, err, views=views, view_frames=frames_))
         n_found = len(apples)
         apples = merge_duplicates(apples, p)
         self.stats.update(nodes=len(xs), nodes_with_paths=nodes_with_paths, dfs_bound_hits=bound_hits,
@@ -287,6 +286,12 @@ class FruitAssociation:
 
 
 MERGE_VIEWS = 16  # views an apple keeps to test merges
+
+
+def sample_views(Ps: np.ndarray, xs: np.ndarray, frames) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+    """At most MERGE_VIEWS of an apple's views (first, last, evenly between): (matrices, pixels), and their frames."""
+    sel = _sample_index(len(xs), MERGE_VIEWS)
+    return (Ps[sel], xs[sel]), np.asarray(frames)[sel]
 
 
 
@@ -327,13 +332,11 @@ def merge_into(a: Apple, b: Apple, X: np.ndarray | None = None) -> None:
     a.observations = sorted(set(a.observations) | set(b.observations))
     a.first_frame, a.last_frame = min(a.first_frame, b.first_frame), max(a.last_frame, b.last_frame)
     if a.views is not None and b.views is not None:
-        Ps, xs = np.concatenate([a.views[0], b.views[0]]), np.concatenate([a.views[1], b.views[1]])
-        sel = _sample_index(len(xs), MERGE_VIEWS)
-        a.views = Ps[sel], xs[sel]
-        if a.view_frames is not None and b.view_frames is not None:
-            a.view_frames = np.concatenate([a.view_frames, b.view_frames])[sel]
-        else:
-            a.view_frames = None
+        both = a.view_frames is not None and b.view_frames is not None
+        frames = np.concatenate([a.view_frames, b.view_frames]) if both else np.zeros(len(a.views[1]) + len(b.views[1]))
+        a.views, frames = sample_views(np.concatenate([a.views[0], b.views[0]]),
+                                       np.concatenate([a.views[1], b.views[1]]), frames)
+        a.view_frames = frames if both else None
 
 
 def find_duplicate(apple: Apple, candidates: list[Apple], params: "AssociationParams", strict: bool = False):
@@ -531,8 +534,8 @@ class WindowedAssociation:
         if p.nonlinear:
             X, inl, err = polish(Ps, xs, X, inl, p.tau_geom, p.min_inliers)
         obs = [o for o, keep in zip(t.obs, inl) if keep]
-        sel = _sample_index(len(obs), MERGE_VIEWS)
-        return Apple(-1, X, obs, err, views=(Ps[inl][sel], xs[inl][sel]), view_frames=np.array([obs[i][0] for i in sel]))
+        views, frames = sample_views(Ps[inl], xs[inl], [f for f, _ in obs])
+        return Apple(-1, X, obs, err, views=views, view_frames=frames)
 
     def _close(self, frame: int, final: bool = False) -> list[Apple]:
         p = self.params
@@ -585,7 +588,7 @@ class WindowedAssociation:
         for f in ([] if a.view_frames is None else a.view_frames.tolist()):
             self._by_frame.setdefault(f, set()).add(a.id)
 
-    def repose(self, P: dict[int, np.ndarray]) -> tuple[list[Apple], list[int]]:
+    def repose(self, P: dict[int, np.ndarray]) -> tuple[list[Apple], list[tuple[int, int]]]:
         """Frames whose camera matrices were corrected (frame -> new P; the mapper refined the keyframes about them,
         or re-anchored them on an earlier pass): the open tracks take the new matrices, and every apple with a view in
         those frames is triangulated again from its views. Where two apples then triangulate together (one apple,

@@ -3,9 +3,10 @@
 For each keyframe: SIFT features, matching against the previous ``match_window`` keyframes and against the earlier
 keyframes that look at the same place (another pass of a whole-plot flight: :mod:`ground.revisit`), then the
 incremental mapper registers it into the current sub-model (2D-3D pose), triangulates its new points
-and refines locally; a global refinement runs every ``global_ba_every`` keyframes. A sub-model holds
-at most ``submodel_size`` keyframes: then a new one is bootstrapped from the last ``overlap`` keyframes
-and chained to the previous one by a similarity over the cameras they share. The database cache is
+and refines locally; a global refinement runs every ``global_ba_every`` keyframes. Once a sub-model holds
+``submodel_size`` keyframes, and its last ``overlap`` ones are not in a turn (or it holds half as many again), a
+new one is bootstrapped from those keyframes and chained to the previous one by a similarity over the cameras
+they share. The database cache is
 built over the current sub-model only, so the cost per keyframe does not grow with the flight.
 
 Across passes: an earlier keyframe of the same place in the current sub-model takes part in the new one's
@@ -46,8 +47,8 @@ class RegistrationSettings:
     submodel_size: int = 60
     overlap: int = 10
     # a full sub-model hands over to the next only where its last ``overlap`` keyframes look within this of the newest
-    # one's way, or at 1.5 x its size: the next one is chained on the cameras they share, and in a turn, whose views
-    # change fast, that chain was measured tilted by up to half a degree live (the last pass's apples 10-20 cm off)
+    # one's way, or at 1.5 x its size: the next one is chained on the cameras they share, which in a turn (few views,
+    # changing fast) place it poorly
     chain_max_turn_deg: float = 15.0
     global_ba_every: int = 10
     init_frames: int = 6
@@ -151,7 +152,7 @@ class IncrementalRegistrar:
         self.revisits = 0  # keyframes matched to an earlier keyframe of the same place
         self.reanchored = 0  # times a sub-model was re-anchored onto earlier passes' points
         self.rejoined = 0  # new sub-models placed by telemetry after the chain broke
-        self.global_adjustments = 0  # global bundle adjustments of the current sub-model (they move all its keyframes)
+        self.global_adjustments = 0  # global bundle adjustments so far (each moves all of its sub-model's keyframes)
         self._mopts = pycolmap.IncrementalPipelineOptions()
         self._mopts.ba_refine_focal_length = False
         self._mopts.ba_refine_principal_point = False
@@ -498,7 +499,7 @@ class IncrementalRegistrar:
         sm.placed_by_telemetry = False
         self.reanchored += 1
         log.info("sub-model %d re-anchored on %d points shared with earlier passes: moved %.3f, turned %.3f deg",
-                  len(self.submodels) - 1, int(inl.sum()), shift, turn)
+                 len(self.submodels) - 1, int(inl.sum()), shift, turn)
 
     def _rejoin(self, name: str) -> bool:
         """The chain broke: after ``break_after`` keyframes in a row failed, a new sub-model from them, placed where
