@@ -246,7 +246,7 @@ class GroundPipeline:
         for f, pose in new.items():
             self.frame_poses[f] = pose
             seq = self._frame_seq[f]
-            P[seq] = self._proj[seq] = self.camera.K_opencv @ np.hstack([pose.R, pose.t[:, None]])
+            P[seq] = self._proj[seq] = self.camera.projection_matrix(pose.R, pose.t)
         changed, merged = self.assoc.repose(P)
         for gone, into in merged:
             self._confirmed[into] = max(self._confirmed.get(into, 0), self._confirmed.pop(gone, 0))
@@ -319,7 +319,7 @@ class GroundPipeline:
                 keep = np.asarray(msg.scores) >= self.s.min_score
                 xy = msg.centres[keep]
                 self.counters["detections"] += len(xy)
-                P = self.camera.K_opencv @ np.hstack([pose.R, pose.t[:, None]])
+                P = self.camera.projection_matrix(pose.R, pose.t)
                 t0 = time.perf_counter()
                 # The association's window is the next k frames *of the stream*: a real-time onboard node
                 # that drops frames sends indices with gaps, so the association counts frames, not indices.
