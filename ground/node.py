@@ -29,6 +29,12 @@ from pomar import wire
 log = logging.getLogger(__name__)
 
 
+# A flight that says it sent more frames than arrived, and then goes quiet: its history is asked for again after
+# REQUERY_S, at most MAX_REQUERIES times (zenoh's history and recovery can leave a gap).
+REQUERY_S = 3.0
+MAX_REQUERIES = 5
+
+
 def delay_stats(delays: list[float]) -> dict:
     d = np.asarray(delays, float)
     if not len(d):
@@ -80,6 +86,7 @@ class GroundNode:
         self.latency: list[float] = []
         self.stream = stream  # the filter in front of the pipeline: what it let in and refused
         self.ignored_end_claims = 0  # "finished" statuses contradicted by the stream
+        self.history_requeries = 0  # times the publishers' history was asked for again (frames missing at the end)
         self.journal_damage: dict | None = None
 
     def _rerun(self):
@@ -164,7 +171,8 @@ class GroundNode:
                 "rejected": dict(sorted(sf.rejected.items())) if sf else {},
                 "rejected_total": sum(sf.rejected.values()) if sf else 0,
                 "duplicates": sf.duplicates if sf else 0, "last_rejections": sf.errors[-10:] if sf else [],
-                "ignored_end_claims": self.ignored_end_claims, "journal": self.journal_damage}
+                "ignored_end_claims": self.ignored_end_claims, "history_requeries": self.history_requeries,
+                "journal": self.journal_damage}
 
     FPS_WINDOW_S = 5.0
 
@@ -360,6 +368,7 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
         return True
 
     last_frame = 0.0  # when the last frame message came
+    asked = 0.0  # when the publishers' history was last asked for again
     report = None
     try:
         while True:
@@ -394,6 +403,12 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
                 elif have < said and now - claim[1] > idle_timeout_s:
                     log.warning("%d of the %d frames the drone sent arrived; finishing", have, said)
                     break
+                elif have < said and now - max(claim[1], last_msg, asked) >= REQUERY_S and sub.refreshes < MAX_REQUERIES:
+                    log.warning("%d of the %d frames the drone sent arrived, and nothing came for %.0f s: asking the "
+                                "drone for its history again", have, said, REQUERY_S)
+                    sub.refresh()
+                    node.history_requeries = sub.refreshes
+                    asked = now
             if now - last_msg > idle_timeout_s:
                 log.warning("no message for %.0f s: finishing the flight", idle_timeout_s)
                 break

@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections import deque
 
 import zenoh
 import zenoh.ext as zext
@@ -137,14 +138,31 @@ class FlightSubscriber:
     def __init__(self, session: zenoh.Session, flight_id: str, stream: wire.StreamFilter | None = None,
                  capacity: int = 100_000, on_accept=None):
         self.stream = stream or wire.StreamFilter(flight_id)
+        self._session, self._flight_id, self._capacity = session, flight_id, capacity
+        self._sub = self._declare()
+        self.on_accept = on_accept
+        self.refreshes = 0
+        self._queued: deque = deque()  # samples taken from a replaced subscriber, delivered first
+
+    def _declare(self):
         # every drone of the flight: those not the flight's are counted as they are refused
-        self._sub = zext.declare_advanced_subscriber(
-            session, wire.key(flight_id, "*", "**"), zenoh.handlers.FifoChannel(capacity),
+        return zext.declare_advanced_subscriber(
+            self._session, wire.key(self._flight_id, "*", "**"), zenoh.handlers.FifoChannel(self._capacity),
             history=zext.HistoryConfig(detect_late_publishers=True),
             recovery=zext.RecoveryConfig(heartbeat=True),
             subscriber_detection=True,
         )
-        self.on_accept = on_accept
+
+    def refresh(self) -> None:
+        """Ask the publishers for their whole history again: a new subscriber in place of this one. For a stream that
+        says it sent more than arrived (zenoh's history and recovery can leave a gap, e.g. for a ground restarted
+        mid-flight); what arrives again is dropped as repeats. Messages still queued in the old one are taken first."""
+        old = self._sub
+        self._sub = self._declare()
+        while (sample := old.try_recv()) is not None:
+            self._queued.append(sample)
+        old.undeclare()
+        self.refreshes += 1
 
     duplicates = property(lambda self: self.stream.duplicates)
     errors = property(lambda self: self.stream.errors)
@@ -165,7 +183,7 @@ class FlightSubscriber:
         """The next new message, or None after timeout seconds (None = wait)."""
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
-            sample = self._sub.try_recv()
+            sample = self._queued.popleft() if self._queued else self._sub.try_recv()
             if sample is None:
                 if deadline is not None and time.monotonic() >= deadline:
                     return None

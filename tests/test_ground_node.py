@@ -80,6 +80,7 @@ def test_killed_ground_resumes_with_every_frame(replay_test_flight, tmp_path):
     ground_cmd = [sys.executable, "-m", "ground", "run", "--flight-id", "sim-replay-test", "--connect", endpoint,
                   "--out", str(out), "--no-rrd", "--idle-timeout", "30"]
     procs = [onboard]
+    err = ""
     try:
         first = subprocess.Popen(ground_cmd + ["--fresh"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
         procs.append(first)
@@ -110,7 +111,7 @@ def test_killed_ground_resumes_with_every_frame(replay_test_flight, tmp_path):
     # with (the detector and this ground share the machine's cores): those are the only ones missing.
     sent = json.loads((tmp_path / "onboard.json").read_text())
     assert sent["frames_processed"] + sent["frames_dropped"] == 20 and sent["frames_processed"] >= 10
-    assert rep["frames"]["frames"] == sent["frames_processed"]
+    assert rep["frames"]["frames"] == sent["frames_processed"], (rep["frames"], err[-3000:])
     assert rep["frames"]["missing_frames"] <= sent["frames_dropped"] and rep["frames"]["late_frames"] == 0
     assert len(read_journal(out / "journal.bin")) > before
     assert rep["apples"] > 0

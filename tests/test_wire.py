@@ -271,3 +271,32 @@ def test_every_frame_arrives_in_another_process_even_late_and_past_a_bad_message
     for i in (0, 150, 299):
         assert_same(got[i], frame(i))
     assert len(errors) == 1 and "unknown schema version 99" in errors[0]
+
+
+def test_a_refreshed_subscriber_asks_for_the_history_again():
+    """A ground missing frames at the end asks the publisher's history again: the repeats come, and are dropped."""
+    from pomar import transport
+
+    port = free_port()
+    p = start_publisher(port, 50)
+    s = None
+    try:
+        assert p.stdout.readline().strip() == "published"
+        s = transport.open_session(connect=[f"tcp/127.0.0.1:{port}"])
+        sub = transport.FlightSubscriber(s, "flight-1")
+        got = set()
+        t0 = time.monotonic()
+        while len(got) < 50 and time.monotonic() - t0 < 20:
+            if (m := sub.recv(timeout=0.2)) is not None:
+                got.add(m.frame)
+        assert len(got) == 50 and sub.duplicates == 0
+        sub.refresh()
+        t0 = time.monotonic()
+        while sub.duplicates < 50 and time.monotonic() - t0 < 20:
+            assert sub.recv(timeout=0.2) is None  # nothing new: only repeats
+        assert sub.duplicates == 50 and sub.refreshes == 1
+        sub.close()
+    finally:
+        if s is not None:
+            s.close()
+        stop(p)
