@@ -144,10 +144,9 @@ def _cmd_replay(args) -> int:
                    "--min-radius-ratio", str(args.min_radius_ratio), "--min-view-ratio", str(args.min_view_ratio)] \
         + (["--upright"] if args.upright else []) + (["--no-revisit"] if args.no_revisit else []) \
         + (["--mapping", args.mapping] if args.realtime or (args.recorded and args.speed > 0) else [])  # lock-step: inline
-    keyframe_every = args.keyframe_every or (1 if args.realtime else 2)
     try:
         rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
-                     keyframe_every=keyframe_every, keyframe_width=args.keyframe_width, every=args.every,
+                     keyframe_every=args.keyframe_every, keyframe_width=args.keyframe_width, every=args.every,
                      ground_args=ground_args, quiet=args.quiet,
                      onboard_args=(["--score-thresh", str(args.detector_score_thresh)] if args.detector_score_thresh else [])
                      + (["--log", args.log] if args.log else [])
@@ -312,9 +311,8 @@ def main(argv=None) -> int:
                          "--confirm-score decides which apples count")
     rp.add_argument("--detector-scale", type=scale_argument, default="auto", help=SCALE_HELP)
     rp.add_argument("--keyframe-every", type=int,
-                    help="every Nth processed frame also goes as a keyframe (default: 2 in lock-step; 1 with "
-                         "--realtime, where processed frames are further apart and the ground skips what it cannot "
-                         "keep up with)")
+                    help="every Nth processed frame also goes as a keyframe (default: the onboard node's, one "
+                         "every 0.2 s of capture time)")
     rp.add_argument("--keyframe-width", type=int, default=960)
     rp.add_argument("--every", type=int, default=1, help="onboard processes every Nth frame")
     rp.add_argument("--quiet", action="store_true", help="no progress lines")

@@ -158,7 +158,7 @@ def format_evaluation(ev: dict) -> str:
 
 
 def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: str = "onnx", model=None,
-           keyframe_every: int = 2, keyframe_width: int = 960, every: int = 1, rrd: bool = True,
+           keyframe_every: int | None = None, keyframe_width: int = 960, every: int = 1, rrd: bool = True,
            ground_args: list[str] | None = None, onboard_args: list[str] | None = None, timeout_s: float = 3600,
            quiet: bool = False, recorded=None, speed: float = 1.0) -> dict:
     """Both processes over zenoh on loopback; with ``recorded`` (a journal.bin), the recording's player
@@ -175,8 +175,10 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
     endpoint = f"tcp/127.0.0.1:{port}"
     py = sys.executable
     onboard_cmd = [py, "-m", "onboard", "run", str(flight.path), "--listen", endpoint, "--detector", detector,
-                   "--keyframe-every", str(keyframe_every), "--keyframe-width", str(keyframe_width),
-                   "--every", str(every), "--linger", "600", "--summary", str(out / "onboard.json")]
+                   "--keyframe-width", str(keyframe_width), "--every", str(every), "--linger", "600",
+                   "--summary", str(out / "onboard.json")]
+    if keyframe_every is not None:  # else the onboard node's default: a keyframe every 0.2 s of capture time
+        onboard_cmd += ["--keyframe-every", str(keyframe_every)]
     if realtime:  # still waits for its ground: a replay has no reason to start before the ground listens
         onboard_cmd += ["--realtime", "--wait-for-ground", "30"]
     if model:

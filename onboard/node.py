@@ -27,11 +27,21 @@ log = logging.getLogger(__name__)
 
 
 class KeyframePolicy:
-    """Which processed frames also go as JPEG keyframes: every Nth, every S seconds, or every D metres flown
-    (by the telemetry's position). The first frame always goes."""
+    """Which processed frames also go as JPEG keyframes: every D metres flown (by the telemetry's position), every
+    S seconds of capture time, or every Nth processed frame, the first of these given; none given, every
+    DEFAULT_EVERY_S. The first frame always goes."""
 
-    def __init__(self, every: int = 1, every_s: float = 0.0, every_m: float = 0.0):
-        self.every, self.every_s, self.every_m = every, every_s, every_m
+    #: One keyframe per 0.2 s of flight whatever the frame rate: every 2nd frame at 10 fps (0.69 MB/s at 1280x720),
+    #: every 6th at 30 fps, where every 2nd would need 2 MB/s and give the ground 15 images a second to track.
+    DEFAULT_EVERY_S = 0.2
+    #: A frame up to this share of S early counts as due: capture times jitter by a few milliseconds, and a frame
+    #: just short of S would otherwise push the keyframe a whole frame later.
+    EARLY = 0.1
+
+    def __init__(self, every: int | None = None, every_s: float | None = None, every_m: float | None = None):
+        if every is None and every_s is None and every_m is None:
+            every_s = self.DEFAULT_EVERY_S
+        self.every, self.every_s, self.every_m = every or 0, every_s or 0.0, every_m or 0.0
         self._n = 0
         self._last_t = None
         self._last_pos = None
@@ -55,7 +65,7 @@ class KeyframePolicy:
                 d = Origin(*self._last_pos).to_enu(lat, lon, alt)
                 ok = float(np.hypot(d[0], d[1])) >= self.every_m
         elif self.every_s:
-            ok = t - self._last_t >= self.every_s - 1e-6
+            ok = t - self._last_t >= self.every_s * (1.0 - self.EARLY)
         else:
             ok = n % self.every == 0
         if ok:
@@ -69,9 +79,11 @@ class KeyframePolicy:
 class NodeSettings:
     lockstep: bool = True  # every frame (every Nth), none dropped; False = real time, newest frame first
     every: int = 1
-    keyframe_every: int = 1  # every Nth processed frame also goes as a JPEG keyframe; 0 = none
-    keyframe_every_s: float = 0.0  # or: a keyframe every this many seconds (capture time)
-    keyframe_every_m: float = 0.0  # or: a keyframe every this many metres flown
+    # which frames also go as JPEG keyframes (KeyframePolicy): every Nth processed frame (0 = none), or every S
+    # seconds of capture time, or every D metres flown; none set: every KeyframePolicy.DEFAULT_EVERY_S
+    keyframe_every: int | None = None
+    keyframe_every_s: float | None = None
+    keyframe_every_m: float | None = None
     keyframe_width: int = 0  # resize keyframes to this width (0 = native)
     jpeg_quality: int = 85
     status_period_s: float = 1.0

@@ -118,3 +118,20 @@ def test_unopenable_video_is_a_clear_error(small_flight, tmp_path):
     out, err = p.communicate(timeout=60)
     # found before anything is published: an input error (exit 2), like a bad flight.json or camera.json
     assert p.returncode == 2 and "video.mp4" in err and "cannot open" in err
+
+
+def test_keyframes_go_every_fifth_of_a_second_whatever_the_frame_rate():
+    from onboard.node import KeyframePolicy
+
+    rng = np.random.default_rng(0)
+
+    def due(policy, fps, n=61):
+        t = np.arange(n) / fps + rng.uniform(-0.003, 0.003, n)  # capture times jitter by milliseconds
+        return [i for i in range(n) if policy.due(float(t[i]))]
+
+    assert due(KeyframePolicy(), 10) == list(range(0, 61, 2))
+    assert due(KeyframePolicy(), 15) == list(range(0, 61, 3))
+    assert due(KeyframePolicy(), 30) == list(range(0, 61, 6))
+    assert due(KeyframePolicy(every=3), 30) == list(range(0, 61, 3))  # a frame count alone is one
+    assert due(KeyframePolicy(every=0), 30) == []  # none
+    assert due(KeyframePolicy(every=3, every_s=0.5), 10) == list(range(0, 61, 5))  # time before the frame count
