@@ -76,15 +76,16 @@ class Mapper:
     def wait(self, timeout_s: float = 0.0) -> None:
         """Nothing to wait for: mapping is done on the caller's thread."""
 
-    def add(self, frame: int, image_bgr: np.ndarray, tel) -> bool:
-        """Map this keyframe now; returns whether it registered."""
-        return self._map(frame, image_bgr, tel)
+    def add(self, frame: int, image_bgr: np.ndarray, tel, features=None) -> bool:
+        """Map this keyframe now; returns whether it registered. ``features``: its SIFT features, if extracted
+        elsewhere (:class:`ground.registration.SiftExtractor`)."""
+        return self._map(frame, image_bgr, tel, features)
 
     def close(self) -> None:
         self.registrar.close()
 
     # -- mapping
-    def _map(self, frame: int, image_bgr: np.ndarray, tel) -> bool:
+    def _map(self, frame: int, image_bgr: np.ndarray, tel, features=None) -> bool:
         if frame <= self.processed:
             log.warning("keyframe %d came after keyframe %d was mapped: skipped", frame, self.processed)
             return False
@@ -100,7 +101,7 @@ class Mapper:
         enu, q, h_acc = tel
         prior = (enu, camera_rotations(np.asarray(q, float)[None], self.cam)[0], h_acc) if np.isfinite(q).all() else None
         try:
-            ok = self.registrar.add_keyframe(frame, image_bgr, prior)
+            ok = self.registrar.add_keyframe(frame, image_bgr, prior, features)
         except Exception as exc:  # one keyframe that breaks the mapper must not stop the flight
             log.warning("keyframe %d failed to register: %s", frame, exc)
             self.registrar.failed.append(frame)
@@ -254,10 +255,10 @@ def _serve(jobs, results) -> None:
             return
         if job is None:
             break
-        frame, jpeg, tel = job
+        frame, jpeg, tel, features = job
         first = not m.has_model
         img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
-        ok = m.add(frame, img, tel) if img is not None else False
+        ok = m.add(frame, img, tel, features) if img is not None else False
         points = m.sparse_points() if ok and points_every and len(m.model_pose) % points_every == 1 else None
         results.put({"frame": frame, "ok": ok, "poses": m.changed, "fit": (m.fit, m.fit_residual_m),
                      "ref": m.reference() if ok else None, "points": points, "stats": m.stats(),
@@ -335,19 +336,42 @@ class MapperProcess:
         self.processed = -1
         self.attempts = self.skipped = self.sent = self.answered = 0
         self._held = None  # the newest proposal, while the process maps the one before
+        self._sift = None  # SIFT here, made when the first keyframe has to wait for the process
+        self.early_extracted = 0  # keyframes whose features were extracted here
         self._closed = False
 
     def add(self, frame: int, image_bgr: np.ndarray, tel) -> None:
         """Hand over a keyframe: sent now if the process is free, else held, replacing any held before it (the
-        process's pipe would otherwise queue them, and the newest could not win)."""
+        process's pipe would otherwise queue them, and the newest could not win).
+
+        Until the first model, keyframes go to the process at once, in order (up to INIT_QUEUE waiting), and one
+        that has to wait there has its SIFT features extracted here first: the first model needs several images,
+        each a SIFT extraction, and this process is idle until it comes (every frame waits for it), so the two
+        processes share that work."""
         if self._closed:
             return
         ok, jpeg = cv2.imencode(".jpg", image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        self._poll()
+        job = (frame, jpeg.tobytes(), tel, None)
+        if not self.model_pose and self.settings.sift == "colmap" and self.sent - self.answered < self.INIT_QUEUE:
+            if self.answered < self.sent:  # the process is busy: extract here meanwhile
+                if self._sift is None:
+                    from ground.registration import SiftExtractor
+
+                    self._sift = SiftExtractor(self.settings)
+                kp, raw, _ = self._sift(image_bgr)
+                job = (*job[:3], (kp, raw))
+                self.early_extracted += 1
+            self._outbox.put(job)
+            self.sent += 1
+            return
         if self._held is not None:
             self.skipped += 1
-        self._held = (frame, jpeg.tobytes(), tel)
-        self._poll()
+        self._held = job
         self._send()
+
+    #: Keyframes sent to the process before the first model and not yet mapped, at most (then the newest is held).
+    INIT_QUEUE = 4
 
     def _send(self) -> None:
         if self._held is not None and self.answered == self.sent:

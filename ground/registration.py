@@ -125,6 +125,35 @@ class Submodel:
         self.path, self.rec = path, None
 
 
+class SiftExtractor:
+    """SIFT as the registration's settings ask (pycolmap's, or OpenCV's), kept alive for the whole flight (pycolmap's
+    extract_features would rebuild it and re-read the image). Called with an image: (keypoints (n, >= 2) float32 in
+    COLMAP pixels, descriptors (n, 128) uint8 as COLMAP stores them, unit float32 descriptors for matching). The
+    mapper only reads keypoints and verified matches, so either SIFT serves (see RegistrationSettings)."""
+
+    def __init__(self, settings: RegistrationSettings):
+        ext = pycolmap.FeatureExtractionOptions()
+        ext.sift.first_octave = settings.first_octave
+        ext.sift.max_num_features = settings.max_num_features
+        ext.sift.upright = settings.upright
+        colmap = settings.sift == "colmap"
+        self._extractor = pycolmap.FeatureExtractor.create(ext, pycolmap.Device.cpu) if colmap else None
+        self._cv_sift = None if colmap else cv2.SIFT_create(nfeatures=settings.max_num_features)
+
+    def __call__(self, image_bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        gray = np.ascontiguousarray(image_bgr if image_bgr.ndim == 2 else cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY))
+        if self._cv_sift is not None:
+            kps, raw = self._cv_sift.detectAndCompute(gray, None)
+            # OpenCV puts the top-left pixel centre at (0, 0), COLMAP at (0.5, 0.5)
+            kp = np.array([k.pt for k in kps], np.float32).reshape(-1, 2) + 0.5
+            raw = np.zeros((0, 128), np.float32) if raw is None else raw
+            root = np.sqrt(raw / np.maximum(raw.sum(1, keepdims=True), 1e-12))  # RootSIFT, as COLMAP stores it
+            return kp, np.clip(np.round(root * 512), 0, 255).astype(np.uint8), root.astype(np.float32)
+        keypoints, descriptors = self._extractor.extract_from_uint8_array(gray)
+        raw = np.asarray(descriptors.data)
+        return pycolmap.keypoints_to_matrix(keypoints), raw, unit_descriptors(raw)
+
+
 class IncrementalRegistrar:
     def __init__(self, camera: Camera, workdir: str | Path, settings: RegistrationSettings | None = None,
                  sigma_att_deg: float = 0.5):
@@ -175,36 +204,18 @@ class IncrementalRegistrar:
         rig = pycolmap.Rig()
         rig.add_ref_sensor(self._sensor)
         self._rig_id = self._db.write_rig(rig)
-        ext = pycolmap.FeatureExtractionOptions()
-        ext.sift.first_octave = self.s.first_octave
-        ext.sift.max_num_features = self.s.max_num_features
-        ext.sift.upright = self.s.upright
-        # kept alive for the whole flight: pycolmap's extract_features would rebuild it and re-read the image.
-        # The mapper only reads keypoints and verified matches, so either SIFT serves (see RegistrationSettings)
-        colmap = self.s.sift == "colmap"
-        self._extractor = pycolmap.FeatureExtractor.create(ext, pycolmap.Device.cpu) if colmap else None
-        self._cv_sift = None if colmap else cv2.SIFT_create(nfeatures=self.s.max_num_features)
+        self._sift = SiftExtractor(self.s)
         self._pool = ThreadPoolExecutor(2, thread_name_prefix="two-view")
         self._two_view = pycolmap.TwoViewGeometryOptions()
         self._two_view.ransac.random_seed = 0
         self._recent = deque(maxlen=max(self.s.match_window, 1))  # (image id, keypoint xy, unit descriptors)
         self._order: dict[str, int] = {}  # keyframe -> its place in the flight's keyframes
 
-    def _extract(self, name: str, image_bgr: np.ndarray):
-        gray = np.ascontiguousarray(image_bgr if image_bgr.ndim == 2 else cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY))
-        if self._cv_sift is not None:
-            kps, raw = self._cv_sift.detectAndCompute(gray, None)
-            # OpenCV puts the top-left pixel centre at (0, 0), COLMAP at (0.5, 0.5)
-            kp = np.array([k.pt for k in kps], np.float32).reshape(-1, 2) + 0.5
-            raw = np.zeros((0, 128), np.float32) if raw is None else raw
-            root = np.sqrt(raw / np.maximum(raw.sum(1, keepdims=True), 1e-12))  # RootSIFT, as COLMAP stores it
-            descriptors = pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT,
-                                                      np.clip(np.round(root * 512), 0, 255).astype(np.uint8))
-            desc = root.astype(np.float32)
-        else:
-            keypoints, descriptors = self._extractor.extract_from_uint8_array(gray)
-            kp = pycolmap.keypoints_to_matrix(keypoints)
-            desc = unit_descriptors(descriptors.data)
+    def _extract(self, name: str, image_bgr: np.ndarray, features: tuple[np.ndarray, np.ndarray] | None = None):
+        """The keyframe's features (``features``: already extracted with the same settings, :class:`SiftExtractor`),
+        stored in the database; (image id, keypoint xy, unit descriptors)."""
+        kp, raw, desc = self._sift(image_bgr) if features is None else (*features, unit_descriptors(features[1]))
+        descriptors = pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, raw)
         image_id = self._db.write_image(pycolmap.Image(name=name, camera_id=self._camera_id))
         frame = pycolmap.Frame(rig_id=self._rig_id)
         frame.add_data_id(pycolmap.data_t(sensor_id=self._sensor, id=image_id))
@@ -346,14 +357,15 @@ class IncrementalRegistrar:
         new.to_first = compose(old.to_first or IDENTITY, to_old)
 
     def add_keyframe(self, frame: int, image_bgr: np.ndarray,
-                     prior: tuple[np.ndarray, np.ndarray, float] | None = None) -> bool:
+                     prior: tuple[np.ndarray, np.ndarray, float] | None = None,
+                     features: tuple[np.ndarray, np.ndarray] | None = None) -> bool:
         """Register one keyframe; returns whether it has a pose now. ``prior``: where the telemetry puts the camera
         (ENU centre, world(ENU)-to-camera rotation, position sigma in m), which places a new sub-model when the
-        chain breaks."""
+        chain breaks. ``features``: its SIFT features if they were extracted elsewhere (:class:`SiftExtractor`)."""
         t0 = time.perf_counter()
         name = f"{frame:06d}.jpg"
         cv2.imwrite(str(self.work / "images" / name), image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
-        features = self._extract(name, image_bgr)
+        features = self._extract(name, image_bgr, features)
         t1 = time.perf_counter()
         self._order[name] = len(self.names)
         self.names.append(name)

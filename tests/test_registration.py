@@ -156,3 +156,38 @@ def test_an_earlier_keyframe_of_the_same_place_bridges_the_gap(gap_flight, tmp_p
     before, after, n_after = _offset_before_and_after(gap_flight, tmp_path / "v", range(6, 15))
     assert n_after == 23 - 15
     assert np.linalg.norm(before - after) < 0.3
+
+
+def test_the_mapping_process_shares_the_first_model_s_sift_with_the_ground(reg_base, tmp_path):
+    """Keyframes that arrive together before the first model: those the mapping process is not free for have their
+    SIFT features extracted by the ground meanwhile, and the first model comes out as the inline mapper's."""
+    from ground.mapping import Mapper, MapperProcess
+    from ground.registration import RegistrationSettings
+    from pomar.camera import Camera
+    from pomar.flight import FlightDir
+    from pomar.video import iter_frames
+
+    fl = FlightDir(reg_base)
+    cam = Camera.load(fl.path / "camera.json")
+    images = [img for i, img in iter_frames(fl.video) if i < 8]
+    tel = (np.full(3, np.nan), np.full(4, np.nan), 2.0)
+    settings = RegistrationSettings(init_frames=4)
+    live = MapperProcess(cam, cam, tmp_path / "live", settings)
+    inline = Mapper(cam, cam, tmp_path / "inline", settings)
+    try:
+        for f, img in enumerate(images):  # together: the mapping process is busy from the second on
+            live.add(f, img, tel)
+        live.wait(120)
+        for f, img in enumerate(images):
+            if f in live.model_pose:
+                inline.add(f, img, tel)
+        assert live.early_extracted >= 2
+        shared = sorted(live.model_pose)
+        assert len(shared) >= 4 and sorted(inline.model_pose) == shared
+        centres = [np.array([-R.T @ t for R, t in (m.model_pose[f] for f in shared)]) for m in (live, inline)]
+        steps = [np.linalg.norm(np.diff(c, axis=0), axis=1) for c in centres]
+        rel = [s / s.sum() for s in steps]  # the model's scale is its own: compare the spacing's shape
+        assert np.abs(rel[0] - rel[1]).max() < 0.01, rel
+    finally:
+        live.close()
+        inline.close()
