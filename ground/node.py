@@ -33,6 +33,9 @@ log = logging.getLogger(__name__)
 # REQUERY_S, at most MAX_REQUERIES times (zenoh's history and recovery can leave a gap).
 REQUERY_S = 3.0
 MAX_REQUERIES = 5
+# A resumed ground holds a frame after a missing one this long for the history to bring the missing one (zenoh
+# delivers the history and the live samples in either order; a frame released past is dropped when it comes).
+HISTORY_WAIT_S = 3.0
 
 
 def delay_stats(delays: list[float]) -> dict:
@@ -354,6 +357,8 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
     threading.Thread(target=node.sample_memory, args=(sampling,), daemon=True, name="memory").start()
     session = transport.open_session(listen=listen, connect=connect, config_file=zenoh_config)
     sub = transport.FlightSubscriber(session, flight_id, stream, on_accept=journal.append)
+    if read is not None and read.records:
+        node.pipe.hold_gaps(HISTORY_WAIT_S)
     last_msg = time.monotonic()
     last_progress = time.monotonic()
     claim = None  # (the status saying the flight ended, when it came)

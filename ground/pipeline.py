@@ -131,6 +131,7 @@ class GroundPipeline:
         self.newest_t = float("-inf")  # the latest capture time of any frame received
         self._arrived: dict[int, float] = {}  # frame -> when its message came (monotonic clock)
         self._steps: deque[int] = deque(maxlen=20)  # frame-index steps between the last frames mapped
+        self._hold_gaps_until = 0.0  # until then (monotonic), a frame after a missing one waits for it
         self.frame_delays: list[float] = []  # per mapped frame: seconds from its message's arrival to its release
         self.frame_delays_mapped: list[float] = []  # ... of the frames that arrived once the first model existed
         self.t_first_model: float | None = None  # when the first model was there
@@ -170,6 +171,12 @@ class GroundPipeline:
         for f in sorted(self.pending):
             t = self.pending[f].telemetry
             self.poses.add_telemetry(f, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc)
+
+    def hold_gaps(self, seconds: float) -> None:
+        """For the next ``seconds``, a frame after a missing one waits for it instead of leaving it to come late and
+        be dropped: a resumed ground gets the frames it missed from the publisher's history while the live ones
+        come too, in either order."""
+        self._hold_gaps_until = time.monotonic() + seconds
 
     def on_frame(self, msg: wire.FrameMessage):
         if msg.frame <= self.released or msg.frame in self.pending:
@@ -290,6 +297,8 @@ class GroundPipeline:
         events = []
         while self.pending:
             f = min(self.pending)
+            if not final and f > self.released + 1 and time.monotonic() < self._hold_gaps_until:
+                break  # a frame before it may still come (hold_gaps)
             # the poses say when: once an image at or after f has been tracked
             if not self.poses.ready(f, final, self._stalled()):
                 break

@@ -155,8 +155,8 @@ class FlightSubscriber:
 
     def refresh(self) -> None:
         """Ask the publishers for their whole history again: a new subscriber in place of this one. For a stream that
-        says it sent more than arrived (zenoh's history and recovery can leave a gap, e.g. for a ground restarted
-        mid-flight); what arrives again is dropped as repeats. Messages still queued in the old one are taken first."""
+        says it sent more than arrived (zenoh's history and recovery may leave a gap); what arrives again is dropped
+        as repeats. Messages still queued in the old one are taken first."""
         old = self._sub
         self._sub = self._declare()
         while (sample := old.try_recv()) is not None:

@@ -377,3 +377,27 @@ def test_an_apple_counts_once_enough_views_are_strong(tmp_path):
     assert pipe._confirm([a]) == [a] and pipe.apples[7] is a  # a third strong view
     del pipe._scores[0], pipe._scores[2]  # forgotten: the count stays
     assert pipe._confirm([a]) == [a]
+
+
+def test_a_resumed_ground_waits_for_the_frames_its_history_brings(replay_test_flight, tmp_path):
+    """A restarted ground gets the frames it missed from the publisher's history and the live ones at once, in either
+    order: while it holds gaps, the later frames wait for the missing ones, and none is dropped as late."""
+    from ground.pipeline import GroundPipeline, GroundSettings
+    from pomar import wire
+
+    msgs = _onboard_messages(replay_test_flight, keyframe_every=1)
+    live = [m for m in msgs if getattr(m, "frame", -1) >= 13]
+    history = [m for m in msgs if 8 <= getattr(m, "frame", -1) < 13]
+    journal = [m for m in msgs if getattr(m, "frame", -1) < 8]  # and the camera message
+    for hold, want_late in ((5.0, 0), (0.0, 5)):
+        pipe = GroundPipeline(tmp_path / f"work-{hold}", GroundSettings())
+        events = []
+        for m in journal:
+            events += pipe.feed(m)
+        pipe.hold_gaps(hold)
+        for m in live + history:  # the live frames first
+            events += pipe.feed(m)
+        events += pipe.finish()
+        assert pipe.counters["late_frames"] == want_late, (hold, pipe.counters)
+        if hold:
+            assert [e.frame for e in events] == list(range(20)) and all(e.pose is not None for e in events)
