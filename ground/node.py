@@ -50,6 +50,17 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _libc_malloc_trim():
+    """glibc's malloc_trim, or None where there is none."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+
+
 def rss_mb() -> float:
     """The process's resident memory now (Linux; elsewhere its peak so far)."""
     try:
@@ -89,6 +100,7 @@ class GroundNode:
         self.latency: list[float] = []
         self.stream = stream  # the filter in front of the pipeline: what it let in and refused
         self.ignored_end_claims = 0  # "finished" statuses contradicted by the stream
+        self._trim = _libc_malloc_trim()
         self.history_requeries = 0  # times the publishers' history was asked for again (frames missing at the end)
         self.journal_damage: dict | None = None
 
@@ -192,6 +204,8 @@ class GroundNode:
     def refresh(self, final: bool = False) -> dict:
         """Write the map files and report.json (atomically) and log the map to rerun."""
         self._last_refresh = time.monotonic()
+        if self._trim is not None:  # hand freed heap back to the system: the map's arrays are rebuilt at each refresh
+            self._trim(0)
         table = self.pipe.table()
         poses = self.pipe.poses
         rows = write_map(self.out, table, getattr(self.pipe, "row_direction", 0.0),

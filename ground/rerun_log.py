@@ -409,7 +409,11 @@ class RerunLog:
             centres = [-np.linalg.inv(P[:, :3]) @ P[:, 3] for P in Ps[:max_rays]]
             shift = enu[aid] - a.X  # association frame -> ENU is close to a translation over one apple
             strips = [np.array([c + shift, enu[aid]]) for c in centres]
-            self.rec.log(f"world/tracks/{aid}", rr.LineStrips3D(strips, colors=[[255, 255, 255]], radii=0.005), static=True)
+            # static, and sent as columns: rerun keeps less per entity that way (one entity per apple)
+            n = len(strips)
+            rr.send_columns(f"world/tracks/{aid}", indexes=[], recording=self.rec,
+                            columns=rr.LineStrips3D.columns(strips=strips, colors=[[255, 255, 255]] * n,
+                                                            radii=[0.005] * n).partition([n]))
             self._tracks_logged.add(aid)
 
     def close(self):
