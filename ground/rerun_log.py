@@ -305,7 +305,7 @@ class RerunLog:
                 prev = (P, centre)
         if not frames:
             return
-        # one batch of rows for all of the apple's views (a log call per view cost a tenth of the ground's time)
+        # one batch of rows for all of the apple's views: a log call per view is slow, and rerun keeps more per entity
         indexes = [rr.TimeColumn("frame", sequence=frames)]
         if np.isfinite(times).all():
             indexes.append(rr.TimeColumn("capture_time", timestamp=times))

@@ -31,8 +31,8 @@ class KeyframePolicy:
     S seconds of capture time, or every Nth processed frame, the first of these given; none given, every
     DEFAULT_EVERY_S. The first frame always goes."""
 
-    #: One keyframe per 0.2 s of flight whatever the frame rate: every 2nd frame at 10 fps (0.69 MB/s at 1280x720),
-    #: every 6th at 30 fps, where every 2nd would need 2 MB/s and give the ground 15 images a second to track.
+    #: One keyframe per 0.2 s of flight whatever the frame rate (every 2nd frame at 10 fps, every 6th at 30 fps): a
+    #: fixed frame count would triple the link's load and the ground's tracking at 30 fps.
     DEFAULT_EVERY_S = 0.2
     #: A frame up to this share of S early counts as due: capture times jitter by a few milliseconds, and a frame
     #: just short of S would otherwise push the keyframe a whole frame later.
