@@ -344,16 +344,18 @@ class MapperProcess:
         """Hand over a keyframe: sent now if the process is free, else held, replacing any held before it (the
         process's pipe would otherwise queue them, and the newest could not win).
 
-        Until the first model, keyframes go to the process at once, in order (up to INIT_QUEUE waiting), and one
-        that has to wait there has its SIFT features extracted here first: the first model needs several images,
-        each a SIFT extraction, and this process is idle until it comes (every frame waits for it), so the two
-        processes share that work."""
+        For the first model's tries (the first 3 x init_frames keyframes, while there is none), keyframes go to the
+        process at once, in order (up to INIT_QUEUE waiting), and one that has to wait there has its SIFT features
+        extracted here first: the first model needs several images, each a SIFT extraction, and this process is idle
+        until it comes (every frame waits for it), so the two processes share that work. Past those tries (a flight
+        that starts over ground with nothing to match) this process does not spend its time on SIFT."""
         if self._closed:
             return
         ok, jpeg = cv2.imencode(".jpg", image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
         self._poll()
         job = (frame, jpeg.tobytes(), tel, None)
-        if not self.model_pose and self.settings.sift == "colmap" and self.sent - self.answered < self.INIT_QUEUE:
+        first_tries = not self.model_pose and self.sent < 3 * self.settings.init_frames  # as long as LivePoses tries
+        if first_tries and self.settings.sift == "colmap" and self.sent - self.answered < self.INIT_QUEUE:
             if self.answered < self.sent:  # the process is busy: extract here meanwhile
                 if self._sift is None:
                     from ground.registration import SiftExtractor

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -191,3 +192,27 @@ def test_the_mapping_process_shares_the_first_model_s_sift_with_the_ground(reg_b
     finally:
         live.close()
         inline.close()
+
+
+def test_the_ground_stops_extracting_sift_once_the_first_model_s_tries_are_spent(tmp_path):
+    """A flight that starts over something with nothing to match (noise here): the ground shares the SIFT only for
+    the first model's tries, then leaves the mapping process to it, and keeps its own time."""
+    from ground.mapping import MapperProcess
+    from ground.registration import RegistrationSettings
+    from pomar.camera import Camera
+
+    cam = Camera(960, 540, 800.0, 800.0, 480.0, 270.0)
+    rng = np.random.default_rng(0)
+    tel = (np.full(3, np.nan), np.full(4, np.nan), 2.0)
+    settings = RegistrationSettings(init_frames=4)
+    live = MapperProcess(cam, cam, tmp_path / "live", settings)
+    try:
+        for f in range(30):  # one every 0.1 s: the process is busy with most of them
+            live.add(f, rng.integers(0, 255, (540, 960, 3), dtype=np.uint8), tel)
+            time.sleep(0.1)
+        live.wait(120)
+        assert not live.has_model
+        assert 1 <= live.early_extracted <= 3 * settings.init_frames, live.early_extracted
+        assert live.sent > 3 * settings.init_frames  # the later ones went too, the newest first
+    finally:
+        live.close()
