@@ -157,7 +157,7 @@ class LivePoses:
         over up to its own frame, never a later one (the motion prediction would run backwards)."""
         self._collect_references()
         if self._first_ref is None:
-            if self.mapper.attempts >= 3 * self.mapper.settings.init_frames or len(self._untracked) > self.MAX_WAITING:
+            if self.mapper.attempts >= self.mapper.settings.first_model_tries or len(self._untracked) > self.MAX_WAITING:
                 while self._untracked:
                     self.kf_processed = self._untracked.popleft()[0]
             return
@@ -256,7 +256,7 @@ class LivePoses:
         """The flight ended before the first model: the images the mapper had no time for go to it now, in order, one
         at a time, until it makes one (or has had its chances)."""
         for frame, image_bgr in list(self._untracked):
-            if self.mapper.reference() is not None or self.mapper.attempts >= 3 * self.mapper.settings.init_frames:
+            if self.mapper.reference() is not None or self.mapper.attempts >= self.mapper.settings.first_model_tries:
                 break
             if frame > self.mapper.processed:
                 self._map(frame, image_bgr)
@@ -301,7 +301,7 @@ class LivePoses:
             return False
         if self.mapper.has_model or self.frozen is not None or self.assoc_from_enu is not None:
             return True
-        return self.mapper.attempts >= 3 * self.mapper.settings.init_frames
+        return self.mapper.attempts >= self.mapper.settings.first_model_tries
 
     def _model_frame_pose(self, frame: int, model_pose) -> tuple[np.ndarray, np.ndarray, str] | None:
         if frame in model_pose:

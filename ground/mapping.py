@@ -59,6 +59,7 @@ class Mapper:
         self.processed = -1  # the newest keyframe through registration
         self.attempts = 0
         self.skipped = 0  # always 0 here: only the process replaces proposals
+        self.early_extracted = 0  # always 0 here: only the process shares SIFT with the ground
         self.changed: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # poses the last keyframe moved
         # the keyframes' images until the first model: it places all of them at once, and tracking the frames
         # between them needs their points (first_references)
@@ -344,7 +345,7 @@ class MapperProcess:
         """Hand over a keyframe: sent now if the process is free, else held, replacing any held before it (the
         process's pipe would otherwise queue them, and the newest could not win).
 
-        For the first model's tries (the first 3 x init_frames keyframes, while there is none), keyframes go to the
+        For the first model's tries (its first_model_tries keyframes, while there is none), keyframes go to the
         process at once, in order (up to INIT_QUEUE waiting), and one that has to wait there has its SIFT features
         extracted here first: the first model needs several images, each a SIFT extraction, and this process is idle
         until it comes (every frame waits for it), so the two processes share that work. Past those tries (a flight
@@ -354,7 +355,7 @@ class MapperProcess:
         ok, jpeg = cv2.imencode(".jpg", image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
         self._poll()
         job = (frame, jpeg.tobytes(), tel, None)
-        first_tries = not self.model_pose and self.sent < 3 * self.settings.init_frames  # as long as LivePoses tries
+        first_tries = not self.model_pose and self.sent < self.settings.first_model_tries
         if first_tries and self.settings.sift == "colmap" and self.sent - self.answered < self.INIT_QUEUE:
             if self.answered < self.sent:  # the process is busy: extract here meanwhile
                 if self._sift is None:

@@ -255,7 +255,7 @@ class GroundNode:
                 # proposals the mapping process replaced with a newer one before it was free
                 "proposals_skipped": p.poses.mapper.skipped if p.poses else 0,
                 # keyframes before the first model whose SIFT features this process extracted, the mapper being busy
-                "features_extracted_here": getattr(p.poses.mapper, "early_extracted", 0) if p.poses else 0,
+                "features_extracted_here": p.poses.mapper.early_extracted if p.poses else 0,
                 "georeference_gps_rms_m": p.poses.fit_residual_m if p.poses else None,
                 "origin": p.poses.origin.as_dict() if p.poses and p.poses.origin else None,
             },

@@ -86,6 +86,11 @@ class RegistrationSettings:
     # keyframes in a row that fail to register before a new sub-model is made from them (placed by telemetry)
     break_after: int = 3
 
+    @property
+    def first_model_tries(self) -> int:
+        """Keyframes the first model is tried on before the frames go on without one."""
+        return 3 * self.init_frames
+
     def __post_init__(self):
         if self.sift not in ("colmap", "opencv"):
             raise ValueError(f"RegistrationSettings.sift must be 'colmap' or 'opencv', got {self.sift!r}")
