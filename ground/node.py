@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from ground.journal import Journal, read_journal_report
-from ground.outputs import harvest_correlation, poses_csv, read_harvest, write_atomic, write_json, write_map
+from ground.outputs import (candidates_csv, harvest_correlation, poses_csv, read_harvest, write_atomic, write_json,
+                            write_map)
 from ground.pipeline import GroundPipeline, GroundSettings
 from pomar import wire
 
@@ -212,6 +213,8 @@ class GroundNode:
                          poses.origin if poses is not None else None, self.settings.tree_spacing_m)
         cams = self.pipe.pose_table()
         write_atomic(self.out / "poses.csv", poses_csv(cams))
+        if final:
+            write_atomic(self.out / "candidates.csv", candidates_csv(self.pipe.candidates()))
         report = self.report(table, rows, final)
         rr = self._rerun()
         if rr is not None and self.pipe.released >= 0:

@@ -9,6 +9,9 @@
 - ``trees.csv``: row, tree (1.. from the row's start), position along the row (m, the segment's centre from the
   row's start), the segment's centre (ENU and WGS84), and its count: each row's line cut into segments one tree
   spacing long;
+- ``candidates.csv`` (at the end): every apple the count was chosen from, counted or not: id, x, y, z (ENU m),
+  lat, lon, alt, radius (m), observations, strong views, expected views, first and last frame, and ``left_out``
+  (empty when counted, else the check that left it out: ``small`` or ``few_views``);
 - ``poses.csv``: every mapped frame's camera (centre in ENU and WGS84, rotation, pose source);
 - ``report.json``: counts, settings, timings (written by the caller through :func:`write_json`).
 """
@@ -177,6 +180,15 @@ def trees_csv(trees: list[dict]) -> str:
 
 
 POSE_COLUMNS = ["frame", "t_unix", "source", "x", "y", "z", "lat", "lon", "alt", "qw", "qx", "qy", "qz", "sigma_m"]
+
+
+CANDIDATE_COLUMNS = ["id", "x", "y", "z", "lat", "lon", "alt", "radius_m", "observations", "strong_views",
+                     "expected_views", "first_frame", "last_frame", "left_out"]
+
+
+def candidates_csv(c: dict) -> str:
+    return records_csv([{k: c[k][i] for k in CANDIDATE_COLUMNS} for i in range(len(c["id"]))], CANDIDATE_COLUMNS,
+                       {**FORMATS, "expected_views": ".0f"})
 
 
 def poses_csv(poses: dict) -> str:

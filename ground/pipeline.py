@@ -454,24 +454,53 @@ class GroundPipeline:
         kept = np.unique(run[seen]) if seen else np.zeros(0, int)
         return int(np.isin(run, kept[kept > 0]).sum())
 
-    def counted_ids(self) -> list[int]:
-        """The apples that count: those confirmed, less those too small for their size to be whole (size check) and
-        those detected in too few of the frames they lie in (expected views)."""
+    def count_checks(self, all_expected: bool = False) -> dict[str, np.ndarray]:
+        """Every confirmed apple and what the counting checks made of it: id, radius (m), observations, strong views,
+        expected views (NaN where the check is off or the size check already left the apple out, unless
+        ``all_expected``) and ``left_out`` ("" counted, "small" by the size check, "few_views" by expected views)."""
         ids = sorted(self.apples)
         r = np.array([self.radius_m.get(i, np.nan) for i in ids], float)
         ok = np.isfinite(r)
-        drop = np.zeros(len(ids), bool)
+        reason = np.full(len(ids), "", dtype=object)
         if self.s.min_radius_ratio > 0 and ok.sum() >= self.MIN_SIZED:
-            drop |= ok & (r < self.s.min_radius_ratio * np.median(r[ok]))
-        self.size_rejected = int(drop.sum())
-        if self.s.min_view_ratio > 0 and self.camera is not None and ids:
+            reason[ok & (r < self.s.min_radius_ratio * np.median(r[ok]))] = "small"
+        nobs = np.array([self.apples[i].n_observations for i in ids], int)
+        expected = np.full(len(ids), np.nan)
+        if (self.s.min_view_ratio > 0 or all_expected) and self.camera is not None and ids:
             proj = np.asarray(self._proj).reshape(-1, 3, 4)
             for k, i in enumerate(ids):
-                if not drop[k]:
-                    a = self.apples[i]
-                    drop[k] = a.n_observations < self.s.min_view_ratio * self.expected_views(a, proj)
-        self.views_rejected = int(drop.sum()) - self.size_rejected
-        return [i for i, d in zip(ids, drop) if not d]
+                if reason[k] == "" or all_expected:
+                    expected[k] = self.expected_views(self.apples[i], proj)
+            reason[(reason == "") & (nobs < self.s.min_view_ratio * expected)] = "few_views"
+        self.size_rejected = int((reason == "small").sum())
+        self.views_rejected = int((reason == "few_views").sum())
+        return {"id": np.array(ids, int), "radius_m": r, "observations": nobs,
+                "strong_views": np.array([self._confirmed.get(i, 0) for i in ids], int),
+                "expected_views": expected, "left_out": reason}
+
+    def counted_ids(self) -> list[int]:
+        """The apples that count: those confirmed, less those too small for their size to be whole (size check) and
+        those detected in too few of the frames they lie in (expected views)."""
+        c = self.count_checks()
+        return [int(i) for i in c["id"][c["left_out"] == ""]]
+
+    def candidates(self) -> dict[str, np.ndarray]:
+        """count_checks with each apple's position (ENU): every apple the count was chosen from."""
+        c = self.count_checks(all_expected=True)
+        X = np.array([self.apples[i].X for i in c["id"]]).reshape(-1, 3)
+        enu = self.poses.to_enu(X) if self.poses is not None and len(X) else X
+        geo = self._geodetic(enu)
+        A = [self.apples[i] for i in c["id"]]
+        return {**c, "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
+                "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
+                "first_frame": np.array([self._seq_frame[a.first_frame] for a in A], int),
+                "last_frame": np.array([self._seq_frame[a.last_frame] for a in A], int)}
+
+    def _geodetic(self, enu: np.ndarray) -> np.ndarray:
+        """(N, 3) lat, lon, alt of ENU points; NaN before the map is georeferenced."""
+        if self.poses is None or self.poses.origin is None or not len(enu):
+            return np.full((len(enu), 3), np.nan)
+        return np.asarray(self.poses.origin.to_geodetic(enu)).reshape(-1, 3)
 
     def table(self) -> dict[str, np.ndarray]:
         """Apples as columns: id, x y z (ENU), lat lon alt, row (1..N), radius, observations, reprojection error,
@@ -480,8 +509,7 @@ class GroundPipeline:
         A = [self.apples[i] for i in ids]
         X = np.array([a.X for a in A]).reshape(-1, 3)
         enu = self.poses.to_enu(X) if self.poses is not None and len(X) else X
-        geo = (np.asarray(self.poses.origin.to_geodetic(enu)).reshape(-1, 3)
-               if self.poses is not None and self.poses.origin is not None and len(X) else np.full((len(X), 3), np.nan))
+        geo = self._geodetic(enu)
         rows, direction = direction_rows(enu[:, :2]) if len(X) >= 2 else (np.zeros(len(X), int), 0.0)
         self.row_direction = direction
         return {"id": np.array(ids, int), "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],

@@ -57,7 +57,7 @@ class ScalePolicy:
 
     target_px: float | None  # None: no rescaling (a model that does not say its apple size, or rescaling off)
     min_scale: float = 0.25
-    max_scale: float = 1.5
+    max_scale: float = 2.0
     step: float = 0.05
     fixed: float | None = None  # one scale for every frame instead
 

@@ -34,7 +34,7 @@ def test_the_foreseen_apple_size_matches_the_flights_truth(bundled_flight):
 
 def test_scale_policy_and_its_setting():
     p = ScalePolicy(5.0)
-    assert p.scale(10.0) == 0.5 and p.scale(40.0) == 0.25 and p.scale(2.0) == 1.5  # clamped
+    assert p.scale(10.0) == 0.5 and p.scale(40.0) == 0.25 and p.scale(2.0) == 2.0 and p.scale(1.0) == 2.0  # clamped
     assert p.scale(float("nan")) == 1.0 and ScalePolicy(None).scale(10.0) == 1.0
     assert ScalePolicy(None, fixed=0.7).scale(3.0) == 0.7
     assert p.scale(5.3) == 0.95  # steps of 0.05
@@ -130,14 +130,17 @@ def test_per_tree_score_is_one_for_a_perfect_map_and_falls_with_misplaced_apples
 def test_size_check_leaves_out_apples_too_small_to_be_whole(tmp_path):
     """With the size check on, apples whose radius is under the ratio times the map's median are not counted; with
     fewer than MIN_SIZED sized apples, or the check off, all are."""
+    from ground.association import Apple
     from ground.pipeline import GroundPipeline, GroundSettings
 
     pipe = GroundPipeline(tmp_path, GroundSettings(min_radius_ratio=0.85))
     radii = np.r_[np.full(30, 0.036), np.full(6, 0.026)]  # 30 whole apples, 6 half hidden
-    pipe.apples = {i: None for i in range(len(radii) + 1)}
+    pipe.apples = {i: Apple(i, np.zeros(3), [(0, 0), (1, 0), (2, 0)], 0.5) for i in range(len(radii) + 1)}
     pipe.radius_m = {i: r for i, r in enumerate(radii)}  # the last apple has no radius: it counts
     ids = pipe.counted_ids()
     assert ids == list(range(30)) + [36] and pipe.size_rejected == 6
+    checks = pipe.count_checks()
+    assert list(checks["left_out"]) == [""] * 30 + ["small"] * 6 + [""]
     pipe.s.min_radius_ratio = 0.0
     assert len(pipe.counted_ids()) == 37 and pipe.size_rejected == 0
     pipe.s.min_radius_ratio = 0.85
@@ -160,3 +163,6 @@ def test_expected_views_leave_out_apples_seen_in_few_of_the_frames_they_lie_in(t
     pipe.apples = {1: seen, 2: glimpsed, 3: behind}
     assert pipe.expected_views(seen) == 40 and pipe.expected_views(behind) == 0
     assert pipe.counted_ids() == [1, 3] and pipe.views_rejected == 1
+    c = pipe.count_checks()
+    assert list(c["left_out"]) == ["", "few_views", ""] and list(c["expected_views"]) == [40, 40, 0]
+    assert list(c["observations"]) == [8, 3, 3]

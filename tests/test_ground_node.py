@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from ground.journal import Journal, read_journal
-from ground.outputs import APPLE_COLUMNS, harvest_correlation, read_harvest
+from ground.outputs import APPLE_COLUMNS, CANDIDATE_COLUMNS, harvest_correlation, read_harvest
 
 
 def test_replay_end_to_end(replayed_test_flight):
@@ -48,6 +48,16 @@ def test_replay_end_to_end(replayed_test_flight):
     assert ply[0] == "ply" and f"element vertex {rep['apples']}" in ply
     with open(out / "rows.csv", newline="") as f:
         assert sum(int(r["count"]) for r in csv.DictReader(f)) == rep["apples"]
+    # every apple the count was chosen from: the counted ones are apples.csv's, the others say which check
+    with open(out / "candidates.csv", newline="") as f:
+        cand = list(csv.DictReader(f))
+    assert list(cand[0]) == CANDIDATE_COLUMNS
+    assert sorted(int(c["id"]) for c in cand if c["left_out"] == "") == sorted(int(r["id"]) for r in rows)
+    left = [c["left_out"] for c in cand if c["left_out"]]
+    assert set(left) <= {"small", "few_views"} and len(cand) == rep["apples"] + len(left)
+    assert left.count("small") == rep["counting"]["left_out_small"]
+    assert left.count("few_views") == rep["counting"]["left_out_few_views"]
+    assert all(float(c["expected_views"]) >= 0 and int(c["observations"]) >= 3 for c in cand)
     assert (out / "model" / "0" / "images.txt").is_file()
     # the rerun recording, read back
     ents = rrd_entities(out / "flight.rrd")
