@@ -68,7 +68,7 @@ def _settings(args):
                           min_score=args.min_score,
                           confirm_score=args.confirm_score, confirm_views=args.confirm_views,
                           tree_spacing_m=args.tree_spacing_m, min_radius_ratio=args.min_radius_ratio,
-                          min_view_ratio=args.min_view_ratio)
+                          min_view_ratio=args.min_view_ratio, min_parallax_deg=args.min_parallax_deg)
 
 
 def _cmd_run(args) -> int:
@@ -141,7 +141,8 @@ def _cmd_replay(args) -> int:
                    "--min-tracked-share", str(args.min_tracked_share),
                    "--min-score", str(args.min_score), "--confirm-score", str(args.confirm_score),
                    "--confirm-views", str(args.confirm_views), "--tree-spacing-m", str(args.tree_spacing_m),
-                   "--min-radius-ratio", str(args.min_radius_ratio), "--min-view-ratio", str(args.min_view_ratio)] \
+                   "--min-radius-ratio", str(args.min_radius_ratio), "--min-view-ratio", str(args.min_view_ratio),
+                   "--min-parallax-deg", str(args.min_parallax_deg)] \
         + (["--upright"] if args.upright else []) + (["--no-revisit"] if args.no_revisit else []) \
         + (["--mapping", args.mapping] if args.realtime or (args.recorded and args.speed > 0) else [])  # lock-step: inline
     try:
@@ -261,6 +262,9 @@ def _ground_options(p):
     p.add_argument("--min-view-ratio", type=float, default=g.min_view_ratio,
                    help="expected views: an apple counts only if detected in at least this share of the mapped frames "
                         "it projects into (one glimpsed through leaves is not); 0 = off")
+    p.add_argument("--min-parallax-deg", type=float, default=g.min_parallax_deg,
+                   help="parallax: an apple counts only if the rays from its first and last views meet at this angle "
+                        "or more, degrees (narrower leaves its depth a guess); 0 = off")
     p.add_argument("--tree-spacing-m", type=float, default=g.tree_spacing_m,
                    help="trees along a row are this far apart (m): trees.csv counts apples per tree segment")
 

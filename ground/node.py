@@ -238,7 +238,8 @@ class GroundNode:
             "apples": int(len(table["id"])), "rows": rows,
             "counting": {"confirmed": len(p.apples), "min_radius_ratio": self.settings.min_radius_ratio,
                          "left_out_small": p.size_rejected, "min_view_ratio": self.settings.min_view_ratio,
-                         "left_out_few_views": p.views_rejected},
+                         "left_out_few_views": p.views_rejected,
+                         "min_parallax_deg": self.settings.min_parallax_deg, "left_out_narrow": p.parallax_rejected},
             "frames": dict(p.counters), "gaps": p.gaps[:100],
             # what share of the mapped frames got each kind of pose
             "pose_shares": {k: p.counters[k] / max(1, sum(p.counters[j] for j in POSE_SOURCES)) for k in POSE_SOURCES},

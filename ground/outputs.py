@@ -11,7 +11,7 @@
   spacing long;
 - ``candidates.csv`` (at the end): every apple the count was chosen from, counted or not: id, x, y, z (ENU m),
   lat, lon, alt, radius (m), observations, strong views, expected views, first and last frame, and ``left_out``
-  (empty when counted, else the check that left it out: ``small`` or ``few_views``);
+  (empty when counted, else the check that left it out: ``small``, ``narrow`` or ``few_views``);
 - ``poses.csv``: every mapped frame's camera (centre in ENU and WGS84, rotation, pose source);
 - ``report.json``: counts, settings, timings (written by the caller through :func:`write_json`).
 """

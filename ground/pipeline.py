@@ -80,6 +80,10 @@ class GroundSettings:
     #: into (the mapped frames around its track); 0 = off. An apple glimpsed through leaves, or a false detection
     #: that happened to triangulate, is seen in few of the frames it lies in.
     min_view_ratio: float = 0.15
+    #: Parallax: an apple counts only if the rays from its first and last views meet at this angle or more (degrees);
+    #: 0 = off. Views over a narrower angle (a few frames at 30 fps, or the flight's last frames) leave its depth a
+    #: guess: such apples were nearly all false ones, placed metres off.
+    min_parallax_deg: float = 2.0
 
 
 @dataclass
@@ -107,7 +111,8 @@ class GroundPipeline:
         self._boxes: dict[int, np.ndarray] = {}  # stream frame -> (n, 4) boxes of those detections (xyxy, px)
         self.radius_m: dict[int, float] = {}  # apple id -> radius estimated from its boxes and depths
         self.size_rejected = 0  # confirmed apples left out of the map by the size check (counted_ids)
-        self.views_rejected = 0  # ... and by the expected views
+        self.views_rejected = 0  # ... by the expected views
+        self.parallax_rejected = 0  # ... and by the parallax of their views
         self._proj: list[np.ndarray] = []  # association frame -> its camera matrix
         self._confirmed: dict[int, int] = {}  # apple id -> views scored confirm_score or more
         self.pending: dict[int, wire.FrameMessage] = {}
@@ -454,16 +459,31 @@ class GroundPipeline:
         kept = np.unique(run[seen]) if seen else np.zeros(0, int)
         return int(np.isin(run, kept[kept > 0]).sum())
 
+    def parallax_deg(self, a: Apple) -> float:
+        """The angle (degrees) at the apple between the camera centres of its first and last views; NaN (never left
+        out) where either frame has no pose."""
+        f0, f1 = (self._seq_frame[s] if s < len(self._seq_frame) else None for s in (a.first_frame, a.last_frame))
+        p0, p1 = self.frame_poses.get(f0), self.frame_poses.get(f1)
+        if p0 is None or p1 is None:
+            return float("nan")
+        u, v = p0.centre - a.X, p1.centre - a.X
+        c = float(u @ v / max(np.linalg.norm(u) * np.linalg.norm(v), 1e-12))
+        return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
     def count_checks(self, all_expected: bool = False) -> dict[str, np.ndarray]:
         """Every confirmed apple and what the counting checks made of it: id, radius (m), observations, strong views,
         expected views (NaN where the check is off or the size check already left the apple out, unless
-        ``all_expected``) and ``left_out`` ("" counted, "small" by the size check, "few_views" by expected views)."""
+        ``all_expected``) and ``left_out`` ("" counted, "small" by the size check, "narrow" by the parallax of its views,
+        "few_views" by expected views)."""
         ids = sorted(self.apples)
         r = np.array([self.radius_m.get(i, np.nan) for i in ids], float)
         ok = np.isfinite(r)
         reason = np.full(len(ids), "", dtype=object)
         if self.s.min_radius_ratio > 0 and ok.sum() >= self.MIN_SIZED:
             reason[ok & (r < self.s.min_radius_ratio * np.median(r[ok]))] = "small"
+        if self.s.min_parallax_deg > 0:
+            narrow = np.array([self.parallax_deg(self.apples[i]) < self.s.min_parallax_deg for i in ids], bool)
+            reason[(reason == "") & narrow] = "narrow"
         nobs = np.array([self.apples[i].n_observations for i in ids], int)
         expected = np.full(len(ids), np.nan)
         if (self.s.min_view_ratio > 0 or all_expected) and self.camera is not None and ids:
@@ -473,6 +493,7 @@ class GroundPipeline:
                     expected[k] = self.expected_views(self.apples[i], proj)
             reason[(reason == "") & (nobs < self.s.min_view_ratio * expected)] = "few_views"
         self.size_rejected = int((reason == "small").sum())
+        self.parallax_rejected = int((reason == "narrow").sum())
         self.views_rejected = int((reason == "few_views").sum())
         return {"id": np.array(ids, int), "radius_m": r, "observations": nobs,
                 "strong_views": np.array([self._confirmed.get(i, 0) for i in ids], int),

@@ -166,3 +166,27 @@ def test_expected_views_leave_out_apples_seen_in_few_of_the_frames_they_lie_in(t
     c = pipe.count_checks()
     assert list(c["left_out"]) == ["", "few_views", ""] and list(c["expected_views"]) == [40, 40, 0]
     assert list(c["observations"]) == [8, 3, 3]
+
+
+def test_apples_whose_views_meet_at_a_narrow_angle_are_left_out(tmp_path):
+    """An apple 10 m away seen from cameras 1 m apart (5.7 degrees) counts; one seen from cameras 10 cm apart (0.6
+    degrees: its depth is a guess) does not, unless the check is off; an apple with a frame without a pose counts."""
+    from ground.association import Apple
+    from ground.live_poses import Pose
+    from ground.pipeline import GroundPipeline, GroundSettings
+
+    pipe = GroundPipeline(tmp_path, GroundSettings(min_radius_ratio=0.0, min_view_ratio=0.0, min_parallax_deg=2.0))
+    xs = [0.0, 0.05, 0.1, 1.0]  # camera centres along x, looking along +z
+    pipe.frame_poses = {f: Pose(f, np.eye(3), -np.array([x, 0.0, 0.0]), "registered", 0.0, 0.0) for f, x in enumerate(xs)}
+    pipe._seq_frame = [0, 1, 2, 3, 4]
+    X = np.array([0.5, 0.0, 10.0])
+    wide = Apple(1, X, [(0, 0), (1, 0), (3, 0)], 0.5)
+    narrow = Apple(2, X, [(0, 1), (1, 1), (2, 1)], 0.5)
+    unposed = Apple(3, X, [(2, 2), (3, 2), (4, 2)], 0.5)  # frame 4 has no pose
+    pipe.apples = {1: wide, 2: narrow, 3: unposed}
+    assert pipe.parallax_deg(wide) == pytest.approx(np.degrees(np.arctan(0.5 / 10) * 2), abs=0.01)
+    assert pipe.parallax_deg(narrow) < 1.0 and np.isnan(pipe.parallax_deg(unposed))
+    assert pipe.counted_ids() == [1, 3] and pipe.parallax_rejected == 1
+    assert list(pipe.count_checks()["left_out"]) == ["", "narrow", ""]
+    pipe.s.min_parallax_deg = 0.0
+    assert pipe.counted_ids() == [1, 2, 3] and pipe.parallax_rejected == 0

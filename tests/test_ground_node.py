@@ -54,8 +54,9 @@ def test_replay_end_to_end(replayed_test_flight):
     assert list(cand[0]) == CANDIDATE_COLUMNS
     assert sorted(int(c["id"]) for c in cand if c["left_out"] == "") == sorted(int(r["id"]) for r in rows)
     left = [c["left_out"] for c in cand if c["left_out"]]
-    assert set(left) <= {"small", "few_views"} and len(cand) == rep["apples"] + len(left)
+    assert set(left) <= {"small", "narrow", "few_views"} and len(cand) == rep["apples"] + len(left)
     assert left.count("small") == rep["counting"]["left_out_small"]
+    assert left.count("narrow") == rep["counting"]["left_out_narrow"]
     assert left.count("few_views") == rep["counting"]["left_out_few_views"]
     assert all(float(c["expected_views"]) >= 0 and int(c["observations"]) >= 3 for c in cand)
     assert (out / "model" / "0" / "images.txt").is_file()
