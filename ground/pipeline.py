@@ -82,7 +82,7 @@ class GroundSettings:
     min_view_ratio: float = 0.15
     #: Parallax: an apple counts only if the rays from its first and last views meet at this angle or more (degrees);
     #: 0 = off. Views over a narrower angle (a few frames at 30 fps, or the flight's last frames) leave its depth a
-    #: guess: such apples were nearly all false ones, placed metres off.
+    #: guess, and such apples are mostly false ones, placed well off.
     min_parallax_deg: float = 2.0
 
 
@@ -500,13 +500,15 @@ class GroundPipeline:
                 "expected_views": expected, "left_out": reason}
 
     def counted_ids(self) -> list[int]:
-        """The apples that count: those confirmed, less those too small for their size to be whole (size check) and
-        those detected in too few of the frames they lie in (expected views)."""
+        """The apples that count: those confirmed, less those too small for their size to be whole (size check), those
+        whose views meet at too narrow an angle (parallax) and those detected in too few of the frames they lie in
+        (expected views)."""
         c = self.count_checks()
         return [int(i) for i in c["id"][c["left_out"] == ""]]
 
     def candidates(self) -> dict[str, np.ndarray]:
-        """count_checks with each apple's position (ENU): every apple the count was chosen from."""
+        """count_checks with each apple's position (ENU and WGS84) and first and last frame: every apple the count was
+        chosen from."""
         c = self.count_checks(all_expected=True)
         X = np.array([self.apples[i].X for i in c["id"]]).reshape(-1, 3)
         enu = self.poses.to_enu(X) if self.poses is not None and len(X) else X
