@@ -294,8 +294,6 @@ def sample_views(Ps: np.ndarray, xs: np.ndarray, frames) -> tuple[tuple[np.ndarr
     return (Ps[sel], xs[sel]), np.asarray(frames)[sel]
 
 
-
-
 def joint_point(a: Apple, b: Apple) -> np.ndarray | None:
     """The point both apples' views triangulate to (None without views, or if it does not converge)."""
     if a.views is None or b.views is None:

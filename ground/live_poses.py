@@ -157,7 +157,8 @@ class LivePoses:
         over up to its own frame, never a later one (the motion prediction would run backwards)."""
         self._collect_references()
         if self._first_ref is None:
-            if self.mapper.attempts >= self.mapper.settings.first_model_tries or len(self._untracked) > self.MAX_WAITING:
+            tried = self.mapper.attempts >= self.mapper.settings.first_model_tries
+            if tried or len(self._untracked) > self.MAX_WAITING:
                 while self._untracked:
                     self.kf_processed = self._untracked.popleft()[0]
             return

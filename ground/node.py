@@ -428,7 +428,8 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
                 elif have < said and now - claim[1] > idle_timeout_s:
                     log.warning("%d of the %d frames the drone sent arrived; finishing", have, said)
                     break
-                elif have < said and now - max(claim[1], last_msg, asked) >= REQUERY_S and sub.refreshes < MAX_REQUERIES:
+                elif (have < said and now - max(claim[1], last_msg, asked) >= REQUERY_S
+                      and sub.refreshes < MAX_REQUERIES):
                     log.warning("%d of the %d frames the drone sent arrived, and nothing came for %.0f s: asking the "
                                 "drone for its history again", have, said, REQUERY_S)
                     sub.refresh()

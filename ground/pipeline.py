@@ -473,8 +473,8 @@ class GroundPipeline:
     def count_checks(self, all_expected: bool = False) -> dict[str, np.ndarray]:
         """Every confirmed apple and what the counting checks made of it: id, radius (m), observations, strong views,
         expected views (NaN where the check is off or the size check already left the apple out, unless
-        ``all_expected``) and ``left_out`` ("" counted, "small" by the size check, "narrow" by the parallax of its views,
-        "few_views" by expected views)."""
+        ``all_expected``) and ``left_out`` ("" counted, "small" by the size check, "narrow" by the parallax of its
+        views, "few_views" by expected views)."""
         ids = sorted(self.apples)
         r = np.array([self.radius_m.get(i, np.nan) for i in ids], float)
         ok = np.isfinite(r)

@@ -188,7 +188,8 @@ def _link_options(r):
                    help="send every Nth processed frame as a JPEG keyframe (0 = none)")
     r.add_argument("--keyframe-every-s", type=float,
                    help=f"or: a keyframe every this many seconds of capture time (the default, "
-                        f"{KeyframePolicy.DEFAULT_EVERY_S:g} s when nothing is set: about 0.7 MB/s at 1280x720, 10 or 30 fps)")
+                        f"{KeyframePolicy.DEFAULT_EVERY_S:g} s when nothing is set: about 0.7 MB/s at 1280x720, "
+                        f"10 or 30 fps)")
     r.add_argument("--keyframe-every-m", type=float, help="or: a keyframe every this many metres flown")
     r.add_argument("--keyframe-width", type=int, default=960, help="keyframe width in pixels (0 = native)")
     r.add_argument("--jpeg-quality", type=int, default=85)

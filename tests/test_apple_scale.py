@@ -177,7 +177,8 @@ def test_apples_whose_views_meet_at_a_narrow_angle_are_left_out(tmp_path):
 
     pipe = GroundPipeline(tmp_path, GroundSettings(min_radius_ratio=0.0, min_view_ratio=0.0, min_parallax_deg=2.0))
     xs = [0.0, 0.05, 0.1, 1.0]  # camera centres along x, looking along +z
-    pipe.frame_poses = {f: Pose(f, np.eye(3), -np.array([x, 0.0, 0.0]), "registered", 0.0, 0.0) for f, x in enumerate(xs)}
+    pipe.frame_poses = {f: Pose(f, np.eye(3), -np.array([x, 0.0, 0.0]), "registered", 0.0, 0.0)
+                        for f, x in enumerate(xs)}
     pipe._seq_frame = [0, 1, 2, 3, 4]
     X = np.array([0.5, 0.0, 10.0])
     wide = Apple(1, X, [(0, 0), (1, 0), (3, 0)], 0.5)
