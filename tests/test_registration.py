@@ -216,3 +216,29 @@ def test_the_ground_stops_extracting_sift_once_the_first_model_s_tries_are_spent
         assert live.sent > 3 * settings.init_frames  # the later ones went too, the newest first
     finally:
         live.close()
+
+
+def test_sift_on_a_shrunk_keyframe_gives_keyframe_pixels():
+    """--sift-width: SIFT runs on the keyframe shrunk, and its keypoints come back in the keyframe's own pixels (the
+    mapper's camera): the same corners found at either size lie within a pixel of each other."""
+    import cv2
+
+    from ground.registration import RegistrationSettings, SiftExtractor
+    from pomar.video import iter_frames
+
+    _, bgr = next(iter(iter_frames(ROOT / "replay_data" / "demo-flight" / "video.mp4")))
+    full_kp, _, full_d = SiftExtractor(RegistrationSettings())(bgr)
+    kp, _, d = SiftExtractor(RegistrationSettings(sift_width=bgr.shape[1] * 5 // 8))(bgr)
+    assert 0.2 * len(full_kp) < len(kp) < 0.8 * len(full_kp)  # fewer features: the point of shrinking
+    assert kp[:, 0].max() > 0.9 * bgr.shape[1] and kp[:, 1].max() > 0.9 * bgr.shape[0]
+    # mutual nearest descriptors with Lowe's ratio: the same image structure seen at both sizes
+    matches = cv2.BFMatcher(cv2.NORM_L2).knnMatch(d, full_d, k=2)
+    back = cv2.BFMatcher(cv2.NORM_L2, crossCheck=True).match(d, full_d)
+    mutual = {(m.queryIdx, m.trainIdx) for m in back}
+    good = [a for a, b in matches if a.distance < 0.7 * b.distance and (a.queryIdx, a.trainIdx) in mutual]
+    assert len(good) >= 100
+    err = np.linalg.norm(kp[[m.queryIdx for m in good], :2] - full_kp[[m.trainIdx for m in good], :2], axis=1)
+    assert np.median(err) < 0.5, np.median(err)
+    # SIFT's scale comes back in keyframe pixels too
+    ratio = kp[[m.queryIdx for m in good], 2] / full_kp[[m.trainIdx for m in good], 2]
+    assert 0.8 < np.median(ratio) < 1.25, np.median(ratio)
