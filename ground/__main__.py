@@ -63,6 +63,7 @@ def _settings(args):
                                                         min_inliers=args.min_inliers, cross_pass=not args.no_cross_pass),
                           registration=_registration_settings(args),
                           max_wait_s=args.max_wait_s, mapping=args.mapping, init_spacing_s=args.init_spacing_s,
+                          correction_every_s=args.correction_every_s,
                           tracking=TrackingSettings(min_tracked_share=args.min_tracked_share,
                                                     min_share_to_go_on=args.min_share_to_go_on),
                           min_score=args.min_score,
@@ -137,7 +138,8 @@ def _cmd_replay(args) -> int:
     ground_args = ["--k", str(args.k), "--tau-epipolar", str(args.tau_epipolar), "--tau-geom", str(args.tau_geom),
                    "--min-inliers", str(args.min_inliers)] + (["--no-cross-pass"] if args.no_cross_pass else []) + [
                    "--max-features", str(args.max_features), "--match-window", str(args.match_window),
-                   "--sift", args.sift, "--max-wait-s", str(args.max_wait_s),
+                   "--sift", args.sift, "--sift-width", str(args.sift_width), "--max-wait-s", str(args.max_wait_s),
+                   "--correction-every-s", str(args.correction_every_s),
                    "--min-tracked-share", str(args.min_tracked_share),
                    "--min-score", str(args.min_score), "--confirm-score", str(args.confirm_score),
                    "--confirm-views", str(args.confirm_views), "--tree-spacing-m", str(args.tree_spacing_m),
@@ -207,6 +209,9 @@ def _registration_options(p, init_frames: int | None = None):
                    help="registration: SIFT implementation (the mapper reads only keypoints and verified matches)")
     p.add_argument("--init-frames", type=int, default=init_frames or RegistrationSettings.init_frames,
                    help="registration: keyframes the first model is made from (live, frames wait for it; default %(default)s)")
+    p.add_argument("--sift-width", type=int, default=RegistrationSettings.sift_width,
+                   help="registration: SIFT on keyframes shrunk to at most this width (0: their own size; default "
+                        "%(default)s); extraction and matching cost about the pixel count")
     p.add_argument("--upright", action="store_true",
                    help="registration: SIFT without orientation (faster; for a camera that does not rotate in the image plane)")
     p.add_argument("--no-revisit", action="store_true",
@@ -220,7 +225,7 @@ def _registration_settings(args, **extra):
     try:
         return RegistrationSettings(max_num_features=args.max_features, match_window=args.match_window, sift=args.sift,
                                     upright=args.upright, init_frames=args.init_frames, revisit=not args.no_revisit,
-                                    **extra)
+                                    sift_width=args.sift_width, **extra)
     except ValueError as exc:  # a bad combination of options: say so, without a traceback
         raise SystemExit(f"ground: {exc}") from None
 
@@ -244,6 +249,9 @@ def _ground_options(p):
                    help="process: mapping keyframes are registered in a process of their own, and every frame is "
                         "tracked against the map meanwhile (live); inline: each is registered before the frames after it go "
                         "on (deterministic; a lock-step replay uses it)")
+    p.add_argument("--correction-every-s", type=float, default=g.correction_every_s,
+                   help="live (--mapping process): correct the poses given out, and the apples seen in them, at most "
+                        "this often as the mapper refines its keyframes (s); lock-step corrects after every keyframe")
     p.add_argument("--init-spacing-s", type=float, default=g.init_spacing_s,
                    help="before the first model, the mapper takes images at least this far apart (capture time, s)")
     p.add_argument("--min-share-to-go-on", type=float, default=g.tracking.min_share_to_go_on,

@@ -85,6 +85,8 @@ class GroundNode:
         self.settings = settings or GroundSettings()
         self.pipe = GroundPipeline(self.out / "work", self.settings)
         self._rr_args = (self.out / "flight.rrd" if rrd is True else (rrd or None), serve, viewer)
+        if any(self._rr_args):
+            import ground.rerun_log  # noqa: F401  (now: rerun imports slowly, and the first frames would wait for it)
         self.rr = None
         self.harvest = read_harvest(harvest) if harvest else None
         self.refresh_s = refresh_s

@@ -84,6 +84,9 @@ class GroundSettings:
     #: 0 = off. Views over a narrower angle (a few frames at 30 fps, or the flight's last frames) leave its depth a
     #: guess, and such apples are mostly false ones, placed well off.
     min_parallax_deg: float = 2.0
+    #: Live (mapping in its own process), pose corrections run at most this often (s); the keyframes the mapper moves
+    #: meanwhile add up, and one round corrects them all. Lock-step corrects after every keyframe (deterministic).
+    correction_every_s: float = 2.0
 
 
 @dataclass
@@ -131,6 +134,7 @@ class GroundPipeline:
                          "bad_keyframes": 0, "frames_without_pose": 0, "detections": 0,
                          "registered": 0, "tracked": 0, "interpolated": 0, "telemetry": 0}
         self.seconds = {"poses": 0.0, "association": 0.0, "corrections": 0.0}
+        self._last_correction = -float("inf")
         self.gaps: list[tuple[int, int]] = []
         self.frame_times: dict[int, float] = {}
         self.newest_t = float("-inf")  # the latest capture time of any frame received
@@ -235,18 +239,23 @@ class GroundPipeline:
             events += self._release(final=False)
             self._correct()
         events += self._release(final)
-        self._correct()
+        self._correct(final)
         return events
 
-    def _correct(self) -> None:
+    def _correct(self, now: bool = False) -> None:
         """The mapper moved keyframes (bundle adjustment, a re-anchoring on an earlier pass): the frames released about
         them take their corrected poses, and the apples seen in those frames are triangulated again from them, then
-        merged where they turn out to be one apple (seen on two passes, whose poses only now agree)."""
+        merged where they turn out to be one apple (seen on two passes, whose poses only now agree). Live, at most one
+        round per ``correction_every_s`` unless ``now``."""
         if self.poses is None:
             return
+        if (not now and self.s.mapping == "process"
+                and time.monotonic() - self._last_correction < self.s.correction_every_s):
+            return  # live: the moved keyframes wait for the next round
         moved = self.poses.take_moved()
         if not moved or not self._seq_frame:
             return
+        self._last_correction = time.monotonic()
         gap = self.poses.MAX_CORRECTION_GAP
         frames = [f for f in range(max(moved[0] - gap, 0), min(moved[-1] + gap, self.released) + 1)
                   if f in self._frame_seq]
@@ -366,7 +375,7 @@ class GroundPipeline:
         elif self._mapping_worker is not None:  # no image ever came
             self._mapping_worker.stop()
         self._confirm(self.assoc.finish())
-        self._correct()  # the mapper's last answers
+        self._correct(now=True)  # the mapper's last answers
         self._kf_for_event.clear()
         return events
 

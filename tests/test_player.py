@@ -24,6 +24,19 @@ def test_recorded_stream_at_real_time_maps_as_the_lock_step_replay(replayed_test
     assert abs(sum(rep["pose_shares"].values()) - 1.0) < 1e-9
 
 
+def test_live_pose_corrections_wait_for_their_period_and_still_come(replayed_test_flight, tmp_path):
+    """Live, the poses given out are corrected at most once per --correction-every-s: with a period longer than the
+    flight, only the end's round runs, and it still corrects the frames the mapper's keyframes moved."""
+    from ground.replay import replay
+
+    flight, out, ref = replayed_test_flight
+    rep = replay(flight.path, tmp_path / "played", recorded=out / "journal.bin", speed=1.0, quiet=True,
+                 ground_args=["--correction-every-s", "600"])
+    c = rep["corrections"]
+    assert c["rounds"] <= 2 and c["frames"] > 0, c
+    assert 0.5 * ref["apples"] - 2 <= rep["apples"] <= 1.5 * ref["apples"] + 2, (rep["apples"], ref["apples"])
+
+
 def test_bad_recordings_are_refused_naming_the_file(replayed_test_flight, tmp_path):
     _, out, _ = replayed_test_flight
     journal = (out / "journal.bin").read_bytes()
