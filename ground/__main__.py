@@ -211,7 +211,8 @@ def _registration_options(p, init_frames: int | None = None):
                    help="registration: keyframes the first model is made from (live, frames wait for it; default %(default)s)")
     p.add_argument("--sift-width", type=int, default=RegistrationSettings.sift_width,
                    help="registration: SIFT on keyframes shrunk to at most this width (0: their own size; default "
-                        "%(default)s); extraction and matching cost about the pixel count")
+                        "%(default)s): a cheaper mapper for a laptop that cannot keep up, at a cost in accuracy "
+                        "(README: Benchmarks)")
     p.add_argument("--upright", action="store_true",
                    help="registration: SIFT without orientation (faster; for a camera that does not rotate in the image plane)")
     p.add_argument("--no-revisit", action="store_true",
