@@ -2,11 +2,13 @@
 and on ADD256's test split: where the model works best, and what the telemetry foresees for each flight.
 
     .venv/bin/python benchmarks/detector_scale.py out/sim/gen/tune-1 [more flights] [--add256]
-        [--scales 0.5 0.75 1 1.25] [--every 8] [--model FILE.onnx] [--by-size]
+        [--scales 0.5 0.75 1 1.25] [--every 8] [--model FILE.onnx] [--by-size] [--bands]
 
 For each flight it prints the apple radius the telemetry foresees (pomar.apple_scale, median over frames), the
 truth's median radius (apples at least half visible), and AP, precision, recall and F1 at each scale; with
-``--add256``, the same for ADD256's test patches (radius about 6-13 px). Accuracy only.
+``--add256``, the same for ADD256's test patches (radius about 6-13 px). With ``--bands``, also a scale per image
+row instead of one per frame: each row at the scale that brings its own foreseen apple radius
+(pomar.apple_scale.row_radius_px) to the model's, among ``--scales``. Accuracy only.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import numpy as np
 from export.data import add256_split, load_sim_frames, read_rgb
 from export.metrics import evaluate_detections, iou
 from onboard.detector import OnnxDetector
-from pomar.apple_scale import flight_radius_px
+from pomar.apple_scale import flight_radius_px, row_radius_px
 from pomar.flight import FlightDir
 
 
@@ -33,6 +35,30 @@ def sweep(det, samples, scales, name: str) -> None:
         m = evaluate_detections(preds, truths, det.score_thresh)
         print(f"  {name:<16} scale {sc:>5.2f}: AP {m['ap50']:.3f}  P {m['precision']:.3f}  R {m['recall']:.3f}  "
               f"F1 {m['f1']:.3f}", flush=True)
+
+
+def band_sweep(det, samples, row_radii, scales, name: str) -> None:
+    """AP when each image row is detected at its own scale: the frame is detected at every scale in ``scales``, and a
+    detection is kept from the scale nearest what its centre's row asks for (the model's radius over the row's)."""
+    S = np.asarray(sorted(scales), float)
+    for target in (det.apple_radius_px * 0.9, det.apple_radius_px, det.apple_radius_px * 1.1):
+        preds, truths = [], []
+        for (img, boxes, ignore), r_rows in zip(samples, row_radii):
+            want = np.clip(target / np.where(np.isfinite(r_rows), r_rows, target), S[0], S[-1])
+            row_scale = S[np.abs(S[None] - want[:, None]).argmin(1)]
+            kept_b, kept_s = [], []
+            for sc in S:
+                b, sco = det.detect_rgb(img, score_thresh=0.05, scale=float(sc))
+                rows = np.clip(((b[:, 1] + b[:, 3]) / 2).round().astype(int), 0, len(r_rows) - 1)
+                keep = row_scale[rows] == sc
+                kept_b.append(b[keep])
+                kept_s.append(sco[keep])
+            preds.append((np.concatenate(kept_b), np.concatenate(kept_s)))
+            truths.append((boxes, ignore))
+        m = evaluate_detections(preds, truths, det.score_thresh)
+        print(f"  {name:<16} bands to {target:.2f} px: AP {m['ap50']:.3f}  P {m['precision']:.3f}  R {m['recall']:.3f}"
+              f"  F1 {m['f1']:.3f}  (row scales {row_scale.min():.2f}-{row_scale.max():.2f} in the last frame)",
+              flush=True)
 
 
 def recall_by_size(det, samples, scale: float, name: str, edges=(0, 3, 4, 5, 6, 8, 12, 99)) -> None:
@@ -62,6 +88,7 @@ def main(argv=None) -> int:
     p.add_argument("--every", type=int, default=8, help="every Nth frame of each flight")
     p.add_argument("--model")
     p.add_argument("--by-size", action="store_true", help="also recall by apple radius, at each scale")
+    p.add_argument("--bands", action="store_true", help="also a scale per image row, from the telemetry")
     a = p.parse_args(argv)
     det = OnnxDetector(a.model)
     print(f"model {det.path.name}: apple_radius_px {det.apple_radius_px}, threshold {det.score_thresh}")
@@ -73,8 +100,19 @@ def main(argv=None) -> int:
         print(f"{f.name}: {flight.camera().width}x{flight.camera().height}, apple radius foreseen {foreseen:.2f} px, "
               f"truth median {truth_r:.2f} px" + (f"; auto scale {det.apple_radius_px / foreseen:.2f}"
                                                   if det.apple_radius_px else ""))
-        frames = [(s.image, s.boxes, s.ignore) for s in load_sim_frames(f, 0.5, every=a.every)]
+        samples = load_sim_frames(f, 0.5, every=a.every)
+        frames = [(s.image, s.boxes, s.ignore) for s in samples]
         sweep(det, frames, a.scales, f.name)
+        if a.bands and det.apple_radius_px:
+            from pomar.telemetry import read_log
+
+            meta, cam = flight.meta(), flight.camera()
+            log_ = read_log(flight.telemetry_log)
+            t, _ = log_.frame_times(meta.frame_count, meta.video_start_utc, meta.fps, 0.0)
+            tel = log_.at(t)
+            idx = [int(s.name.rsplit(":", 1)[1]) for s in samples]
+            band_sweep(det, frames, [row_radius_px(cam, tel["height"][i], tel["q_gimbal"][i]) for i in idx], a.scales,
+                       f.name)
         if a.by_size:
             for sc in a.scales:
                 recall_by_size(det, frames, sc, f.name)

@@ -50,6 +50,23 @@ def expected_radius_px(fx: float, height_m, off_nadir, canopy_mid_m: float = CAN
     return fx * apple_radius_m / rng
 
 
+def row_radius_px(camera, height_m: float, q_ned_from_gimbal) -> np.ndarray:
+    """Per image row (at the centre column): the radius (px) of an apple where that row's ray meets the canopy's
+    middle height, from the camera's intrinsics and mount, the height above take-off and the gimbal's attitude. Rows
+    looking at or above the horizon get the radius of a ray 0.1 % below it (very small); NaN where the height is
+    not at least MIN_RANGE_M above the canopy's middle or the attitude is unknown."""
+    v = np.arange(camera.height) + 0.0
+    q = np.asarray(q_ned_from_gimbal, float)
+    above = float(height_m) - CANOPY_MID_M
+    if not np.isfinite(q).all() or not above >= MIN_RANGE_M:
+        return np.full(camera.height, np.nan)
+    # OpenCV rows (centres at 0, 1, ...) against the COLMAP-convention principal point
+    rays = np.stack([np.zeros_like(v), (v + 0.5 - camera.cy) / camera.fy, np.ones_like(v)], 1)  # camera frame, z = 1
+    down = rays @ (quat_wxyz_to_rotation(q).as_matrix() @ camera.r_gimbal_from_camera).T[:, 2]  # NED's down
+    # a point at depth z along the optical axis spans fx * r / z pixels; the ray meets the canopy at z = above / down
+    return camera.fx * APPLE_RADIUS_M * np.clip(down, 1e-3, None) / above
+
+
 @dataclass
 class ScalePolicy:
     """How frames are rescaled before detection: towards the model's apple size (``target_px``), within

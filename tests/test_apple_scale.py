@@ -32,6 +32,35 @@ def test_the_foreseen_apple_size_matches_the_flights_truth(bundled_flight):
     assert expected == pytest.approx(truth, rel=0.2)
 
 
+def test_each_image_row_foresees_the_apple_size_where_its_ray_meets_the_canopy(bundled_flight):
+    """Per image row: the centre row gives the optical axis's radius; rows nearer the horizon (the top, as the camera
+    tilts forward) see smaller apples; and the bundled flight's truth apples follow the rows' radii."""
+    from pomar.apple_scale import row_radius_px
+
+    tl = read_log(bundled_flight.telemetry_log)
+    meta, cam = bundled_flight.meta(), bundled_flight.camera()
+    t, _ = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps, 0.0)
+    tel = tl.at(t)
+    i = meta.frame_count // 2
+    r = row_radius_px(cam, tel["height"][i], tel["q_gimbal"][i])
+    axis = expected_radius_px(cam.fx, tel["height"][i], off_nadir_deg(tel["q_gimbal"][i]))[0]
+    assert r[int(round(cam.cy - 0.5))] == pytest.approx(axis, rel=0.01)
+    assert np.all(np.diff(r) > 0) and r[-1] > 1.3 * r[0]
+    # the truth's apples against their rows' radii, every 10th frame: right within 25 %, and as right at the top of
+    # the frame as at the bottom, where the apples are 1.5 times as large
+    d = bundled_flight.truth_detections()
+    ratio, top = [], []
+    for f in range(0, meta.frame_count, 10):
+        sel = (d["frame"] == f) & (d["visible_fraction"] >= 0.5)
+        rows = np.clip(np.round(d["v"][sel]).astype(int), 0, cam.height - 1)
+        ratio.append(d["r_px"][sel] / row_radius_px(cam, tel["height"][f], tel["q_gimbal"][f])[rows])
+        top.append(rows < cam.height / 2)
+    ratio, top = np.concatenate(ratio), np.concatenate(top)
+    assert np.median(ratio) == pytest.approx(1.0, rel=0.25)
+    assert np.median(ratio[top]) == pytest.approx(np.median(ratio[~top]), rel=0.15)
+    assert np.isnan(row_radius_px(cam, 1.0, tel["q_gimbal"][i])).all()  # below the canopy: not foreseen
+
+
 def test_scale_policy_and_its_setting():
     p = ScalePolicy(5.0)
     assert p.scale(10.0) == 0.5 and p.scale(40.0) == 0.25 and p.scale(2.0) == 2.0 and p.scale(1.0) == 2.0  # clamped
