@@ -346,9 +346,11 @@ class MapperProcess:
         process's pipe would otherwise queue them, and the newest could not win).
 
         For the first model's tries (its first_model_tries keyframes, while there is none), keyframes go to the
-        process at once, in order (up to INIT_QUEUE waiting), and one that has to wait there has its SIFT features
-        extracted here first: the first model needs several images, each a SIFT extraction, and this process is idle
-        until it comes (every frame waits for it), so the two processes share that work. Past those tries (a flight
+        process at once, in order (up to INIT_QUEUE waiting), and one that would wait there behind another has its
+        SIFT features extracted here first: the first model needs several images, each a SIFT extraction, and this
+        process is idle until it comes (every frame waits for it), so the two processes share that work when images
+        come faster than the process extracts them. One that would wait only for the keyframe in work goes at once:
+        extracting it here would hold it back longer than the process takes to be free. Past those tries (a flight
         that starts over ground with nothing to match) this process does not spend its time on SIFT."""
         if self._closed:
             return
@@ -357,7 +359,7 @@ class MapperProcess:
         job = (frame, jpeg.tobytes(), tel, None)
         first_tries = not self.model_pose and self.sent < self.settings.first_model_tries
         if first_tries and self.settings.sift == "colmap" and self.sent - self.answered < self.INIT_QUEUE:
-            if self.answered < self.sent:  # the process is busy: extract here meanwhile
+            if self.sent - self.answered >= 2:  # another waits there besides the one in work: extract here meanwhile
                 if self._sift is None:
                     from ground.registration import SiftExtractor
 

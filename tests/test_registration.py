@@ -194,6 +194,31 @@ def test_the_mapping_process_shares_the_first_model_s_sift_with_the_ground(reg_b
         inline.close()
 
 
+def test_a_keyframe_behind_only_the_one_in_work_goes_to_the_mapping_process_as_it_is(reg_base, tmp_path):
+    """Before the first model, a keyframe that would wait in the mapping process only for the one in work is sent
+    as it is (extracting its SIFT here would hold it back longer than the process takes to be free); those behind
+    two or more have it extracted here."""
+    from ground.mapping import MapperProcess
+    from ground.registration import RegistrationSettings
+    from pomar.camera import Camera
+    from pomar.flight import FlightDir
+    from pomar.video import iter_frames
+
+    fl = FlightDir(reg_base)
+    cam = Camera.load(fl.path / "camera.json")
+    tel = (np.full(3, np.nan), np.full(4, np.nan), 2.0)
+    live = MapperProcess(cam, cam, tmp_path / "live", RegistrationSettings(init_frames=4))
+    try:
+        for f, img in ((i, im) for i, im in iter_frames(fl.video) if i < 5):  # together
+            live.add(f, img, tel)
+        live.wait(120)
+        # the first two went as they were, the next two (behind two) were extracted here, the fifth was held
+        # (INIT_QUEUE) until the process was free
+        assert live.sent == 5 and 1 <= live.early_extracted <= 2, live.early_extracted
+    finally:
+        live.close()
+
+
 def test_the_ground_stops_extracting_sift_once_the_first_model_s_tries_are_spent(tmp_path):
     """A flight that starts over something with nothing to match (noise here): the ground shares the SIFT only for
     the first model's tries, then leaves the mapping process to it, and keeps its own time."""
