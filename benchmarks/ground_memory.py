@@ -1,7 +1,7 @@
 """The ground's memory against flight length: replays a flight (lock-step, truth-replay detector, so that only
 the ground's work is measured) and prints its resident memory at each minute of flight mapped, and its peak.
 
-    python benchmarks/ground_memory.py out/sim/long-flight [--out out/bench/memory] [--json FILE]
+    python benchmarks/ground_memory.py out/sim/long-flight [--out out/bench/memory] [--json FILE] [--no-rrd]
 
 Render the five-minute flight first: python -m sim flight --config sim/configs/long-flight.toml --out out/sim/long-flight
 The ground samples its resident memory (/proc/self/statm) every second, from a thread; report.json keeps the
@@ -26,11 +26,13 @@ def main() -> None:
     ap.add_argument("--out", help="replay output (default out/bench/memory/<flight>)")
     ap.add_argument("--json", help="also write the figures here")
     ap.add_argument("--every-s", type=float, default=60.0, help="rows of the table: one per this many flight seconds")
+    ap.add_argument("--no-rrd", action="store_true", help="without the rerun recording (what it costs in memory)")
     args = ap.parse_args()
     flight = FlightDir(args.flight_dir)
     meta = flight.meta()
     out = Path(args.out or f"out/bench/memory/{flight.path.name}")
-    rep = replay(flight.path, out, detector="truth-replay", keyframe_every=2, keyframe_width=0, quiet=False)
+    rep = replay(flight.path, out, detector="truth-replay", keyframe_every=2, keyframe_width=0, quiet=False,
+                 rrd=not args.no_rrd)
     samples = np.array(rep["timings"]["rss_mb_by_frames_mapped"], float).reshape(-1, 2)
     print(f"\n{flight.path}: {meta.frame_count} frames, {meta.frame_count / meta.fps:.0f} s of flight, "
           f"{meta.width}x{meta.height} at {meta.fps:g} fps; {rep['apples']} apples; wall {rep['wall_seconds']:.0f} s")
