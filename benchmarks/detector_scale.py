@@ -41,23 +41,23 @@ def band_sweep(det, samples, row_radii, scales, name: str) -> None:
     """AP when each image row is detected at its own scale: the frame is detected at every scale in ``scales``, and a
     detection is kept from the scale nearest what its centre's row asks for (the model's radius over the row's)."""
     S = np.asarray(sorted(scales), float)
+    detected = [[det.detect_rgb(img, score_thresh=0.05, scale=float(sc)) for sc in S] for img, _, _ in samples]
     for target in (det.apple_radius_px * 0.9, det.apple_radius_px, det.apple_radius_px * 1.1):
         preds, truths = [], []
-        for (img, boxes, ignore), r_rows in zip(samples, row_radii):
+        for (_, boxes, ignore), r_rows, per_scale in zip(samples, row_radii, detected):
             want = np.clip(target / np.where(np.isfinite(r_rows), r_rows, target), S[0], S[-1])
-            row_scale = S[np.abs(S[None] - want[:, None]).argmin(1)]
+            row_scale = np.abs(S[None] - want[:, None]).argmin(1)  # index into S, per image row
             kept_b, kept_s = [], []
-            for sc in S:
-                b, sco = det.detect_rgb(img, score_thresh=0.05, scale=float(sc))
+            for k, (b, sco) in enumerate(per_scale):
                 rows = np.clip(((b[:, 1] + b[:, 3]) / 2).round().astype(int), 0, len(r_rows) - 1)
-                keep = row_scale[rows] == sc
+                keep = row_scale[rows] == k
                 kept_b.append(b[keep])
                 kept_s.append(sco[keep])
             preds.append((np.concatenate(kept_b), np.concatenate(kept_s)))
             truths.append((boxes, ignore))
         m = evaluate_detections(preds, truths, det.score_thresh)
         print(f"  {name:<16} bands to {target:.2f} px: AP {m['ap50']:.3f}  P {m['precision']:.3f}  R {m['recall']:.3f}"
-              f"  F1 {m['f1']:.3f}  (row scales {row_scale.min():.2f}-{row_scale.max():.2f} in the last frame)",
+              f"  F1 {m['f1']:.3f}  (row scales {S[row_scale].min():.2f}-{S[row_scale].max():.2f} in the last frame)",
               flush=True)
 
 
