@@ -22,7 +22,7 @@ import numpy as np
 from export.data import add256_split, load_sim_frames, read_rgb
 from export.metrics import evaluate_detections, iou
 from onboard.detector import OnnxDetector
-from pomar.apple_scale import flight_radius_px, row_radius_px
+from pomar.apple_scale import flight_radius_px, flight_telemetry, row_radius_px
 from pomar.flight import FlightDir
 
 
@@ -104,12 +104,7 @@ def main(argv=None) -> int:
         frames = [(s.image, s.boxes, s.ignore) for s in samples]
         sweep(det, frames, a.scales, f.name)
         if a.bands and det.apple_radius_px:
-            from pomar.telemetry import read_log
-
-            meta, cam = flight.meta(), flight.camera()
-            log_ = read_log(flight.telemetry_log)
-            t, _ = log_.frame_times(meta.frame_count, meta.video_start_utc, meta.fps, 0.0)
-            tel = log_.at(t)
+            cam, tel = flight.camera(), flight_telemetry(flight)
             idx = [int(s.name.rsplit(":", 1)[1]) for s in samples]
             band_sweep(det, frames, [row_radius_px(cam, tel["height"][i], tel["q_gimbal"][i]) for i in idx], a.scales,
                        f.name)

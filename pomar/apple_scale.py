@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pomar.rotations import quat_wxyz_to_rotation
+from pomar.rotations import camera_from_gimbal_attitude, quat_wxyz_to_rotation
 
 #: Mean radius of an apple (m): 6-9 cm fruit, as the simulator's orchards and ADD256's.
 APPLE_RADIUS_M = 0.0375
@@ -62,7 +62,8 @@ def row_radius_px(camera, height_m: float, q_ned_from_gimbal) -> np.ndarray:
         return np.full(camera.height, np.nan)
     # OpenCV rows (centres at 0, 1, ...) against the COLMAP-convention principal point
     rays = np.stack([np.zeros_like(v), (v + 0.5 - camera.cy) / camera.fy, np.ones_like(v)], 1)  # camera frame, z = 1
-    down = rays @ (quat_wxyz_to_rotation(q).as_matrix() @ camera.r_gimbal_from_camera).T[:, 2]  # NED's down
+    r_enu_from_camera = camera_from_gimbal_attitude(quat_wxyz_to_rotation(q), camera.r_gimbal_from_camera)
+    down = -(rays @ r_enu_from_camera[2])  # ENU's z is up
     # a point at depth z along the optical axis spans fx * r / z pixels; the ray meets the canopy at z = above / down
     return camera.fx * APPLE_RADIUS_M * np.clip(down, 1e-3, None) / above
 
@@ -106,14 +107,19 @@ def telemetry_radius_px(fx: float, tel: dict) -> np.ndarray:
     return expected_radius_px(fx, tel["height"], off_nadir_deg(tel["q_gimbal"]))
 
 
-def flight_radius_px(flight) -> np.ndarray:
-    """Per frame of a flight directory (pomar.flight.FlightDir): the apple radius (px) foreseen from its telemetry."""
+def flight_telemetry(flight) -> dict[str, np.ndarray]:
+    """Per frame of a flight directory (pomar.flight.FlightDir): its telemetry (``TelemetryLog.at``'s dict)."""
     from pomar.telemetry import read_log
 
-    meta, cam = flight.meta(), flight.camera()
+    meta = flight.meta()
     tl = read_log(flight.telemetry_log)
     t, _ = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps, 0.0)
-    return telemetry_radius_px(cam.fx, tl.at(t))
+    return tl.at(t)
+
+
+def flight_radius_px(flight) -> np.ndarray:
+    """Per frame of a flight directory (pomar.flight.FlightDir): the apple radius (px) foreseen from its telemetry."""
+    return telemetry_radius_px(flight.camera().fx, flight_telemetry(flight))
 
 
 def policy_for(detector, setting: str = "auto") -> ScalePolicy:

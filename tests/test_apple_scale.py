@@ -35,12 +35,10 @@ def test_the_foreseen_apple_size_matches_the_flights_truth(bundled_flight):
 def test_each_image_row_foresees_the_apple_size_where_its_ray_meets_the_canopy(bundled_flight):
     """Per image row: the centre row gives the optical axis's radius; rows nearer the horizon (the top, as the camera
     tilts forward) see smaller apples; and the bundled flight's truth apples follow the rows' radii."""
-    from pomar.apple_scale import row_radius_px
+    from pomar.apple_scale import flight_telemetry, row_radius_px
 
-    tl = read_log(bundled_flight.telemetry_log)
     meta, cam = bundled_flight.meta(), bundled_flight.camera()
-    t, _ = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps, 0.0)
-    tel = tl.at(t)
+    tel = flight_telemetry(bundled_flight)
     i = meta.frame_count // 2
     r = row_radius_px(cam, tel["height"][i], tel["q_gimbal"][i])
     axis = expected_radius_px(cam.fx, tel["height"][i], off_nadir_deg(tel["q_gimbal"][i]))[0]
