@@ -37,15 +37,25 @@ for a viewer elsewhere (``serve``), or a running viewer (``connect``).
 from __future__ import annotations
 
 import logging
+import os
 from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
-import rerun as rr
-import rerun.blueprint as rrb
+import pyarrow as pa
 
 from ground.geometry import fundamental_from_projections
 from ground.outputs import row_colours
+
+# Memory stays flat over long flights only if the allocators behind the rerun SDK give back what they free. rerun's
+# Rust side allocates with mimalloc, which by default keeps freed pages a while (it reads this when its library
+# loads); pyarrow, which carries every logged array, keeps its own mimalloc pool, and the system pool returns to
+# malloc, which the node trims.
+os.environ.setdefault("MIMALLOC_PURGE_DELAY", "0")
+pa.set_memory_pool(pa.system_memory_pool())
+
+import rerun as rr  # noqa: E402
+import rerun.blueprint as rrb  # noqa: E402
 
 log = logging.getLogger(__name__)
 
