@@ -67,8 +67,7 @@ def _settings(args):
                           tracking=TrackingSettings(min_tracked_share=args.min_tracked_share,
                                                     min_share_to_go_on=args.min_share_to_go_on),
                           min_score=args.min_score,
-                          confirm_score=args.confirm_score, confirm_score_slope=args.confirm_score_slope,
-                          confirm_views=args.confirm_views,
+                          confirm_score=args.confirm_score, confirm_views=args.confirm_views,
                           tree_spacing_m=args.tree_spacing_m, min_radius_ratio=args.min_radius_ratio,
                           min_view_ratio=args.min_view_ratio, min_parallax_deg=args.min_parallax_deg)
 
@@ -143,7 +142,6 @@ def _cmd_replay(args) -> int:
                    "--correction-every-s", str(args.correction_every_s),
                    "--min-tracked-share", str(args.min_tracked_share),
                    "--min-score", str(args.min_score), "--confirm-score", str(args.confirm_score),
-                   "--confirm-score-slope", str(args.confirm_score_slope),
                    "--confirm-views", str(args.confirm_views), "--tree-spacing-m", str(args.tree_spacing_m),
                    "--min-radius-ratio", str(args.min_radius_ratio), "--min-view-ratio", str(args.min_view_ratio),
                    "--min-parallax-deg", str(args.min_parallax_deg)] \
@@ -266,8 +264,6 @@ def _ground_options(p):
     p.add_argument("--min-score", type=float, default=0.0, help="ignore detections scored below this")
     p.add_argument("--confirm-score", type=float, default=g.confirm_score,
                    help="an apple counts once --confirm-views of its views scored this much")
-    p.add_argument("--confirm-score-slope", type=float, default=g.confirm_score_slope,
-                   help="the confirm score per range: lower by this x ln(range / recent median range) (0: one score)")
     p.add_argument("--confirm-views", type=int, default=g.confirm_views, help="see --confirm-score")
     p.add_argument("--min-radius-ratio", type=float, default=g.min_radius_ratio,
                    help="size check: an apple counts only if its radius (boxes x depth) is at least this fraction of "

@@ -65,10 +65,6 @@ class GroundSettings:
     #: onboard node that sends detections down to 0.7 gives longer tracks without counting apples that
     #: are only ever glimpsed (bundled flight, journal re-run: F1 0.832 -> 0.865, count +4.7 %).
     confirm_score: float = 0.9
-    #: The confirm score per range: confirm_score - confirm_score_slope * ln(range / the median range of the last
-    #: RANGE_WINDOW apples), within 0.7-0.99. The detector scores a far (small) apple lower, and an apple of the
-    #: near row glimpsed through leaves high; 0 = one score for all.
-    confirm_score_slope: float = 0.0
     #: ... at the full frame rate. When the ground gets only every s-th frame (a real-time onboard node
     #: that drops what it cannot detect in time), ceil(confirm_views / s) views, at least 2, are asked
     #: for: an apple is in fewer of the frames sent (real-time replays, journal re-run: bundled flight F1
@@ -122,7 +118,6 @@ class GroundPipeline:
         self.parallax_rejected = 0  # ... and by the parallax of their views
         self._proj: list[np.ndarray] = []  # association frame -> its camera matrix
         self._confirmed: dict[int, int] = {}  # apple id -> views scored confirm_score or more
-        self._ranges: deque[float] = deque(maxlen=self.RANGE_WINDOW)  # recent apples' ranges (confirm_score_slope)
         self.pending: dict[int, wire.FrameMessage] = {}
         if self.s.mapping not in ("inline", "process"):
             raise ValueError(f"GroundSettings.mapping must be 'inline' or 'process', got {self.s.mapping!r}")
@@ -397,8 +392,7 @@ class GroundPipeline:
         out = []
         need = self.views_needed() if apples else 0
         for a in apples:
-            thr = self._confirm_score(a)
-            strong = sum(int(self._scores[f][d] >= thr) for f, d in a.observations if f in self._scores)
+            strong = sum(int(self._scores[f][d] >= self.s.confirm_score) for f, d in a.observations if f in self._scores)
             # a merge may bring views whose scores were already forgotten: never count down
             strong = self._confirmed[a.id] = max(strong, self._confirmed.get(a.id, 0))
             if strong >= need:
@@ -408,21 +402,6 @@ class GroundPipeline:
                     self.radius_m[a.id] = r
                 out.append(a)
         return out
-
-    RANGE_WINDOW = 500
-
-    def _confirm_score(self, a: Apple) -> float:
-        """The score a view of this apple needs to be strong: confirm_score, or with confirm_score_slope, lower for an
-        apple further than the recent apples' median range and higher for a nearer one."""
-        if not self.s.confirm_score_slope or a.views is None or not np.isfinite(a.X).all():
-            return self.s.confirm_score
-        depth = a.views[0][:, 2, :3] @ a.X + a.views[0][:, 2, 3]  # P = K [R | t]: its third row gives the depth
-        rng = float(np.median(depth))
-        if not rng > 0:
-            return self.s.confirm_score
-        self._ranges.append(rng)
-        ratio = rng / float(np.median(self._ranges))
-        return float(np.clip(self.s.confirm_score - self.s.confirm_score_slope * np.log(ratio), 0.7, 0.99))
 
     def _radius(self, a: Apple) -> float:
         """The apple's radius (m): the median over its views of the box's half-size times depth over focal length."""
