@@ -55,8 +55,9 @@ def triangulate(Ps: np.ndarray, xs: np.ndarray) -> np.ndarray:
     c = _first_centre(Ps)
     A = triangulation_rows(Ps, xs, c[..., None, :])  # (..., n, 2, 4)
     A = A.reshape(A.shape[:-3] + (-1, 4))  # (..., 2n, 4)
-    # only V is needed (2n >= 4 rows): the full U, 2n x 2n, cost 20x the rest for a track of 80 views
-    _, _, vt = np.linalg.svd(A, full_matrices=False)
+    # only V is needed: the full U, 2n x 2n, cost 20x the rest for a track of 80 views (one view: V's last row needs
+    # the full decomposition, 2 rows for 4 unknowns)
+    _, _, vt = np.linalg.svd(A, full_matrices=A.shape[-2] < 4)
     X = vt[..., -1, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         return X[..., :3] / X[..., 3:4] + c
