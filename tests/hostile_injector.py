@@ -31,12 +31,12 @@ def main() -> int:
     fps = json.loads((Path(camera_json).parent / "flight.json").read_text())["fps"]
     w, h = camera["width"], camera["height"]
     session = transport.open_session(connect=[endpoint])
-    print("ready", flush=True)
-    sys.stdin.readline()
-    t0 = time.monotonic()  # a put before the link to the ground is up goes nowhere: wait for it
+    # a put before the link to the ground is up goes nowhere: wait for it, and for the ground's subscription to
+    # be known here, before saying ready, so that on "go" everything lands while the 4-s flight still runs
+    t0 = time.monotonic()
     while not list(session.info.peers_zid()) and time.monotonic() - t0 < 30:
         time.sleep(0.1)
-    time.sleep(0.5)  # and for the ground's subscription to be known here
+    time.sleep(0.5)
     img = np.full((h, w, 3), 128, np.uint8)
     cv2.putText(img, "not this flight", (10, h // 2), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (0, 0, 255), 2)
     jpeg = cv2.imencode(".jpg", img)[1].tobytes()
@@ -65,10 +65,12 @@ def main() -> int:
             m = wire.FrameMessage(flight, who, i, 1.5e9, nan_tel, w, h, np.full((1, 4), np.nan, np.float32),
                                   np.array([0.9], np.float32))
             sent[f"NaN frame {i} ({who})"] = ("frames", who, m.encode(), "not_finite")
+    print("ready", flush=True)
+    sys.stdin.readline()
     for name, (kind, who, payload, _) in sent.items():
         # blocking: zenoh's default drops a message (the 20-MB one) when its queue is full
         session.put(f"pomar/{flight}/{who}/{kind}", payload, congestion_control=zenoh.CongestionControl.BLOCK)
-        time.sleep(0.05)
+        time.sleep(0.01)
     print(json.dumps({name: v[3] for name, v in sent.items()}), flush=True)
     sys.stdin.readline()  # the test stops us once the ground is done
     session.close()
