@@ -65,7 +65,8 @@ def _settings(args):
                           max_wait_s=args.max_wait_s, mapping=args.mapping, init_spacing_s=args.init_spacing_s,
                           correction_every_s=args.correction_every_s,
                           tracking=TrackingSettings(min_tracked_share=args.min_tracked_share,
-                                                    min_share_to_go_on=args.min_share_to_go_on),
+                                                    min_share_to_go_on=args.min_share_to_go_on,
+                                                    max_points=args.track_points),
                           min_score=args.min_score,
                           confirm_score=args.confirm_score, confirm_views=args.confirm_views,
                           tree_spacing_m=args.tree_spacing_m, min_radius_ratio=args.min_radius_ratio,
@@ -141,6 +142,7 @@ def _cmd_replay(args) -> int:
                    "--sift", args.sift, "--sift-width", str(args.sift_width), "--max-wait-s", str(args.max_wait_s),
                    "--correction-every-s", str(args.correction_every_s),
                    "--min-tracked-share", str(args.min_tracked_share),
+                   "--min-share-to-go-on", str(args.min_share_to_go_on), "--track-points", str(args.track_points),
                    "--min-score", str(args.min_score), "--confirm-score", str(args.confirm_score),
                    "--confirm-views", str(args.confirm_views), "--tree-spacing-m", str(args.tree_spacing_m),
                    "--min-radius-ratio", str(args.min_radius_ratio), "--min-view-ratio", str(args.min_view_ratio),
@@ -261,6 +263,9 @@ def _ground_options(p):
     p.add_argument("--min-tracked-share", type=float, default=g.tracking.min_tracked_share,
                    help="a frame becomes a mapping keyframe when it holds less than this share of the points of the "
                         "last one")
+    p.add_argument("--track-points", type=int, default=g.tracking.max_points,
+                   help="tracking: at most this many points of each keyframe are followed into the frames (KLT's "
+                        "cost grows with them)")
     p.add_argument("--min-score", type=float, default=0.0, help="ignore detections scored below this")
     p.add_argument("--confirm-score", type=float, default=g.confirm_score,
                    help="an apple counts once --confirm-views of its views scored this much")
