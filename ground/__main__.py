@@ -136,18 +136,7 @@ def _cmd_replay(args) -> int:
         print(describe(built), file=sys.stderr)
         flight, args.log = built["flight_dir"], None  # the built flight names its log
     out = Path(args.out or f"out/replay/{Path(flight).name}")
-    ground_args = ["--k", str(args.k), "--tau-epipolar", str(args.tau_epipolar), "--tau-geom", str(args.tau_geom),
-                   "--min-inliers", str(args.min_inliers)] + (["--no-cross-pass"] if args.no_cross_pass else []) + [
-                   "--max-features", str(args.max_features), "--match-window", str(args.match_window),
-                   "--sift", args.sift, "--sift-width", str(args.sift_width), "--max-wait-s", str(args.max_wait_s),
-                   "--correction-every-s", str(args.correction_every_s),
-                   "--min-tracked-share", str(args.min_tracked_share),
-                   "--min-share-to-go-on", str(args.min_share_to_go_on), "--track-points", str(args.track_points),
-                   "--min-score", str(args.min_score), "--confirm-score", str(args.confirm_score),
-                   "--confirm-views", str(args.confirm_views), "--tree-spacing-m", str(args.tree_spacing_m),
-                   "--min-radius-ratio", str(args.min_radius_ratio), "--min-view-ratio", str(args.min_view_ratio),
-                   "--min-parallax-deg", str(args.min_parallax_deg)] \
-        + (["--upright"] if args.upright else []) + (["--no-revisit"] if args.no_revisit else []) \
+    ground_args = _ground_argv(args) \
         + (["--mapping", args.mapping] if args.realtime or (args.recorded and args.speed > 0) else [])  # lock-step: inline
     try:
         rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
@@ -231,6 +220,23 @@ def _registration_settings(args, **extra):
                                     sift_width=args.sift_width, **extra)
     except ValueError as exc:  # a bad combination of options: say so, without a traceback
         raise SystemExit(f"ground: {exc}") from None
+
+
+def _ground_argv(args) -> list[str]:
+    """The ground's options of a parsed command line as `ground run` arguments: every option _ground_options defines,
+    but --mapping (the replay chooses it), so that none is accepted and then left behind."""
+    p = argparse.ArgumentParser(add_help=False)
+    _ground_options(p)
+    out: list[str] = []
+    for a in p._actions:
+        if not a.option_strings or a.dest == "mapping":
+            continue
+        value = getattr(args, a.dest)
+        if a.nargs == 0:  # a switch
+            out += [a.option_strings[0]] if value else []
+        else:
+            out += [a.option_strings[0], str(value)]
+    return out
 
 
 def _ground_options(p):
