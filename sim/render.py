@@ -68,7 +68,7 @@ class Renderer:
         shape = (self.cam.height, self.cam.width)
         mapx = ((xy_o[:, 0] - x_min) / sc.ground_res - 0.5).astype(np.float32).reshape(shape)
         mapy = ((y_max - xy_o[:, 1]) / sc.ground_res - 0.5).astype(np.float32).reshape(shape)
-        tex = cv2.remap(sc.ground, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        tex = _remap_window(sc.ground, mapx, mapy)
         colour = tex.reshape(-1, 3).astype(np.float32) / 255.0 * self._ground_light
         sky = np.array([0.62, 0.74, 0.90], np.float32)
         colour[~hit] = sky
@@ -170,3 +170,19 @@ class Renderer:
             visible_fraction=np.clip(counts[seen] / np.maximum(total_px[seen], 1), 0, 1),
         )
         return bgr, truth
+
+
+def _remap_window(src: np.ndarray, mapx: np.ndarray, mapy: np.ndarray) -> np.ndarray:
+    """cv2.remap (bilinear, reflected border) from the part of ``src`` the maps reach: the same pixels, and OpenCV's
+    limit of 32,767 px a side then bounds a frame's footprint, not the whole orchard's ground texture."""
+    h, w = src.shape[:2]
+    fx, fy = mapx[np.isfinite(mapx)], mapy[np.isfinite(mapy)]
+    x0 = int(np.clip(np.floor(fx.min()) - 1, 0, w)) if fx.size else 0
+    x1 = int(np.clip(np.ceil(fx.max()) + 2, x0, w)) if fx.size else w
+    y0 = int(np.clip(np.floor(fy.min()) - 1, 0, h)) if fy.size else 0
+    y1 = int(np.clip(np.ceil(fy.max()) + 2, y0, h)) if fy.size else h
+    # a window on the texture's edge reflects there as the whole texture would; inside, no pixel needs a border
+    if x1 - x0 < 2 or y1 - y0 < 2:
+        x0, x1, y0, y1 = 0, w, 0, h
+    return cv2.remap(src[y0:y1, x0:x1], mapx - np.float32(x0), mapy - np.float32(y0), cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REFLECT)

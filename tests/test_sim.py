@@ -150,3 +150,25 @@ def test_rewrite_telemetry_refuses_unknown_keys_and_real_flights(bundled_flight,
     (tmp_path / "real").mkdir()
     with pytest.raises(FlightFormatError, match="sim_config.json"):
         rewrite_telemetry(tmp_path / "real", tmp_path / "y")
+
+
+def test_ground_texture_lookup_is_remap_and_takes_textures_wider_than_opencv_allows():
+    import cv2
+
+    from sim.render import _remap_window
+
+    rng = np.random.default_rng(7)
+    src = rng.integers(0, 256, (300, 500, 3), np.uint8)
+    # a footprint inside the texture, and one running over two of its edges (reflected there)
+    for lo, hi in (((120.3, 40.7), (380.2, 210.9)), ((-30.5, -12.25), (530.75, 150.5))):
+        mx = rng.uniform(lo[0], hi[0], (60, 80)).astype(np.float32)
+        my = rng.uniform(lo[1], hi[1], (60, 80)).astype(np.float32)
+        want = cv2.remap(src, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        assert np.array_equal(_remap_window(src, mx, my), want)
+    # a 900-m orchard's texture is over 32,767 px long, which cv2.remap refuses whole
+    wide = np.zeros((20, 40_000, 3), np.uint8)
+    wide[:, 35_000:35_010] = (10, 20, 30)
+    mx, my = np.full((4, 4), 35_004.0, np.float32), np.full((4, 4), 10.0, np.float32)
+    with pytest.raises(cv2.error):
+        cv2.remap(wide, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    assert (_remap_window(wide, mx, my) == (10, 20, 30)).all()
