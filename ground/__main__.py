@@ -63,7 +63,7 @@ def _settings(args):
                                                         min_inliers=args.min_inliers, cross_pass=not args.no_cross_pass),
                           registration=_registration_settings(args),
                           max_wait_s=args.max_wait_s, mapping=args.mapping, init_spacing_s=args.init_spacing_s,
-                          correction_every_s=args.correction_every_s,
+                          correction_every_s=args.correction_every_s, drift_sigma_s=args.drift_sigma_s,
                           tracking=TrackingSettings(min_tracked_share=args.min_tracked_share,
                                                     min_share_to_go_on=args.min_share_to_go_on,
                                                     max_points=args.track_points),
@@ -287,6 +287,10 @@ def _ground_options(p):
                         "or more, degrees (narrower leaves its depth a guess); 0 = off")
     p.add_argument("--tree-spacing-m", type=float, default=g.tree_spacing_m,
                    help="trees along a row are this far apart (m): trees.csv counts apples per tree segment")
+    p.add_argument("--drift-sigma-s", type=float, default=g.drift_sigma_s,
+                   help="the map's drift corrected from the GPS: apples and cameras moved by the GPS's mean "
+                        "disagreement with the map over this much flight around them (Gaussian sigma, s); 0 = one "
+                        "similarity for the whole map")
 
 
 def main(argv=None) -> int:

@@ -87,3 +87,40 @@ def georeference_poses(R_model: np.ndarray, t_model: np.ndarray, sim: Similarity
     R_enu = np.asarray(R_model) @ sim.R.T
     t_enu = sim.scale * np.asarray(t_model) - np.einsum("nij,j->ni", R_enu, sim.t)
     return R_enu, t_enu
+
+
+def drift_offsets(kf_frames: np.ndarray, residuals: np.ndarray, weights: np.ndarray, frames: np.ndarray,
+                  sigma_frames: float) -> np.ndarray:
+    """ENU offsets (n, 3) at ``frames``: the keyframes' residuals (GPS minus the map's camera centre, (m, 3)) fitted by
+    a line around each frame, with Gaussian weights of their distance in frames (``sigma_frames``) times ``weights``
+    (1 / GPS variance).
+
+    One similarity takes the whole chain of sub-models into ENU, fitted to its recent keyframes; over minutes of flight
+    the chain bends (a 900-m pass: 25 m at its start), and these offsets take each stretch of the map to where the
+    GPS around it puts it. A kernel wider than the GPS error's wander keeps that wander out of the map's shape."""
+    q = np.asarray(frames, float).reshape(-1)
+    out = np.zeros((len(q), 3))
+    kf = np.asarray(kf_frames, float).reshape(-1)
+    if len(kf) == 0 or len(q) == 0 or not sigma_frames > 0:
+        return out
+    order = np.argsort(kf)
+    kf = kf[order]
+    res = np.asarray(residuals, float).reshape(-1, 3)[order]
+    w0 = np.asarray(weights, float).reshape(-1)[order]
+    by_frame = np.argsort(q)
+    for s in range(0, len(q), 256):  # in blocks of 256 frames, against the keyframes within 5 sigma of them
+        qi = by_frame[s:s + 256]
+        a, b = np.searchsorted(kf, [q[qi].min() - 5 * sigma_frames, q[qi].max() + 5 * sigma_frames], side="left")
+        if a == b:
+            continue
+        d = (kf[None, a:b] - q[qi, None]) / sigma_frames
+        w = np.exp(-0.5 * d * d) * w0[None, a:b]
+        # a line through the residuals around each frame, not their mean: at the flight's ends, where the keyframes
+        # lie on one side only, a mean would lag a drift that is still growing
+        s0, s1, s2 = w.sum(1), (w * d).sum(1), (w * d * d).sum(1)
+        t0, t1 = w @ res[a:b], (w * d) @ res[a:b]
+        det = s0 * s2 - s1 * s1
+        line = det > 1e-9 * np.maximum(s0 * s2, 1e-300)
+        out[qi] = np.where(line[:, None], (s2[:, None] * t0 - s1[:, None] * t1) / np.where(line, det, 1.0)[:, None],
+                           t0 / np.maximum(s0, 1e-300)[:, None])
+    return out

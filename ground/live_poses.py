@@ -31,7 +31,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from ground.georeference import georeference_poses
+from ground.georeference import drift_offsets, georeference_poses
 from ground.mapping import Mapper, MapperProcess, MappingWorker
 from ground.poses import camera_rotations
 from ground.registration import RegistrationSettings
@@ -95,6 +95,8 @@ class LivePoses:
         self.frozen: Similarity | None = None  # model -> association frame (a fit frozen), or None
         self.assoc_from_enu: Similarity | None = None  # set when the association frame is ENU itself
         self.seconds = {"tracking": 0.0, "mapping_inline": 0.0}
+        self.drift_m = 0.0  # how far the drift corrections spread along the flight (m), see drift_correction
+        self.drift_corrected = False
 
     @staticmethod
     def _scaled(cam: Camera, width: int) -> Camera:
@@ -290,6 +292,32 @@ class LivePoses:
 
     def to_enu(self, X: np.ndarray) -> np.ndarray:
         return self.assoc_to_enu().apply(np.asarray(X, float).reshape(-1, 3))
+
+    #: The drift correction applies once the map has drifted this many times the GPS's stated accuracy (the spread
+    #: of the corrections along the flight): below, what it would follow is mostly the GPS error's own wander.
+    DRIFT_MIN_GPS_SIGMAS = 4.0
+
+    def drift_correction(self, frames, sigma_frames: float) -> np.ndarray:
+        """ENU offsets (n, 3) to add at these frames to what :meth:`to_enu` gives: where the GPS of the registered
+        keyframes around them (Gaussian, ``sigma_frames``) disagrees with the map after its one similarity
+        (:func:`ground.georeference.drift_offsets`). Zero without a model, with ``sigma_frames`` 0, or while the
+        corrections spread less than DRIFT_MIN_GPS_SIGMAS x the GPS accuracy along the flight (``drift_m``)."""
+        zeros = np.zeros((len(np.atleast_1d(frames)), 3))
+        S = self.fit
+        if S is None or self.frozen is None or not sigma_frames > 0:
+            return zeros
+        kf = np.array([f for f in self.model_pose if f in self.tel and np.isfinite(self.tel[f][0]).all()], int)
+        if len(kf) < 3:
+            return zeros
+        R = np.array([self.model_pose[f][0] for f in kf])
+        t = np.array([self.model_pose[f][1] for f in kf])
+        res = np.array([self.tel[f][0] for f in kf]) - S.apply(-np.einsum("nji,nj->ni", R, t))
+        sigma = np.array([self.tel[f][2] for f in kf])
+        w = 1.0 / sigma**2
+        at_kf = drift_offsets(kf, res, w, kf, sigma_frames)
+        self.drift_m = float(np.linalg.norm(at_kf - np.average(at_kf, axis=0, weights=w), axis=1).max())
+        self.drift_corrected = self.drift_m >= self.DRIFT_MIN_GPS_SIGMAS * float(np.median(sigma))
+        return drift_offsets(kf, res, w, frames, sigma_frames) if self.drift_corrected else zeros
 
     # -- decisions
     def ready(self, frame: int, final: bool = False, stalled: bool = False) -> bool:

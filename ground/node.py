@@ -79,7 +79,8 @@ class GroundNode:
 
     def __init__(self, out_dir, settings: GroundSettings | None = None, rrd: Path | None | bool = True,
                  serve: bool = False, viewer: str | None = None, harvest: Path | None = None, refresh_s: float = 2.0,
-                 stream: wire.StreamFilter | None = None):
+                 stream: wire.StreamFilter | None = None, progress_s: float | None = None,
+                 expected_frames: int | None = None):
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
         self.settings = settings or GroundSettings()
@@ -91,6 +92,9 @@ class GroundNode:
         self.harvest = read_harvest(harvest) if harvest else None
         self.refresh_s = refresh_s
         self._last_refresh = 0.0
+        self.progress_s = progress_s  # a progress line this often (None: none)
+        self.expected_frames = expected_frames
+        self._last_progress = time.monotonic()
         self.t_start = time.monotonic()
         self.t_first_msg = None
         self.messages = 0
@@ -130,18 +134,34 @@ class GroundNode:
         self._after(events)
 
     def step(self) -> None:
+        """Process what the messages so far make ready; the frames released go to the log and the map files as they
+        come, so a long backlog (a lock-step replay takes the stream in batches) shows its progress meanwhile."""
         try:
-            events = self.pipe.step()
+            self.pipe.step(on_events=self._after)
         except Exception as exc:
             log.exception("processing failed: %s", exc)
             self.errors.append(f"step: {exc}")
-            return
-        self._after(events)
 
     def _after(self, events) -> None:
         self._log_events(events)
         if time.monotonic() - self._last_refresh > self.refresh_s:
             self.refresh()
+        self.log_progress()
+
+    def log_progress(self) -> None:
+        """One line, every progress_s: frames received and mapped, the rate of the last FPS_WINDOW_S, an ETA where
+        the flight's length is known."""
+        now = time.monotonic()
+        if self.progress_s is None or now - self._last_progress <= self.progress_s:
+            return
+        self._last_progress = now
+        c, n = self.pipe.counters, self.expected_frames
+        mapped, fps = self.pipe.released + 1, self.ground_fps()
+        eta = f", ETA {(n - mapped) / fps:.0f} s" if n and fps == fps and fps > 0 else ""
+        rejected = sum(self.stream.rejected.values()) if self.stream else 0
+        log.info("frames %d received, %d%s mapped (%.1f fps%s), keyframes %d, apples %d, wall %.0f s%s",
+                 c["frames"], mapped, f"/{n}" if n else "", fps, eta, c["keyframes"], len(self.pipe.apples),
+                 now - self.t_start, f", {rejected} messages rejected" if rejected else "")
 
     def _log_events(self, events):
         rr = self._rerun()
@@ -255,6 +275,9 @@ class GroundNode:
                 "revisits": reg["revisits"] if reg else 0,
                 "reanchored": reg["reanchored"] if reg else 0,
                 "rejoined": reg["rejoined"] if reg else 0,
+                # the map's drift from the GPS along the flight, and whether the outputs were corrected for it
+                "drift_m": p.poses.drift_m if p.poses else 0.0,
+                "drift_corrected": p.poses.drift_corrected if p.poses else False,
                 "seconds_per_keyframe_median": float(np.median(reg["seconds"])) if reg and reg["seconds"] else None,
                 "stage_seconds_median": reg["stage_seconds_median"] if reg else None,
                 "mapping": self.settings.mapping,
@@ -308,7 +331,7 @@ class GroundNode:
 
     def finish(self) -> dict:
         try:
-            self._log_events(self.pipe.finish())
+            self.pipe.finish(on_events=self._log_events)
         except Exception as exc:
             log.exception("finishing the flight failed: %s", exc)
             self.errors.append(f"finish: {exc}")
@@ -358,7 +381,8 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
     else:
         read = None
         journal_path.unlink(missing_ok=True)
-    node = GroundNode(out, settings, rrd, serve, viewer, harvest, stream=stream)
+    node = GroundNode(out, settings, rrd, serve, viewer, harvest, stream=stream, progress_s=progress_s,
+                      expected_frames=expected_frames)
     if read is not None:
         log.info("resuming from %s: %d messages%s", journal_path, len(read.records),
                  f", {read.damaged_bytes} damaged bytes skipped" if read.damaged else "")
@@ -380,7 +404,6 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
     if read is not None and read.records:
         node.pipe.hold_gaps(HISTORY_WAIT_S)
     last_msg = time.monotonic()
-    last_progress = time.monotonic()
     claim = None  # (the status saying the flight ended, when it came)
 
     def contradicted(m: wire.StatusMessage) -> bool:
@@ -440,17 +463,7 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
             if now - last_msg > idle_timeout_s:
                 log.warning("no message for %.0f s: finishing the flight", idle_timeout_s)
                 break
-            if now - last_progress > progress_s:
-                last_progress = now
-                c = node.pipe.counters
-                mapped, fps = node.pipe.released + 1, node.ground_fps()
-                eta = (f", ETA {(expected_frames - mapped) / fps:.0f} s" if expected_frames and fps == fps and fps > 0
-                       else "")
-                rejected = sum(stream.rejected.values())
-                log.info("frames %d received, %d%s mapped (%.1f fps%s), keyframes %d, apples %d, wall %.0f s%s",
-                         c["frames"], mapped, f"/{expected_frames}" if expected_frames else "", fps, eta,
-                         c["keyframes"], len(node.pipe.apples), now - node.t_start,
-                         f", {rejected} messages rejected" if rejected else "")
+            node.log_progress()
     except KeyboardInterrupt:
         log.warning("interrupted: writing what there is")
     finally:

@@ -87,6 +87,11 @@ class GroundSettings:
     #: Live (mapping in its own process), pose corrections run at most this often (s); the keyframes the mapper moves
     #: meanwhile add up, and one round corrects them all. Lock-step corrects after every keyframe (deterministic).
     correction_every_s: float = 2.0
+    #: The map's drift along the flight, corrected from the GPS: each apple and camera is moved by the GPS's mean
+    #: disagreement with the map over the registered keyframes within about this much flight (Gaussian sigma, s);
+    #: 0 = one similarity for the whole map. Wider than the GPS error's wander (tens of seconds), so that it stays
+    #: out of the map's shape.
+    drift_sigma_s: float = 60.0
 
 
 @dataclass
@@ -218,16 +223,23 @@ class GroundPipeline:
         self.counters["keyframes"] += 1
 
     # -- processing
-    def step(self, final: bool = False) -> list[FrameEvent]:
+    def step(self, final: bool = False, on_events=None) -> list[FrameEvent]:
         """Hand the waiting images to the poses (tracking; mapping keyframes), then release every frame whose pose
-        can be decided."""
+        can be decided. With ``on_events``, the frames released after each image go to it as they come (a backlog
+        can take minutes: the map and the progress are shown meanwhile) and nothing is returned."""
         if self.camera is None:
             return []
         if self.poses is None:
             if not self.keyframes and not final and not self._stalled():
                 return []
             self._make_poses(self._first_keyframe_width())
-        events = []
+        events: list[FrameEvent] = []
+
+        def out(evs: list[FrameEvent]) -> None:
+            if on_events is None:
+                events.extend(evs)
+            elif evs:
+                on_events(evs)
         # images in order, but never ahead of the frames: a frame needs the image after it. An image waits for its
         # frame's message (the telemetry the mapper's georeferencing needs; the streams do not keep each other's
         # order), unless a later frame's came (then it was lost)
@@ -236,9 +248,9 @@ class GroundPipeline:
                 break
             jpeg = self.keyframes.pop(f)
             self._add_image(f, jpeg)
-            events += self._release(final=False)
+            out(self._release(final=False))
             self._correct()
-        events += self._release(final)
+        out(self._release(final))
         self._correct(final)
         return events
 
@@ -364,12 +376,15 @@ class GroundPipeline:
             self.poses.forget_before(f - 4 * self.s.association.k - 2 * self.s.max_interp_gap)
         return events
 
-    def finish(self) -> list[FrameEvent]:
-        """End of the flight: register what is left, release every frame, close every track."""
+    def finish(self, on_events=None) -> list[FrameEvent]:
+        """End of the flight: register what is left, release every frame, close every track. ``on_events`` as in
+        :meth:`step`."""
+        events = []
         if self.poses is not None:
-            self.step()
+            events += self.step(on_events=on_events)
             self.poses.settle()
-        events = self.step(final=True) if self.camera is not None else []
+        if self.camera is not None:
+            events += self.step(final=True, on_events=on_events)
         if self.poses is not None:
             self.poses.close()  # maps what is waiting: the model files are written from it
         elif self._mapping_worker is not None:  # no image ever came
@@ -432,7 +447,7 @@ class GroundPipeline:
             return {k: np.zeros(0) for k in ("frame", "t_unix", "source", "x", "y", "z", "lat", "lon", "alt",
                                              "qw", "qx", "qy", "qz", "sigma_m")}
         S = self.poses.assoc_to_enu()
-        C = S.apply(np.array([p.centre for p in P]))
+        C = S.apply(np.array([p.centre for p in P])) + self.poses.drift_correction(frames, self._drift_sigma_frames())
         R = np.array([p.R for p in P]) @ S.R.T  # ENU-to-camera
         q = Rotation.from_matrix(R).as_quat()  # xyzw
         geo = np.asarray(self.poses.origin.to_geodetic(C)).reshape(-1, 3) if self.poses.origin else np.full(C.shape, np.nan)
@@ -519,14 +534,27 @@ class GroundPipeline:
         """count_checks with each apple's position (ENU and WGS84) and first and last frame: every apple the count was
         chosen from."""
         c = self.count_checks(all_expected=True)
-        X = np.array([self.apples[i].X for i in c["id"]]).reshape(-1, 3)
-        enu = self.poses.to_enu(X) if self.poses is not None and len(X) else X
-        geo = self._geodetic(enu)
         A = [self.apples[i] for i in c["id"]]
+        enu = self._enu(A)
+        geo = self._geodetic(enu)
         return {**c, "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
                 "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
                 "first_frame": np.array([self._seq_frame[a.first_frame] for a in A], int),
                 "last_frame": np.array([self._seq_frame[a.last_frame] for a in A], int)}
+
+    def _drift_sigma_frames(self) -> float:
+        return self.s.drift_sigma_s * (self.fps or 0.0)
+
+    def _enu(self, A: list[Apple]) -> np.ndarray:
+        """(N, 3) ENU positions of these apples: the map's similarity, then the drift correction averaged over the
+        frames each apple was seen in (an apple seen again on a later pass takes both stretches' corrections)."""
+        X = np.array([a.X for a in A]).reshape(-1, 3)
+        if self.poses is None or not len(X):
+            return X
+        seqs = [[sq for sq, _ in a.observations] for a in A]
+        frames = np.unique([self._seq_frame[sq] for ss in seqs for sq in ss])
+        off = dict(zip(frames.tolist(), self.poses.drift_correction(frames, self._drift_sigma_frames())))
+        return self.poses.to_enu(X) + np.array([np.mean([off[self._seq_frame[sq]] for sq in ss], 0) for ss in seqs])
 
     def _geodetic(self, enu: np.ndarray) -> np.ndarray:
         """(N, 3) lat, lon, alt of ENU points; NaN before the map is georeferenced."""
@@ -539,10 +567,9 @@ class GroundPipeline:
         first/last frame."""
         ids = self.counted_ids()
         A = [self.apples[i] for i in ids]
-        X = np.array([a.X for a in A]).reshape(-1, 3)
-        enu = self.poses.to_enu(X) if self.poses is not None and len(X) else X
+        enu = self._enu(A)
         geo = self._geodetic(enu)
-        rows, direction = direction_rows(enu[:, :2]) if len(X) >= 2 else (np.zeros(len(X), int), 0.0)
+        rows, direction = direction_rows(enu[:, :2]) if len(A) >= 2 else (np.zeros(len(A), int), 0.0)
         self.row_direction = direction
         return {"id": np.array(ids, int), "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
                 "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],

@@ -126,6 +126,9 @@ def evaluate_map(flight: FlightDir, out: Path, min_visible: float = 0.5, match_m
             "scale_error_pct": 100.0 * (1.0 / S.scale - 1.0),
             "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(S.R) - 1) / 2, -1, 1)))),
             "camera_rms_after_m": fit.position_rms_m,
+            # where GPS put the cameras (poses.csv): a map that drifts along a long flight shows here
+            "camera_error_median_m": float(np.median(np.linalg.norm(cams - C_true, axis=1))),
+            "camera_error_max_m": float(np.linalg.norm(cams - C_true, axis=1).max()),
         }
     absolute = score_map(flight, apples, min_visible=min_visible, match_m=match_m)
     res["absolute"] = {k: absolute[k] for k in keys if k != "rows"}
@@ -139,7 +142,8 @@ def format_evaluation(ev: dict) -> str:
     lines = []
     if g:
         lines.append(f"the map's shape, scored after removing the georeferencing error (GPS: offset {g['offset_m']:.2f} m, "
-                     f"scale {g['scale_error_pct']:+.2f} %, rotation {g['rotation_deg']:.2f} deg)")
+                     f"scale {g['scale_error_pct']:+.2f} %, rotation {g['rotation_deg']:.2f} deg; cameras "
+                     f"{g['camera_error_median_m']:.2f} m off, at most {g['camera_error_max_m']:.2f} m)")
     lines += [f"{'count':>7}{'truth':>7}{'err %':>8}{'prec':>7}{'rec':>7}{'F1':>7}{'med m':>8}{'p95 m':>8}",
              f"{ev['count']:>7}{ev['truth_count']:>7}{ev['count_error_pct']:>8.1f}{ev['precision']:>7.3f}"
              f"{ev['recall']:>7.3f}{ev['f1']:>7.3f}{ev['median_error_m']:>8.3f}{ev['p95_error_m']:>8.3f}"]

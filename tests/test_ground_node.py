@@ -291,6 +291,26 @@ def test_lock_step_repeats_bit_for_bit(replay_test_flight, tmp_path):
     assert a0.keys() == a1.keys() and len(a0) > 0 and all(np.array_equal(a0[i], a1[i]) for i in a0)
 
 
+def test_a_backlog_mapped_in_one_step_shows_its_progress_as_it_goes(replay_test_flight, tmp_path, caplog):
+    """A lock-step replay hands the ground its stream in batches, and one step maps a whole batch (minutes on a long
+    flight): its frames reach the log, the map files and the progress line as they are released, not at its end."""
+    import logging
+    import re
+
+    from ground.node import GroundNode
+
+    msgs = _onboard_messages(replay_test_flight, keyframe_every=1)
+    node = GroundNode(tmp_path / "out", rrd=False, progress_s=0.0, expected_frames=20)
+    for m in msgs:
+        node.handle(m, step=False)
+    with caplog.at_level(logging.INFO, logger="ground.node"):
+        node.step()
+    mapped = [int(m.group(1)) for r in caplog.records if (m := re.search(r"(\d+)/20 mapped", r.getMessage()))]
+    assert len(mapped) >= 3 and mapped == sorted(mapped) and mapped[0] < mapped[-1], mapped
+    report = node.finish()
+    assert report["frames"]["frames"] == 20 and report["apples"] > 0
+
+
 def test_mapping_in_its_own_process_maps_every_frame(replay_test_flight, tmp_path):
     """Live, the mapper runs in its own process: frames are tracked meanwhile, every frame gets a pose, and the
     sub-models come back written to disk when the flight ends."""
