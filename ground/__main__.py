@@ -288,9 +288,9 @@ def _ground_options(p):
     p.add_argument("--tree-spacing-m", type=float, default=g.tree_spacing_m,
                    help="trees along a row are this far apart (m): trees.csv counts apples per tree segment")
     p.add_argument("--drift-sigma-s", type=float, default=g.drift_sigma_s,
-                   help="the map's drift corrected from the GPS: apples and cameras moved by the GPS's mean "
-                        "disagreement with the map over this much flight around them (Gaussian sigma, s); 0 = one "
-                        "similarity for the whole map")
+                   help="the map's drift corrected from the GPS: apples and cameras moved by the GPS's "
+                        "disagreement with the map, fitted over this much flight around them (Gaussian sigma, s), where "
+                        "the map drifted well beyond the GPS's accuracy; 0 = one similarity for the whole map")
 
 
 def main(argv=None) -> int:

@@ -87,10 +87,10 @@ class GroundSettings:
     #: Live (mapping in its own process), pose corrections run at most this often (s); the keyframes the mapper moves
     #: meanwhile add up, and one round corrects them all. Lock-step corrects after every keyframe (deterministic).
     correction_every_s: float = 2.0
-    #: The map's drift along the flight, corrected from the GPS: each apple and camera is moved by the GPS's mean
-    #: disagreement with the map over the registered keyframes within about this much flight (Gaussian sigma, s);
-    #: 0 = one similarity for the whole map. Wider than the GPS error's wander (tens of seconds), so that it stays
-    #: out of the map's shape.
+    #: The map's drift along the flight, corrected from the GPS: each camera is moved by the GPS's disagreement with
+    #: the map, a line fitted over the registered keyframes within about this much flight (Gaussian sigma, s), and each
+    #: apple by its views' mean; 0 = one similarity for the whole map. Wider than the GPS error's wander (tens of
+    #: seconds), so that it stays out of the map's shape; and only where the map drifted (LivePoses.drift_correction).
     drift_sigma_s: float = 60.0
 
 
@@ -551,10 +551,10 @@ class GroundPipeline:
         X = np.array([a.X for a in A]).reshape(-1, 3)
         if self.poses is None or not len(X):
             return X
-        seqs = [[sq for sq, _ in a.observations] for a in A]
-        frames = np.unique([self._seq_frame[sq] for ss in seqs for sq in ss])
+        seen = [[self._seq_frame[sq] for sq, _ in a.observations] for a in A]
+        frames = np.unique(np.concatenate(seen))
         off = dict(zip(frames.tolist(), self.poses.drift_correction(frames, self._drift_sigma_frames())))
-        return self.poses.to_enu(X) + np.array([np.mean([off[self._seq_frame[sq]] for sq in ss], 0) for ss in seqs])
+        return self.poses.to_enu(X) + np.array([np.mean([off[f] for f in fs], 0) for fs in seen])
 
     def _geodetic(self, enu: np.ndarray) -> np.ndarray:
         """(N, 3) lat, lon, alt of ENU points; NaN before the map is georeferenced."""
