@@ -19,6 +19,7 @@ from __future__ import annotations
 import bisect
 import logging
 import multiprocessing as mp
+import multiprocessing.connection
 import os
 import queue
 import threading
@@ -231,6 +232,21 @@ class Mapper:
         return out
 
 
+def _exit_with_parent() -> None:
+    """Stop this process as soon as the ground that started it is gone, even in the middle of a job: the pipe's EOF
+    is only read between jobs, and one registration can take many seconds."""
+    parent = mp.parent_process()
+    if parent is None:
+        return
+
+    def watch():
+        mp.connection.wait([parent.sentinel])
+        log.warning("the ground process is gone: the mapping process stops")
+        os._exit(0)
+
+    threading.Thread(target=watch, daemon=True, name="parent-watch").start()
+
+
 def _serve(jobs, results) -> None:
     """The mapping process: take the mapper's settings, map each job, send back what changed; on None, write the
     sub-models to disk and say where."""
@@ -238,6 +254,7 @@ def _serve(jobs, results) -> None:
     level = logging.getLevelName(os.environ.get("POMAR_LOG_LEVEL", "INFO").upper())
     logging.basicConfig(level=level if isinstance(level, int) else logging.INFO,
                         format="%(asctime)s %(levelname)s %(name)s [mapping]: %(message)s")
+    _exit_with_parent()
     try:
         config = jobs.recv()
     except EOFError:

@@ -52,6 +52,8 @@ from ground.outputs import row_colours
 # loads); pyarrow, which carries every logged array, keeps its own mimalloc pool, and the system pool returns to
 # malloc, which the node trims.
 os.environ.setdefault("MIMALLOC_PURGE_DELAY", "0")
+# rerun's own warnings as usual, but not the file sink's about the chunk index it leaves out: RerunLog adds it at close
+os.environ.setdefault("RUST_LOG", "warn,re_log_encoding::rrd::file_sink=error")
 pa.set_memory_pool(pa.system_memory_pool())
 
 import rerun as rr  # noqa: E402
@@ -205,10 +207,13 @@ class RerunLog:
                  apples_every: int = 5):
         self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=flight_id)
         self.sinks = []
-        if rrd is not None:
-            Path(rrd).parent.mkdir(parents=True, exist_ok=True)
-            self.rec.save(str(rrd), default_blueprint=blueprint())
-            self.sinks.append(str(rrd))
+        self.rrd = Path(rrd) if rrd is not None else None
+        if self.rrd is not None:
+            self.rrd.parent.mkdir(parents=True, exist_ok=True)
+            # No chunk index (footer) while the flight goes on: the file sink would hold one entry per chunk in
+            # memory until the end, so the ground's memory would grow with the flight. close() adds it.
+            self.rec.save(str(self.rrd), default_blueprint=blueprint(), write_footer=False)
+            self.sinks.append(str(self.rrd))
         if serve:
             uri = self.rec.serve_grpc(default_blueprint=blueprint())
             self.sinks.append(uri)
@@ -431,6 +436,36 @@ class RerunLog:
             self._frame_view()
         self.rec.flush()
         self.rec.disconnect()
+        if self.rrd is not None:
+            finish_rrd(self.rrd)
+
+
+def finish_rrd(path: Path, timeout_s: float = 600.0) -> bool:
+    """Compact a flight's .rrd and give it its chunk index, in place (``rerun rrd optimize``, in its own process, so
+    its memory is not the ground's). The file as written stays if that fails: it is a valid recording without an
+    index. Returns whether the file was replaced."""
+    import subprocess
+    import sys
+    import time
+
+    path = Path(path)
+    tmp = path.with_name(path.name + ".optimizing")
+    t0, size = time.monotonic(), path.stat().st_size
+    cmd = [sys.executable, "-m", "rerun", "rrd", "optimize", str(path), "-o", str(tmp)]
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+        ok = proc.returncode == 0 and tmp.exists() and tmp.stat().st_size > 0
+        why = proc.stderr.strip().splitlines()[-1] if not ok and proc.stderr.strip() else f"exit {proc.returncode}"
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        ok, why = False, str(exc)
+    if not ok:
+        tmp.unlink(missing_ok=True)
+        log.warning("rerun: %s kept as written, without its chunk index (`rerun rrd optimize` failed: %s)", path, why)
+        return False
+    os.replace(tmp, path)
+    log.info("rerun: %s compacted and indexed in %.1f s (%.1f -> %.1f MB)", path, time.monotonic() - t0, size / 1e6,
+             path.stat().st_size / 1e6)
+    return True
 
 
 def rrd_entities(path) -> dict[str, int]:

@@ -44,3 +44,37 @@ def test_frames_follow_the_keyframes_the_mapper_moved(tmp_path):
         assert lp.corrected(given, range(0, 101)) == {}
     finally:
         lp.close()
+
+
+def test_drift_correction_applies_only_where_the_map_drifted_beyond_the_gps_wander(tmp_path):
+    """The gate of LivePoses.drift_correction: a map rigid within the GPS's stated accuracy is left as it is (what a
+    correction would follow there is the GPS error's wander); a map that bent away from the GPS is taken back to it."""
+    lp = LivePoses(Camera.from_fov(1280, 720, 50.0), tmp_path)
+    try:
+        rng = np.random.default_rng(5)
+        lp.frozen = IDENTITY
+        lp.mapper.fit = IDENTITY  # model frame = ENU
+        kf = np.arange(0, 3000, 2)
+        truth = np.stack([0.3 * kf, np.zeros(len(kf)), np.full(len(kf), 10.0)], 1)
+        for f, c in zip(kf, truth):
+            lp.mapper.model_pose[int(f)] = (np.eye(3), -c)
+        q = np.arange(0, 3000, 5)
+
+        def gps(drift):
+            for f, c, d in zip(kf, truth, drift):
+                lp.tel[int(f)] = (c + d + rng.normal(0, 0.5, 3) * [1, 1, 0], np.array([1.0, 0, 0, 0]), 0.5)
+
+        gps(np.zeros((len(kf), 3)))  # rigid map, 0.5-m GPS noise stated as 0.5 m
+        assert not lp.drift_correction(q, 60.0).any()
+        assert not lp.drift_corrected and lp.drift_m < lp.DRIFT_MIN_GPS_SIGMAS * 0.5, lp.drift_m
+
+        bend = np.stack([np.zeros(len(kf)), 15 * (1 - kf / 3000) ** 2, np.zeros(len(kf))], 1)
+        gps(bend)  # the map's start lies 15 m from the GPS, its end on it
+        off = lp.drift_correction(q, 60.0)
+        assert lp.drift_corrected and lp.drift_m > 10, lp.drift_m
+        want = np.stack([np.zeros(len(q)), 15 * (1 - q / 3000) ** 2, np.zeros(len(q))], 1)
+        err = np.linalg.norm(off - want, axis=1)
+        assert np.median(err) < 0.15 and err.max() < 0.5, (np.median(err), err.max())
+        assert not lp.drift_correction(q, 0.0).any()  # switched off
+    finally:
+        lp.close()

@@ -117,6 +117,32 @@ def test_boxes_only_with_their_image_and_lines_inside_it(tmp_path):
     assert n_lines >= 10
 
 
+def test_the_recording_streams_without_its_index_and_gets_it_compacted_at_close(tmp_path):
+    """While the flight goes on, flight.rrd is written without its chunk index (the file sink would hold one entry
+    per chunk in memory to the end); at close it is compacted and indexed, with every frame still in it."""
+    from rerun.chunk import RrdReader
+
+    from pomar.camera import Camera
+
+    cam = Camera(640, 360, 500.0, 500.0, 320.0, 180.0)
+    R = np.diag([1.0, -1.0, -1.0])
+    rrd = tmp_path / "t.rrd"
+    rl = RerunLog("test-flight", rrd)
+    for f in range(60):
+        rl.frame(_Event(f, _Pose(R, np.array([0.2 * f, 0.0, 10.0])), _Msg(np.zeros((0, 4), np.float32)), None), cam,
+                 {"rate/ground": 3.0, "delay/behind_drone_s": 0.1})
+        rl.rec.flush()  # each frame its own chunks, as on a live flight
+    with pytest.warns(Warning), pytest.raises(RuntimeError):  # no index yet
+        RrdReader(str(rrd)).store()
+    with pytest.warns(Warning):
+        streamed = sum(1 for _ in RrdReader(str(rrd)).stream())
+    rl.close()
+    store = RrdReader(str(rrd)).store()
+    assert len(store) < streamed / 3, (len(store), streamed)
+    frames = [r["frame"] for r in rrd_rows(rrd, "/world/camera")["/world/camera"]]
+    assert frames == list(range(60))
+
+
 def test_recording_of_a_replay_matches_its_map_files(replayed_test_flight):
     """The tiny flight's replay, read back from flight.rrd: the summary's total is apples.csv's, each row's series
     is named and coloured as the row is in the 3-D view and on the map, and the camera panel's lines stay inside
