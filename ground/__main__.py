@@ -406,6 +406,9 @@ def main(argv=None) -> int:
     r.add_argument("--quiet", action="store_true")
     r.set_defaults(func=_cmd_register)
     args = p.parse_args(argv)
+    from pomar.shutdown import stop_on_sigterm
+
+    stop_on_sigterm()
     logging.basicConfig(level=os.environ.get("POMAR_LOG_LEVEL", "INFO").upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
     from ground.journal import JournalError
     from pomar.flight import FlightFormatError
