@@ -253,7 +253,8 @@ def _ground_options(p):
                         "the whole map (the behaviour before cross-pass identity; a baseline)")
     _registration_options(p, g.registration.init_frames)
     p.add_argument("--max-wait-s", type=float, default=5.0,
-                   help="frames wait for the keyframe after them unless no keyframe came for this long (s)")
+                   help="live, frames wait for the keyframe after them unless no keyframe came for this long (s); with "
+                        "--mapping inline, until the stream ends")
     p.add_argument("--mapping", choices=("process", "inline"), default="process",
                    help="process: mapping keyframes are registered in a process of their own, and every frame is "
                         "tracked against the map meanwhile (live); inline: each is registered before the frames after it go "

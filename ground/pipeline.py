@@ -48,8 +48,8 @@ class GroundSettings:
     #: The first model from 4 images 0.2 s apart (init_spacing_s), not the batch registration's 6: live, every frame
     #: waits for it (README: "The ground alone, live").
     registration: RegistrationSettings = field(default_factory=lambda: RegistrationSettings(init_frames=4))
-    #: Frames wait for the keyframe after them; when no keyframe has come for this long, they go on
-    #: with interpolated or telemetry poses.
+    #: Live, frames wait for the keyframe after them; when no keyframe has come for this long, they go on
+    #: with interpolated or telemetry poses. Lock-step they wait for it until the stream ends.
     max_wait_s: float = 5.0
     max_interp_gap: int = 10
     #: "inline": each mapping keyframe is registered before the frames after it go on (lock-step replays:
@@ -294,9 +294,12 @@ class GroundPipeline:
         c["apples_merged"] += len(merged)
 
     def _stalled(self) -> bool:
-        """No keyframe for max_wait_s, while the frames went on for max_wait_s of flight past the last one: the
+        """Live: no keyframe for max_wait_s, while the frames went on for max_wait_s of flight past the last one: the
         drone stopped sending keyframes. A slow onboard detector delays frames and keyframes alike and stalls
-        nothing."""
+        nothing. Lock-step (mapping inline) never stalls: frames wait for their images until the stream ends, so that
+        neither a busy machine nor the order the two streams happen to arrive in changes a pose."""
+        if self.s.mapping == "inline":
+            return False
         flown = self.newest_t - self._last_kf_capture
         return time.monotonic() - self._last_kf_t > self.s.max_wait_s and not flown <= self.s.max_wait_s
 
