@@ -112,6 +112,7 @@ class GroundPipeline:
         self.origin = origin
         self.camera: Camera | None = None
         self.fps = float("nan")  # the drone's frame rate, from its camera message
+        self._kf_width_said: int | None = None  # the keyframes' width, as the camera message says it
         self.flight_id = self.drone_id = None
         self.poses: LivePoses | None = None
         # a glimpse (views narrower than the count's parallax check) merges only with another: the count leaves it out
@@ -178,7 +179,9 @@ class GroundPipeline:
         self.camera = Camera.from_dict(msg.camera, source=f"camera message of {msg.flight_id}/{msg.drone_id}")
         self.fps = msg.fps
         self.flight_id, self.drone_id = msg.flight_id, msg.drone_id
-        # the registration is made in step(), once the first keyframe tells the keyframes' width
+        self._kf_width_said = msg.keyframe_width or None
+        # the registration is made in step(), once the first keyframe tells the keyframes' width (or, if the frames
+        # cannot wait for it, from what the camera message says)
 
     def _make_poses(self, kf_width: int):
         self.poses = LivePoses(self.camera, self.workdir, keyframe_width=kf_width, settings=self.s.registration,
@@ -234,7 +237,7 @@ class GroundPipeline:
         if self.poses is None:
             if not self.keyframes and not final and not self._stalled():
                 return []
-            self._make_poses(self._first_keyframe_width())
+            self._make_poses(self._first_keyframe_width() or self._kf_width_said)
         events: list[FrameEvent] = []
 
         def out(evs: list[FrameEvent]) -> None:

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from onboard.node import KeyframePolicy, encode_jpeg
+from onboard.node import KeyframePolicy, encode_jpeg, sent_keyframe_width
 from onboard.sources import LatestFrame, VideoSource
 from pomar import wire
 from pomar.camera import Camera
@@ -63,8 +63,10 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
              telemetry_max_wait_s: float = 1.0, play_fps: float | None = None, max_frames: int | None = None,
              duration_s: float | None = None, status_period_s: float = 1.0, detector_scale: str = "auto") -> dict:
     """Run until the source ends, ``max_frames`` frames were processed or ``duration_s`` passed."""
-    publisher.publish(wire.CameraMessage(flight_id, drone_id, camera, play_fps or 0.0, time.time()))
-    camera_fx = Camera.from_dict(camera).fx
+    cam = Camera.from_dict(camera)
+    publisher.publish(wire.CameraMessage(flight_id, drone_id, camera, play_fps or 0.0, time.time(),
+                                         sent_keyframe_width(keyframe_width, cam.width)))
+    camera_fx = cam.fx
     frames = StampedFrames(VideoSource(camera_url), fps=play_fps)
     t0 = last_status = time.monotonic()
     processed = kf = detections = 0

@@ -93,6 +93,11 @@ class NodeSettings:
     detector_scale: str = "auto"  # frames resized so apples reach the model at its size (pomar.apple_scale); off; or a number
 
 
+def sent_keyframe_width(width: int, image_width: int) -> int:
+    """The width keyframes are sent at: ``width`` (0 = native), never more than the image's own."""
+    return min(width, image_width) if width else image_width
+
+
 def encode_jpeg(img: np.ndarray, width: int, quality: int) -> bytes:
     import cv2
 
@@ -160,7 +165,8 @@ class OnboardNode:
     def run(self) -> dict:
         meta, cam, t_frames, tel = self.inputs or self.check_inputs()
         scaling = policy_for(self.detector, self.s.detector_scale)  # the detector may come after check_inputs()
-        self.pub.publish(wire.CameraMessage(meta.flight_id, meta.drone_id, cam.to_dict(), meta.fps, meta.video_start_utc))
+        self.pub.publish(wire.CameraMessage(meta.flight_id, meta.drone_id, cam.to_dict(), meta.fps, meta.video_start_utc,
+                                            sent_keyframe_width(self.s.keyframe_width, cam.width)))
         source = VideoSource(self.flight.video, self.s.every, expected_frames=meta.frame_count)
         frames = source if self.s.lockstep else LatestFrame(source, fps=meta.fps)
         t0 = last_status = time.monotonic()

@@ -360,10 +360,14 @@ class CameraMessage:
     camera: dict  # camera.json's content
     fps: float = 0.0
     video_start_unix: float = 0.0
+    #: The width of the keyframes' images (px; 0: not said, as by nodes before it): a ground that must start before
+    #: the first image comes sizes its keyframe camera from it.
+    keyframe_width: int = 0
 
     def encode(self) -> bytes:
         return msgpack.packb({"v": SCHEMA_VERSION, "type": "camera", "flight": self.flight_id, "drone": self.drone_id,
-                              "camera": self.camera, "fps": self.fps, "start": self.video_start_unix}, use_bin_type=True)
+                              "camera": self.camera, "fps": self.fps, "start": self.video_start_unix,
+                              "kfw": int(self.keyframe_width)}, use_bin_type=True)
 
     @property
     def size(self) -> tuple[int, int]:
@@ -392,7 +396,8 @@ class CameraMessage:
         if not fps > 0:
             raise WireError("camera message: fps must be > 0", "out_of_range")
         return cls(_str("flight", d["flight"]), _str("drone", d["drone"]), dict(d["camera"]), fps,
-                   _float("camera message: start", d.get("start", 0.0), 0.0, 2.0**33))
+                   _float("camera message: start", d.get("start", 0.0), 0.0, 2.0**33),
+                   _int("camera message: keyframe width", d.get("kfw", 0), 0, MAX_IMAGE_SIDE))
 
 
 _TYPES = {"frame": FrameMessage, "keyframe": KeyframeMessage, "status": StatusMessage, "camera": CameraMessage}

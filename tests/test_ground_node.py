@@ -299,11 +299,13 @@ def test_lock_step_keeps_its_poses_when_the_images_come_late_on_a_busy_machine(r
     from ground.pipeline import GroundPipeline, GroundSettings
     from pomar import wire
 
-    msgs = _onboard_messages(replay_test_flight, keyframe_every=1)
-    images = [m for m in msgs if isinstance(m, wire.KeyframeMessage)]
-    rest = [m for m in msgs if not isinstance(m, wire.KeyframeMessage)]
     runs = []
     for k, mapping in enumerate(("inline", "inline", "process")):
+        # live, keyframes at 480 px: a ground that goes on before the first image sizes its keyframe camera from the
+        # camera message (else it would enlarge every keyframe to the camera's width, for the mapper to work on)
+        msgs = _onboard_messages(replay_test_flight, keyframe_every=1, keyframe_width=480 if k == 2 else 0)
+        images = [m for m in msgs if isinstance(m, wire.KeyframeMessage)]
+        rest = [m for m in msgs if not isinstance(m, wire.KeyframeMessage)]
         pipe = GroundPipeline(tmp_path / f"work{k}", GroundSettings(mapping=mapping, max_wait_s=0.2))
         if k == 0:
             for m in msgs:
@@ -315,6 +317,7 @@ def test_lock_step_keeps_its_poses_when_the_images_come_late_on_a_busy_machine(r
             pipe.step()
             if mapping == "process":  # live: released without waiting for the images that did not come
                 assert pipe.released == 19 and pipe.counters["telemetry"] == 20, pipe.counters
+                assert (pipe.poses.kf_cam.width, pipe.poses.kf_cam.height) == (480, 270)
             else:
                 assert pipe.released == -1, pipe.counters
             for m in images:

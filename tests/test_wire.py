@@ -49,7 +49,12 @@ def test_round_trips():
     s = wire.StatusMessage("f", "d", 12.5, frames_read=10, frames_processed=8, frames_dropped=2, fps=3.0)
     assert wire.decode(s.encode()) == s
     c = wire.CameraMessage("f", "d", {"model": "PINHOLE", "width": 8, "height": 6, "params": [1, 1, 4, 3]}, 10.0, 5.0)
+    assert wire.decode(c.encode()) == c and c.keyframe_width == 0
+    c.keyframe_width = 6
     assert wire.decode(c.encode()) == c
+    older = msgpack.unpackb(c.encode(), raw=False)
+    del older["kfw"]  # a node from before the keyframe width was said
+    assert wire.decode(msgpack.packb(older, use_bin_type=True)).keyframe_width == 0
 
 
 def test_unknown_version_and_malformed_messages_are_clear_errors():
@@ -118,6 +123,7 @@ def test_every_field_is_validated_with_a_reason():
     c = wire.CameraMessage("f", "d", {"model": "PINHOLE", "width": 8, "height": 6, "params": [1, 1, 4, 3]}, 10.0, 5.0)
     assert wire.decode(_mutated(c, fps=10)).fps == 10.0  # an int is a number
     assert _reason(_mutated(c, fps="10")) == "malformed"
+    assert _reason(_mutated(c, kfw=-1)) == "out_of_range" and _reason(_mutated(c, kfw="960")) == "malformed"
     assert _reason(_mutated(c, fps=0)) == "out_of_range"
     assert _reason(_mutated(c, camera={"model": "PINHOLE", "width": 8})) == "malformed"
     st = wire.StatusMessage("f", "d", 12.5)
