@@ -98,6 +98,21 @@ def shape_fit(flight: FlightDir, frames: np.ndarray, centres: np.ndarray, R: np.
     return fit_similarity(centres, C_true, 0.05, R, R_true[frames], np.radians(0.05))
 
 
+#: The local score's windows (s of flight): the GPS error the map follows barely moves in this long.
+LOCAL_WINDOW_S = 20.0
+
+
+def local_offsets(frames: np.ndarray, centres: np.ndarray, C_true: np.ndarray, window_frames: float):
+    """The mean camera error of each window of ``window_frames`` frames (centres against the truth's), and each frame's
+    window: what is left of the GPS error after one similarity for the whole flight, taken as a translation per
+    window."""
+    win = ((frames - frames.min()) // max(window_frames, 1.0)).astype(int)
+    off = np.zeros((win.max() + 1, 3))
+    for k in np.unique(win):
+        off[k] = (C_true[win == k] - centres[win == k]).mean(0)
+    return off, win
+
+
 def evaluate_map(flight: FlightDir, out: Path, min_visible: float = 0.5, match_m: float = 0.10) -> dict:
     """Score the written apples.csv against the flight's truth (in the truth's ENU frame).
 
@@ -107,6 +122,7 @@ def evaluate_map(flight: FlightDir, out: Path, min_visible: float = 0.5, match_m
     flight, and the scale it gives over a short straight line), which no image processing can see;
     its size is reported as ``georeference_error``."""
     from ground.evaluate import score_map
+    from pomar.flight import read_csv
 
     keys = ("precision", "recall", "f1", "count", "truth_count", "count_error_pct", "median_error_m", "p95_error_m",
             "recall_all_apples_in_rows_seen", "duplicates", "rows", "worst_row_error_pct", "trees")
@@ -130,6 +146,18 @@ def evaluate_map(flight: FlightDir, out: Path, min_visible: float = 0.5, match_m
             "camera_error_median_m": float(np.median(np.linalg.norm(cams - C_true, axis=1))),
             "camera_error_max_m": float(np.linalg.norm(cams - C_true, axis=1).max()),
         }
+        # local: over minutes of flight the map follows the GPS's slow wander (a metre), which one similarity cannot
+        # take away; a translation per LOCAL_WINDOW_S of flight more does, and scores the map's shape at tree scale
+        C_fit = S.apply(cams)
+        off, win = local_offsets(frames, C_fit, C_true, LOCAL_WINDOW_S * flight.meta().fps)
+        a = read_csv(out / "apples.csv", ["first_frame", "last_frame"])
+        mid = (np.asarray(a["first_frame"]) + np.asarray(a["last_frame"])).reshape(-1) / 2
+        at = np.clip(np.searchsorted(frames, mid), 0, len(frames) - 1)
+        local = score_map(flight, S.apply(apples) + off[win[at]], min_visible=min_visible, match_m=match_m)
+        d = C_fit + off[win] - C_true
+        res["local"] = {**{k: local[k] for k in ("precision", "recall", "f1", "median_error_m", "p95_error_m")},
+                        "window_s": LOCAL_WINDOW_S, "windows": int(win.max() + 1),
+                        "camera_rms_m": float(np.sqrt((d ** 2).sum(1).mean()))}
     absolute = score_map(flight, apples, min_visible=min_visible, match_m=match_m)
     res["absolute"] = {k: absolute[k] for k in keys if k != "rows"}
     if not res.get("rows"):
@@ -155,6 +183,11 @@ def format_evaluation(ev: dict) -> str:
     if tr and tr["bins"]:
         lines.append(f"trees (1-m bins along rows of 30+ visible apples): {tr['bins']} bins, r {tr['r']:.3f}, mean "
                      f"absolute error {tr['mae']:.2f} apples (truth mean {tr['truth_mean']:.2f})")
+    loc = ev.get("local")
+    if loc:
+        lines.append(f"local (a translation more per {loc['window_s']:g} s of flight: the GPS's wander over a long flight): "
+                     f"F1 {loc['f1']:.3f}, median error {loc['median_error_m']:.3f} m, cameras {loc['camera_rms_m']:.2f} m "
+                     f"RMS, {loc['windows']} windows")
     a = ev["absolute"]
     lines.append(f"absolute (where GPS put the map): F1 {a['f1']:.3f}, median error "
                  f"{a['median_error_m'] if a['median_error_m'] == a['median_error_m'] else float('nan'):.3f} m")

@@ -114,3 +114,20 @@ def test_poses_and_detections_from_files(tmp_path, bundled_flight):
     (tmp_path / "bad.csv").write_text("\n".join([header] + [",".join(r) for r in rows]) + "\n")
     c = evaluate(BUNDLED, "windowed", AssociationParams(), Perturbation(), poses=str(tmp_path / "bad.csv"), baselines=False)
     assert c["f1"] < 0.2
+
+
+def test_local_offsets_take_away_a_wander_per_window_and_nothing_else():
+    """The local score's windows: a camera error that wanders from window to window (the GPS over a long flight) is
+    taken away window by window; what varies within a window stays."""
+    from ground.replay import local_offsets
+
+    frames = np.arange(0, 600)
+    truth = np.stack([np.zeros(600), frames * 0.3, np.full(600, 12.0)], 1)
+    wander = np.stack([np.sin(frames / 300.0), np.cos(frames / 200.0), np.zeros(600)], 1)
+    jitter = np.random.default_rng(0).normal(0, 0.01, (600, 3))
+    off, win = local_offsets(frames, truth + wander + jitter, truth, 100)
+    assert win.max() == 5 and np.array_equal(win, frames // 100)
+    left = truth + wander + jitter + off[win] - truth
+    assert np.sqrt((left ** 2).sum(1).mean()) < 0.2 < 0.8 < np.sqrt((wander ** 2).sum(1).mean())
+    for k in range(6):  # each window's mean error is gone
+        assert np.allclose(left[win == k].mean(0), 0, atol=1e-9)
