@@ -285,8 +285,7 @@ def _ground_options(p):
                         "it projects into (one glimpsed through leaves is not); 0 = off")
     p.add_argument("--min-parallax-deg", type=float, default=g.min_parallax_deg,
                    help="parallax: an apple counts only if the rays from its first and last views meet at this angle "
-                        "or more, degrees (narrower leaves its depth a guess), and such an apple merges only with another one "
-                        "like it; 0 = off")
+                        "or more, degrees (narrower leaves its depth a guess); 0 = off")
     p.add_argument("--tree-spacing-m", type=float, default=g.tree_spacing_m,
                    help="trees along a row are this far apart (m): trees.csv counts apples per tree segment")
     p.add_argument("--drift-sigma-s", type=float, default=g.drift_sigma_s,

@@ -50,11 +50,6 @@ class AssociationParams:
     #: of their radii (>= 6 cm) apart, and this is half that. It catches one apple seen from both sides of its row,
     #: whose two caps' centres the views' test can keep apart.
     merge_m: float = 0.03
-    #: An apple whose views meet at a narrower angle than this (degrees; its depth is a guess along its rays) merges
-    #: only with another such apple: with one whose depth is known, its rays fit any point along them, also a
-    #: different apple behind it, which the merge would then move. Alone, the counting's parallax check leaves it out
-    #: (GroundSettings.min_parallax_deg, the same angle). 0 = off.
-    merge_min_parallax_deg: float = 2.0
     #: Windowed: how long (frames) an emitted apple stays a candidate for such a merge.
     merge_window: int = 600
     #: Windowed: every apple of the map stays a candidate (found through a spatial index, so the cost stays flat
@@ -342,17 +337,6 @@ def merge_into(a: Apple, b: Apple, X: np.ndarray | None = None) -> None:
         a.view_frames = frames if both else None
 
 
-def views_parallax_deg(a: Apple) -> float:
-    """The widest angle (degrees) at the apple between the camera centres of its kept views; NaN without views."""
-    if a.views is None or len(a.views[0]) < 2:
-        return float("nan")
-    P = a.views[0]
-    C = -np.linalg.solve(P[:, :, :3], P[:, :, 3:])[:, :, 0]  # centres: P = [M | p], C = -M^-1 p
-    u = C - a.X
-    u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
-    return float(np.degrees(np.arccos(np.clip((u @ u.T).min(), -1.0, 1.0))))
-
-
 def find_duplicate(apple: Apple, candidates: list[Apple], params: "AssociationParams", strict: bool = False):
     """The candidate that apple duplicates, and their joint position (None: their mean): within merge_m, or within
     merge_search_m and consistent (their views triangulate together within tau_geom; ``strict``: also within
@@ -362,17 +346,12 @@ def find_duplicate(apple: Apple, candidates: list[Apple], params: "AssociationPa
         return None, None
     C = np.array([c.X for c in candidates])
     d = np.linalg.norm(C - apple.X, axis=1)
-    narrow = None
     for i in np.argsort(d)[:4]:
         if d[i] > params.merge_search_m:
             break
         c = candidates[i]
         if d[i] < params.merge_m:
             return c, joint_point(c, apple)
-        if params.merge_min_parallax_deg > 0:
-            narrow = views_parallax_deg(apple) < params.merge_min_parallax_deg if narrow is None else narrow
-            if narrow != (views_parallax_deg(c) < params.merge_min_parallax_deg):
-                continue  # one apple's depth is a guess: its rays would fit the other's point, whatever it is
         if apple.views is not None and c.views is not None:
             X = same_apple(c, apple, params.tau_geom, max_median_px=params.tau_geom / 2 if strict else None)
             if X is not None:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -82,8 +82,7 @@ class GroundSettings:
     min_view_ratio: float = 0.15
     #: Parallax: an apple counts only if the rays from its first and last views meet at this angle or more (degrees);
     #: 0 = off. Views over a narrower angle (a few frames at 30 fps, or the flight's last frames) leave its depth a
-    #: guess, and such apples are mostly false ones, placed well off. The association takes the same angle for its
-    #: merges (AssociationParams.merge_min_parallax_deg): such a glimpse never merges into a counted apple.
+    #: guess, and such apples are mostly false ones, placed well off.
     min_parallax_deg: float = 2.0
     #: Live (mapping in its own process), pose corrections run at most this often (s); the keyframes the mapper moves
     #: meanwhile add up, and one round corrects them all. Lock-step corrects after every keyframe (deterministic).
@@ -115,8 +114,7 @@ class GroundPipeline:
         self._kf_width_said: int | None = None  # the keyframes' width, as the camera message says it
         self.flight_id = self.drone_id = None
         self.poses: LivePoses | None = None
-        # a glimpse (views narrower than the count's parallax check) merges only with another: the count leaves it out
-        self.assoc = WindowedAssociation(replace(self.s.association, merge_min_parallax_deg=self.s.min_parallax_deg))
+        self.assoc = WindowedAssociation(self.s.association)
         self.apples: dict[int, Apple] = {}  # confirmed apples, by id
         self._scores: dict[int, np.ndarray] = {}  # stream frame -> scores of the detections it fed
         self._boxes: dict[int, np.ndarray] = {}  # stream frame -> (n, 4) boxes of those detections (xyxy, px)

@@ -157,11 +157,11 @@ def test_rows_survive_a_wild_apple():
 
 
 def _two_passes(apples: np.ndarray, hide_first=(), hide_second=(), n: int = 70, gap: int = 40,
-                shift_second=(0.0, 0.0, 0.0), true_second: dict | None = None, only_in: dict | None = None):
+                shift_second=(0.0, 0.0, 0.0), true_second: dict | None = None):
     """A pass north along x = 0 looking east, a turn of ``gap`` frames without detections, then a pass back south
     along x = 16 looking west: the same apples from both sides, ``gap`` + a pass's frames apart. ``shift_second``: the
     second pass's cameras are given that far from where they took their pixels (a pose that drifted); their true
-    matrices go into ``true_second`` (frame -> P). ``only_in``: apple index -> the only frames it is seen in."""
+    matrices go into ``true_second`` (frame -> P)."""
     from pomar.camera import Camera
     from pomar.rotations import R_GIMBAL_FROM_CAMERA_NOMINAL, camera_from_gimbal_attitude, ned_euler_to_rotation, world_to_camera
 
@@ -177,8 +177,6 @@ def _two_passes(apples: np.ndarray, hide_first=(), hide_second=(), n: int = 70, 
             uv, z = cam.project(apples, R[i], t[i])
             ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < 1279) & (uv[:, 1] >= 0) & (uv[:, 1] < 719)
             ok &= ~np.isin(np.arange(len(apples)), list(hidden))
-            for j, seen_in in (only_in or {}).items():
-                ok[j] &= f in seen_in
             P = cam.projection_matrix(R[i], t[i])
             if k == 1:
                 if true_second is not None:
@@ -213,28 +211,6 @@ def test_two_apples_5_cm_apart_on_different_passes_stay_two():
     frames = _two_passes(apples, hide_first=[1], hide_second=[0])
     found = WindowedAssociation(AssociationParams(k=5, merge_window=50)).run(frames)
     assert len(found) == 2 and np.max(nearest_errors(found, apples)) < 0.01
-
-
-def test_a_glimpse_in_front_of_an_apple_on_another_pass_stays_apart():
-    """An apple glimpsed in 3 frames of one pass (its views meet at under 2 degrees: its depth is a guess) lies 0.7 m
-    in front of an apple the other pass sees well, on one of its lines of sight. The glimpse's rays fit the far apple's
-    point within a pixel, so the views' test alone takes the two for one (and moves the far apple, unless the rays pass
-    right through it, as here); a glimpse merges only with another glimpse, and both stay where they are. (Counting
-    leaves the glimpse out by its parallax.)"""
-    from ground.association import views_parallax_deg
-
-    far = np.array([8.0, 7.0, 2.0])
-    seen_from = np.array([0.0, 35 * 0.2, 12.0])  # the first pass's camera at frame 35
-    near = far + 0.7 * (seen_from - far) / np.linalg.norm(seen_from - far)
-    apples = np.stack([far, near])
-    frames = _two_passes(apples, hide_first=[0], only_in={1: {34, 35, 36}})
-    found = WindowedAssociation(AssociationParams(k=5, merge_window=50)).run(frames)
-    assert len(found) == 2 and np.max(nearest_errors(found, apples)) < 0.01
-    glimpse = min(found, key=lambda a: a.n_observations)
-    assert glimpse.n_observations == 3 and views_parallax_deg(glimpse) < 2.0 < views_parallax_deg(max(
-        found, key=lambda a: a.n_observations))
-    merged = WindowedAssociation(AssociationParams(k=5, merge_window=50, merge_min_parallax_deg=0)).run(frames)
-    assert len(merged) == 1  # without the rule: two apples taken for one
 
 
 def test_apples_merge_once_their_poses_are_corrected():
