@@ -94,16 +94,17 @@ class NodeSettings:
 
 
 def sent_keyframe_width(width: int, image_width: int) -> int:
-    """The width keyframes are sent at: ``width`` (0 = native), never more than the image's own."""
+    """The width keyframes are sent at: ``width`` (0 = native), never more than the image's own (an enlarged JPEG
+    costs link bytes and adds nothing)."""
     return min(width, image_width) if width else image_width
 
 
 def encode_jpeg(img: np.ndarray, width: int, quality: int) -> bytes:
     import cv2
 
-    if width and img.shape[1] > width:  # smaller, never larger: an enlarged JPEG costs link bytes and adds nothing
-        h = int(round(img.shape[0] * width / img.shape[1]))
-        img = cv2.resize(img, (width, h), interpolation=cv2.INTER_AREA)
+    w = sent_keyframe_width(width, img.shape[1])
+    if w < img.shape[1]:
+        img = cv2.resize(img, (w, int(round(img.shape[0] * w / img.shape[1]))), interpolation=cv2.INTER_AREA)
     ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
     if not ok:
         raise RuntimeError("JPEG encoding failed")
