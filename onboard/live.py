@@ -72,6 +72,7 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
     processed = kf = detections = 0
     det_s = 0.0
     scaling = policy_for(detector, detector_scale)
+    pacer = scaling.pacer()  # frames enlarged only while the node keeps the camera's rate
     expected = float("nan")  # the last frame's foreseen apple radius (px): this frame's scale (height changes slowly)
     scales = []
     flagged = 0
@@ -84,9 +85,13 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
 
     try:
         for i, img in frames:
-            t_read = frames.read_time.get(i, time.time())
+            t_read, t_loop = frames.read_time.get(i, time.time()), time.perf_counter()
             t_capture = t_read + clock_offset_s
+            # the camera's frame period: the rate asked for, else the rate frames have come at so far
+            period_s = 1.0 / play_fps if play_fps else (time.monotonic() - t0) / max(frames.read - 1, 1)
             scale = scaling.scale(expected)
+            if pacer is not None:
+                scale = pacer.cap(scale, img.shape[1], img.shape[0], period_s)
             td = time.perf_counter()
             boxes, scores = detector.detect(i, img, scale)
             det_s += time.perf_counter() - td
@@ -103,6 +108,8 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
                 publisher.publish(wire.KeyframeMessage(flight_id, drone_id, i, encode_jpeg(img, keyframe_width, jpeg_quality)))
                 kf += 1
             latencies.append(time.time() - t_read)
+            if pacer is not None:
+                pacer.observe(time.perf_counter() - t_loop, img.shape[1], img.shape[0], scale)
             processed += 1
             detections += len(boxes)
             if time.monotonic() - last_status >= status_period_s:
@@ -118,5 +125,6 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
             "frames_dropped": frames.dropped, "keyframes": kf, "detections": detections,
             "telemetry_flagged_frames": int(flagged), "seconds": elapsed, "frames_per_s": processed / max(elapsed, 1e-9),
             "detector_latency_s": det_s / max(processed, 1), "detector_scale": scale_summary(scales),
+            "detector_scale_capped": pacer.capped if pacer is not None else 0,
             "read_to_publish_median_s": float(np.median(latencies)) if latencies else None,
             "error": str(frames.error) if frames.error else None}

@@ -173,11 +173,15 @@ class OnboardNode:
         t0 = last_status = time.monotonic()
         processed = 0
         policy = KeyframePolicy(self.s.keyframe_every, self.s.keyframe_every_s, self.s.keyframe_every_m)
+        pacer = None if self.s.lockstep else scaling.pacer()  # live: enlarge frames only while there is time
+        period_s = self.s.every / meta.fps if meta.fps else 0.0
         error = None
         try:
             for i, img in frames:
                 t_read = time.perf_counter()
                 scale = scaling.scale(float(tel["expected_radius_px"][i]))
+                if pacer is not None:
+                    scale = pacer.cap(scale, img.shape[1], img.shape[0], period_s)
                 td = time.perf_counter()
                 boxes, scores = self.detector.detect(i, img, scale)
                 self.stats["detector_seconds"] += time.perf_counter() - td
@@ -192,6 +196,8 @@ class OnboardNode:
                     self.pub.publish(wire.KeyframeMessage(meta.flight_id, meta.drone_id, i, jpeg))
                     self.stats["keyframes"] += 1
                 self.stats["read_to_publish_seconds"].append(time.perf_counter() - t_read)
+                if pacer is not None:
+                    pacer.observe(time.perf_counter() - t_read, img.shape[1], img.shape[0], scale)
                 processed += 1
                 self.stats["frames_processed"] = processed
                 self.stats["detections"] += len(boxes)
@@ -214,6 +220,7 @@ class OnboardNode:
             "seconds": elapsed, "frames_per_s": processed / max(elapsed, 1e-9),
             "detector_latency_s": self.stats["detector_seconds"] / max(processed, 1),
             "detector_scale": scale_summary(self.stats["scales"]),
+            "detector_scale_capped": pacer.capped if pacer is not None else 0,  # frames the pace kept smaller
             "read_to_publish_median_s": float(np.median(lat)),
             "bytes_per_message": {k: self.pub.bytes[k] / max(self.pub.sent[k], 1) for k in wire.KINDS},
             "telemetry_flagged_frames": int((tel["flags"] != 0).sum()), "error": str(error) if error else None,

@@ -87,6 +87,44 @@ class ScalePolicy:
         s = float(np.clip(self.target_px / expected_px, self.min_scale, self.max_scale))
         return round(round(s / self.step) * self.step, 4)
 
+    def pacer(self) -> "Pacer | None":
+        """What paces this policy live: a :class:`Pacer` where it foresees scales (``auto``); a scale the user set is
+        kept whatever it costs."""
+        return Pacer(step=self.step) if self.fixed is None and self.target_px is not None else None
+
+
+@dataclass
+class Pacer:
+    """Live, where the detector cannot keep the video's rate: enlarging a frame by s costs about s² in time, and a frame
+    not taken in time is dropped. A scale above 1 is kept only as far as a frame still takes no longer than the video's
+    frame period (from the time per input pixel the frames so far took, smoothed); a scale of 1 or less is kept as it
+    is (it is cheaper, and below 1 the apples are larger than the model's). Before the first frame's time: at most 1.
+    With a fast detector the scale is what the policy asked; on a slow one frames go at their own size, more of them."""
+
+    smoothing: float = 0.3  # weight of the newest frame in the time per pixel
+    step: float = 0.05
+    seconds_per_px: float = float("nan")
+    capped: int = 0  # frames detected at a smaller scale than the policy asked
+
+    def cap(self, scale: float, width: int, height: int, period_s: float) -> float:
+        if scale <= 1.0:
+            return scale
+        if not np.isfinite(self.seconds_per_px) or not period_s > 0:
+            fit = 1.0
+        else:
+            fit = np.sqrt(period_s / (self.seconds_per_px * width * height))
+            fit = max(1.0, np.floor(fit / self.step + 1e-9) * self.step)
+        if fit < scale:
+            self.capped += 1
+            return round(float(fit), 4)
+        return scale
+
+    def observe(self, seconds: float, width: int, height: int, scale: float) -> None:
+        """A processed frame's time (read to publish), at the scale it was detected at."""
+        per_px = seconds / max(width * height * scale * scale, 1.0)
+        a = self.smoothing
+        self.seconds_per_px = per_px if not np.isfinite(self.seconds_per_px) else (1 - a) * self.seconds_per_px + a * per_px
+
 
 def parse_scale(value: str) -> tuple[str, float | None]:
     """A ``--detector-scale`` value: ``auto``, ``off`` or a number -> (mode, fixed scale)."""
@@ -141,7 +179,8 @@ def scale_summary(scales) -> dict | None:
 
 SCALE_HELP = ("auto (default): resize each frame so that apples reach the model at the size it was trained on, "
               "foreseen from the height above take-off, the camera's tilt and its focal length (pomar/apple_scale.py); "
-              "off: native size; or one factor for every frame")
+              "live, enlarged only as far as the node keeps the video's rate; off: native size; or one factor for "
+              "every frame")
 
 
 def scale_argument(value: str) -> str:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pomar import wire
-from pomar.apple_scale import ScalePolicy, expected_radius_px, off_nadir_deg, parse_scale, telemetry_radius_px
+from pomar.apple_scale import Pacer, ScalePolicy, expected_radius_px, off_nadir_deg, parse_scale, telemetry_radius_px
 from pomar.telemetry import read_log
 
 
@@ -73,6 +73,27 @@ def test_scale_policy_and_its_setting():
     for bad in ("big", "0", "20"):
         with pytest.raises(ValueError):
             parse_scale(bad)
+
+
+def test_live_frames_are_enlarged_only_as_far_as_the_video_rate_leaves_time():
+    """The pace of a live node: a scale above 1 is cut to what a frame's time (per input pixel, smoothed) fits in the
+    video's frame period, never below 1; scales of 1 or less are left alone; a scale the user set is never paced."""
+    w, h, period = 1280, 720, 0.1
+    p = Pacer()
+    assert p.cap(1.35, w, h, period) == 1.0 and p.cap(0.7, w, h, period) == 0.7  # no time measured yet
+    p.observe(0.5, w, h, 1.0)  # a CPU detector: 5 frame periods at the frame's own size
+    assert p.cap(1.35, w, h, period) == 1.0 and p.cap(0.55, w, h, period) == 0.55
+    fast = Pacer()
+    fast.observe(0.02 * 1.35**2, w, h, 1.35)  # 0.02 s at scale 1: room for sqrt(5) = 2.24
+    assert fast.cap(1.35, w, h, period) == 1.35 and fast.cap(2.0, w, h, period) == 2.0 and fast.capped == 0
+    mid = Pacer()
+    mid.observe(0.05, w, h, 1.0)  # room for sqrt(2) = 1.414: down to the policy's step below it
+    assert mid.cap(1.6, w, h, period) == 1.4 and mid.cap(1.3, w, h, period) == 1.3
+    assert p.capped == 2 and mid.capped == 1
+    mid.observe(0.5, w, h, 1.0)  # frames got slower: the smoothed time follows, and the cap with it
+    assert mid.cap(1.4, w, h, period) < 1.4
+    assert ScalePolicy(5.0).pacer() is not None
+    assert ScalePolicy(None).pacer() is None and ScalePolicy(None, fixed=1.5).pacer() is None  # off, or the user's
 
 
 def test_frame_message_carries_its_scale():

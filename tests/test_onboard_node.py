@@ -135,3 +135,30 @@ def test_keyframes_go_every_fifth_of_a_second_whatever_the_frame_rate():
     assert due(KeyframePolicy(every=3), 30) == list(range(0, 61, 3))  # a frame count alone is one
     assert due(KeyframePolicy(every=0), 30) == []  # none
     assert due(KeyframePolicy(every=3, every_s=0.5), 10) == list(range(0, 61, 5))  # time before the frame count
+
+
+def test_live_node_enlarges_frames_only_as_far_as_it_keeps_up(small_flight, tmp_path):
+    """Real time with the ONNX detector and --detector-scale auto: each frame goes at most at the scale the telemetry
+    asks for, never below the frame's own size where that asks to enlarge, and the first frame (no time measured
+    yet) at its own size. A slow machine keeps later frames at 1 too; a fast one enlarges them."""
+    import json
+
+    from onboard.detector import OnnxDetector
+    from pomar.apple_scale import flight_radius_px, policy_for
+
+    policy = policy_for(OnnxDetector(), "auto")
+    asked = np.array([policy.scale(r) for r in flight_radius_px(small_flight)])
+    assert (asked > 1).all()  # the small flight's apples are smaller than the model's: the policy enlarges
+    port, summary = free_port(), tmp_path / "summary.json"
+    p = start_node(small_flight, port, "--detector", "onnx", "--realtime", "--wait-for-ground", "30",
+                   "--summary", str(summary), "--linger", "1")
+    try:
+        frames, _, statuses, _ = collect(port, small_flight.meta().flight_id)
+    finally:
+        stop(p)
+    assert statuses[-1].state == "finished" and frames
+    got = {i: m.scale for i, m in frames.items()}
+    assert all(1.0 <= s <= asked[i] + 1e-9 for i, s in got.items())
+    assert got[min(got)] == 1.0
+    s = json.loads(summary.read_text())
+    assert s["detector_scale_capped"] >= 1 and s["frames_processed"] == len(frames)
