@@ -85,7 +85,7 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
 
     try:
         for i, img in frames:
-            t_read, t_loop = frames.read_time.get(i, time.time()), time.perf_counter()
+            t_read = frames.read_time.get(i, time.time())
             t_capture = t_read + clock_offset_s
             # the camera's frame period: the rate asked for, else the rate frames have come at so far
             period_s = 1.0 / play_fps if play_fps else (time.monotonic() - t0) / max(frames.read - 1, 1)
@@ -94,7 +94,8 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
                 scale = pacer.cap(scale, img.shape[1], img.shape[0], period_s)
             td = time.perf_counter()
             boxes, scores = detector.detect(i, img, scale)
-            det_s += time.perf_counter() - td
+            frame_det_s = time.perf_counter() - td
+            det_s += frame_det_s
             scales.append(scale)
             s = sample_when_bracketed(telemetry, t_capture, t_read + telemetry_max_wait_s)
             expected = float(telemetry_radius_px(camera_fx, s)[0])
@@ -109,7 +110,7 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
                 kf += 1
             latencies.append(time.time() - t_read)
             if pacer is not None:
-                pacer.observe(time.perf_counter() - t_loop, img.shape[1], img.shape[0], scale)
+                pacer.observe(frame_det_s, img.shape[1], img.shape[0], scale)
             processed += 1
             detections += len(boxes)
             if time.monotonic() - last_status >= status_period_s:

@@ -184,7 +184,8 @@ class OnboardNode:
                     scale = pacer.cap(scale, img.shape[1], img.shape[0], period_s)
                 td = time.perf_counter()
                 boxes, scores = self.detector.detect(i, img, scale)
-                self.stats["detector_seconds"] += time.perf_counter() - td
+                det_s = time.perf_counter() - td
+                self.stats["detector_seconds"] += det_s
                 self.stats["scales"].append(scale)
                 telemetry = wire.Telemetry(float(tel["lat"][i]), float(tel["lon"][i]), float(tel["alt"][i]),
                                            tuple(map(float, tel["q_attitude"][i])), tuple(map(float, tel["q_gimbal"][i])),
@@ -197,7 +198,7 @@ class OnboardNode:
                     self.stats["keyframes"] += 1
                 self.stats["read_to_publish_seconds"].append(time.perf_counter() - t_read)
                 if pacer is not None:
-                    pacer.observe(time.perf_counter() - t_read, img.shape[1], img.shape[0], scale)
+                    pacer.observe(det_s, img.shape[1], img.shape[0], scale)
                 processed += 1
                 self.stats["frames_processed"] = processed
                 self.stats["detections"] += len(boxes)

@@ -95,11 +95,12 @@ class ScalePolicy:
 
 @dataclass
 class Pacer:
-    """Live, where the detector cannot keep the video's rate: enlarging a frame by s costs about s² in time, and a frame
-    not taken in time is dropped. A scale above 1 is kept only as far as a frame still takes no longer than the video's
-    frame period (from the time per input pixel the frames so far took, smoothed); a scale of 1 or less is kept as it
-    is (it is cheaper, and below 1 the apples are larger than the model's). Before the first frame's time: at most 1.
-    With a fast detector the scale is what the policy asked; on a slow one frames go at their own size, more of them."""
+    """Live, where the detector cannot keep the video's rate: enlarging a frame by s costs about s² in time, and a
+    frame not taken in time is dropped. A scale above 1 is kept only as far as a frame's detection still fits in the
+    video's frame period (from the detector's time per input pixel on the frames so far, smoothed); a scale of 1 or
+    less is kept as it is (cheaper, and below 1 the apples are larger than the model's). Before the first frame's
+    time: at most 1. A fast detector gets the scale the policy asked; a slow one, frames at their own size, more of
+    them."""
 
     smoothing: float = 0.3  # weight of the newest frame in the time per pixel
     step: float = 0.05
@@ -120,10 +121,11 @@ class Pacer:
         return scale
 
     def observe(self, seconds: float, width: int, height: int, scale: float) -> None:
-        """A processed frame's time (read to publish), at the scale it was detected at."""
+        """A frame's detection time, at the scale it was detected at."""
         per_px = seconds / max(width * height * scale * scale, 1.0)
         a = self.smoothing
-        self.seconds_per_px = per_px if not np.isfinite(self.seconds_per_px) else (1 - a) * self.seconds_per_px + a * per_px
+        old = self.seconds_per_px
+        self.seconds_per_px = per_px if not np.isfinite(old) else (1 - a) * old + a * per_px
 
 
 def parse_scale(value: str) -> tuple[str, float | None]:
