@@ -446,17 +446,20 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
             if claim is not None:
                 have = node.pipe.counters["frames"] + node.pipe.counters["late_frames"]
                 said = claim[0].frames_processed
-                if have == said and now - max(claim[1], last_frame) >= end_quiet_s:
+                awaited = len(node.pipe.kf_awaited)  # keyframes announced by their frames that did not come
+                if have == said and not awaited and now - max(claim[1], last_frame) >= end_quiet_s:
                     break
                 if contradicted(claim[0]):
                     claim = None
-                elif have < said and now - claim[1] > idle_timeout_s:
-                    log.warning("%d of the %d frames the drone sent arrived; finishing", have, said)
+                elif (have < said or awaited) and now - claim[1] > idle_timeout_s:
+                    log.warning("%d of the %d frames and %d of the keyframes announced did not arrive; finishing",
+                                said - have, said, awaited)
                     break
-                elif (have < said and now - max(claim[1], last_msg, asked) >= REQUERY_S
+                elif ((have < said or awaited) and now - max(claim[1], last_msg, asked) >= REQUERY_S
                       and sub.refreshes < MAX_REQUERIES):
-                    log.warning("%d of the %d frames the drone sent arrived, and nothing came for %.0f s: asking the "
-                                "drone for its history again", have, said, REQUERY_S)
+                    log.warning("%d of the %d frames the drone sent arrived, %d keyframes announced did not, and "
+                                "nothing came for %.0f s: asking the drone for its history again", have, said,
+                                awaited, REQUERY_S)
                     sub.refresh()
                     node.history_requeries = sub.refreshes
                     asked = now

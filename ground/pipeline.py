@@ -132,6 +132,7 @@ class GroundPipeline:
         self.keyframes: dict[int, bytes] = {}  # images waiting for tracking (and mapping)
         self._kf_for_event: dict[int, bytes] = {}
         self._kf_seen: set[int] = set()
+        self.kf_awaited: set[int] = set()  # keyframes their frame messages announced that have not come yet
         self._last_kf_t = time.monotonic()
         self._last_kf_capture = float("nan")  # capture time of the last keyframe's frame (or of the first frame)
         self.released = -1
@@ -212,6 +213,8 @@ class GroundPipeline:
             self._last_kf_t = time.monotonic()  # the wait for keyframes starts with the first frame
             self._last_kf_capture = msg.t_capture
         self.counters["frames"] += 1
+        if msg.keyframe and msg.frame not in self._kf_seen:
+            self.kf_awaited.add(msg.frame)
         if self.poses is not None:
             t = msg.telemetry
             self.poses.add_telemetry(msg.frame, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc)
@@ -220,6 +223,7 @@ class GroundPipeline:
         if msg.frame in self._kf_seen:
             return
         self._kf_seen.add(msg.frame)
+        self.kf_awaited.discard(msg.frame)
         self._last_kf_t = time.monotonic()
         self._last_kf_capture = self.frame_times.get(msg.frame, self.newest_t)
         self.keyframes[msg.frame] = msg.jpeg
@@ -246,8 +250,13 @@ class GroundPipeline:
         # images in order, but never ahead of the frames: a frame needs the image after it. An image waits for its
         # frame's message (the telemetry the mapper's georeferencing needs; the streams do not keep each other's
         # order), unless a later frame's came (then it was lost)
+        # lock-step, an image also waits for the earlier keyframes announced by their frames' messages (the stream
+        # may bring them late): the images are tracked and mapped in the same order whatever the link did
+        wait_before = min(self.kf_awaited) if self.kf_awaited and self.s.mapping == "inline" and not final else None
         for f in sorted(self.keyframes):
             if f not in self.frame_times and f > self._newest_frame and not final:
+                break
+            if wait_before is not None and f > wait_before:
                 break
             jpeg = self.keyframes.pop(f)
             self._add_image(f, jpeg)

@@ -103,9 +103,10 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
                                  tuple(map(float, s["q_attitude"][0])), tuple(map(float, s["q_gimbal"][0])),
                                  int(s["gps_fix"][0]), float(s["h_acc"][0]), int(s["flags"][0]))
             flagged += tel.flags != 0
+            due = keyframes.due(t_capture, tel.lat, tel.lon, tel.alt)
             publisher.publish(wire.FrameMessage(flight_id, drone_id, i, t_capture, tel, img.shape[1], img.shape[0],
-                                                boxes, scores, scale=scale))
-            if keyframes.due(t_capture, tel.lat, tel.lon, tel.alt):
+                                                boxes, scores, scale=scale, keyframe=due))
+            if due:
                 publisher.publish(wire.KeyframeMessage(flight_id, drone_id, i, encode_jpeg(img, keyframe_width, jpeg_quality)))
                 kf += 1
             latencies.append(time.time() - t_read)

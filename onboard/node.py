@@ -190,9 +190,11 @@ class OnboardNode:
                 telemetry = wire.Telemetry(float(tel["lat"][i]), float(tel["lon"][i]), float(tel["alt"][i]),
                                            tuple(map(float, tel["q_attitude"][i])), tuple(map(float, tel["q_gimbal"][i])),
                                            int(tel["gps_fix"][i]), float(tel["h_acc"][i]), int(tel["flags"][i]))
+                due = policy.due(float(t_frames[i]), telemetry.lat, telemetry.lon, telemetry.alt)
                 self.pub.publish(wire.FrameMessage(meta.flight_id, meta.drone_id, i, float(t_frames[i]), telemetry,
-                                                   img.shape[1], img.shape[0], boxes, scores, scale=scale))
-                if policy.due(float(t_frames[i]), telemetry.lat, telemetry.lon, telemetry.alt):
+                                                   img.shape[1], img.shape[0], boxes, scores, scale=scale,
+                                                   keyframe=due))
+                if due:
                     jpeg = encode_jpeg(img, self.s.keyframe_width, self.s.jpeg_quality)
                     self.pub.publish(wire.KeyframeMessage(meta.flight_id, meta.drone_id, i, jpeg))
                     self.stats["keyframes"] += 1

@@ -3,7 +3,8 @@
 Key expressions, under ``pomar/<flight_id>/<drone_id>/``:
 
 - ``frames``    one :class:`FrameMessage` per processed frame: telemetry at capture + detections (and the
-  scale the frame was resized by for the detector; optional, 1 when absent)
+  scale the frame was resized by for the detector; optional, 1 when absent; and whether a keyframe of this frame
+  follows, optional, false when absent)
 - ``keyframes`` one :class:`KeyframeMessage` per keyframe: frame index + JPEG bytes
 - ``status``    :class:`StatusMessage`: rates, drops, detector latency, heartbeat
 - ``camera``    :class:`CameraMessage`: the flight's camera.json, so the ground needs no file from the drone
@@ -111,6 +112,12 @@ def _float(name: str, x, lo: float = -math.inf, hi: float = math.inf, nan: bool 
         raise WireError(f"{name} is {x}, not a finite number", "not_finite")
     if not lo <= x <= hi:
         raise WireError(f"{name} {x} is outside [{lo}, {hi}]", "out_of_range")
+    return x
+
+
+def _flag(name: str, x) -> bool:
+    if not isinstance(x, bool):
+        raise WireError(f"{name} must be true or false, got {type(x).__name__}", "malformed")
     return x
 
 
@@ -228,6 +235,8 @@ class FrameMessage:
     camera_id: str = "cam0"
     #: The factor the frame was resized by before detection (boxes are in the full frame's pixels all the same).
     scale: float = 1.0
+    #: A keyframe of this frame follows on the keyframes stream: a lock-step ground waits for it.
+    keyframe: bool = False
 
     @property
     def centres(self) -> np.ndarray:
@@ -244,6 +253,7 @@ class FrameMessage:
             "frame": int(self.frame), "t": float(self.t_capture), "tel": self.telemetry.to_list(),
             "w": int(self.width), "h": int(self.height), "cam": self.camera_id,
             "n": len(b), "boxes": b.tobytes(), "scores": s.tobytes(), "scale": float(self.scale),
+            "kf": bool(self.keyframe),
         }, use_bin_type=True)
 
     @classmethod
@@ -279,7 +289,8 @@ class FrameMessage:
         return cls(_str("flight", d["flight"]), _str("drone", d["drone"]), frame,
                    _float(f"{where}: capture time", d["t"], 0.0, 2.0**33), Telemetry.from_list(d["tel"]), w, h,
                    boxes, scores, _str(f"{where}: camera id", d.get("cam", "cam0")),
-                   _float(f"{where}: detector scale", d.get("scale", 1.0), 0.01, 16.0))
+                   _float(f"{where}: detector scale", d.get("scale", 1.0), 0.01, 16.0),
+                   _flag(f"{where}: keyframe flag", d.get("kf", False)))
 
 
 @dataclass

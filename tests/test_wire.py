@@ -55,6 +55,12 @@ def test_round_trips():
     older = msgpack.unpackb(c.encode(), raw=False)
     del older["kfw"]  # a node from before the keyframe width was said
     assert wire.decode(msgpack.packb(older, use_bin_type=True)).keyframe_width == 0
+    f = frame(2)
+    f.keyframe = True  # a keyframe of this frame follows
+    assert wire.decode(f.encode()).keyframe is True and wire.decode(frame(2).encode()).keyframe is False
+    older = msgpack.unpackb(f.encode(), raw=False)
+    del older["kf"]  # a node from before frames announced their keyframes
+    assert wire.decode(msgpack.packb(older, use_bin_type=True)).keyframe is False
 
 
 def test_unknown_version_and_malformed_messages_are_clear_errors():
@@ -124,6 +130,7 @@ def test_every_field_is_validated_with_a_reason():
     assert wire.decode(_mutated(c, fps=10)).fps == 10.0  # an int is a number
     assert _reason(_mutated(c, fps="10")) == "malformed"
     assert _reason(_mutated(c, kfw=-1)) == "out_of_range" and _reason(_mutated(c, kfw="960")) == "malformed"
+    assert _reason(_mutated(f, kf=1)) == "malformed" and _reason(_mutated(f, kf="yes")) == "malformed"
     assert _reason(_mutated(c, fps=0)) == "out_of_range"
     assert _reason(_mutated(c, camera={"model": "PINHOLE", "width": 8})) == "malformed"
     st = wire.StatusMessage("f", "d", 12.5)
