@@ -103,6 +103,9 @@ class OnnxDetector:
         opts.log_severity_level = 3
         if threads:
             opts.intra_op_num_threads = threads
+        # idle threads sleep instead of spinning between operators: the node shares its cores (video decoding, the
+        # link, a ground in a replay), and spinning threads took CPU time that the other work needed
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
         available = ort.get_available_providers()
         wanted = providers or ["CPUExecutionProvider"]
         use = [p for p in wanted if p in available]

@@ -27,6 +27,8 @@ def test_default_model_is_found_with_its_metadata(detector):
     m = detector.meta
     assert m["pixel_convention"].startswith("OpenCV") and 0 < m["score_thresh"] < 1
     assert m["metrics"]["add256_test"]["ap50"] > 0 and "training" in m
+    # its threads sleep between operators rather than spin on cores the node shares
+    assert detector.session.get_session_options().get_session_config_entry("session.intra_op.allow_spinning") == "0"
 
 
 def _add256_smoke(det, n: int = 20) -> dict:
