@@ -1,0 +1,129 @@
+"""What the apples a map counts are, by the truth: a simulated flight's recorded stream fed to the ground pipeline in
+this one process (lock-step, mapping inline), then each candidate apple's views matched to the truth's projected
+apples in their frames (the nearest centre, within the apple's radius or 4 px). An apple is *visible* when the
+truth counts it (at least half visible in 3 frames), *hidden* when it is a real apple the truth does not count
+(seen through leaves, or in too few frames), *false* when its views match no apple.
+
+    python benchmarks/candidate_views.py FLIGHT_DIR JOURNAL [--json OUT]
+
+Prints, for the apples counted and those the count's checks left out, how many are of each kind, then the
+quartiles of what tells them apart: the detection score (median over the apple's views), the views, the radius
+(as a share of the map's median), the boxes' roundness (short side over long side), the best view's visible
+fraction, the depth and the parallax of the views.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ground.journal import read_journal
+from ground.pipeline import GroundPipeline, GroundSettings
+from pomar import wire
+from pomar.flight import FlightDir
+
+KINDS = ("visible", "hidden", "false")
+FEATURES = ("score", "views", "radius", "roundness", "best_visible", "depth_m", "parallax_deg")
+
+
+def truth_index(flight: FlightDir, min_visible: float = 0.5, min_views: int = 3):
+    """The truth's projected apples by frame, and the ids of the apples it counts as visible."""
+    td = flight.truth_detections()
+    by_frame: dict[int, np.ndarray] = {}
+    order = np.argsort(td["frame"], kind="stable")
+    frames, starts = np.unique(td["frame"][order], return_index=True)
+    for f, part in zip(frames, np.split(order, starts[1:])):
+        by_frame[int(f)] = part
+    ids, n = np.unique(td["apple_id"][td["visible_fraction"] >= min_visible], return_counts=True)
+    return td, by_frame, set(ids[n >= min_views].tolist())
+
+
+def candidates(flight: FlightDir, journal: Path) -> list[dict]:
+    """Every candidate apple of the lock-step map, with its kind and features."""
+    td, by_frame, visible = truth_index(flight)
+    boxes, scores = {}, {}
+    with tempfile.TemporaryDirectory() as work:
+        pipe = GroundPipeline(Path(work), GroundSettings(mapping="inline"))
+        for payload in read_journal(journal):
+            m = wire.decode(payload)
+            if isinstance(m, wire.FrameMessage):  # the detections as the pipeline keeps them (it forgets old ones)
+                keep = np.asarray(m.scores) >= pipe.s.min_score
+                boxes[m.frame] = np.asarray(m.boxes, float).reshape(-1, 4)[keep]
+                scores[m.frame] = np.asarray(m.scores)[keep]
+            pipe.feed(m)
+        pipe.finish()
+        checks = pipe.count_checks(all_expected=True)
+        fx = pipe.camera.fx
+        out = []
+        for k, i in enumerate(checks["id"]):
+            a = pipe.apples[int(i)]
+            votes: dict[int, int] = {}
+            views = []
+            for seq, d in a.observations:
+                f = pipe._seq_frame[seq]
+                b = boxes[f][d]
+                pose = pipe.frame_poses.get(f)
+                depth = float((pose.R @ a.X + pose.t)[2]) if pose is not None else np.nan
+                vis = np.nan
+                if f in by_frame:
+                    J = by_frame[f]
+                    dist = np.hypot(td["u"][J] - (b[0] + b[2]) / 2, td["v"][J] - (b[1] + b[3]) / 2)
+                    j = J[np.argmin(dist)]
+                    if dist.min() < max(4.0, td["r_px"][j]):
+                        votes[int(td["apple_id"][j])] = votes.get(int(td["apple_id"][j]), 0) + 1
+                        vis = float(td["visible_fraction"][j])
+                views.append((b[2] - b[0], b[3] - b[1], depth, scores[f][d], vis))
+            V = np.array(views)
+            w, h, dep = V[:, 0], V[:, 1], V[:, 2]
+            tid = max(votes, key=votes.get) if votes else None
+            out.append({
+                "id": int(i), "kind": "false" if tid is None else ("visible" if tid in visible else "hidden"),
+                "left_out": str(checks["left_out"][k]), "score": float(np.median(V[:, 3])), "views": len(V),
+                "radius_m": float(np.nanmedian((w + h) / 4 * dep / fx)),
+                "roundness": float(np.median(np.minimum(w, h) / np.maximum(w, h))),
+                "best_visible": float(np.nanmax(V[:, 4])) if np.isfinite(V[:, 4]).any() else float("nan"),
+                "depth_m": float(np.nanmedian(dep)), "parallax_deg": float(pipe.parallax_deg(a))})
+    return out
+
+
+def report(rows: list[dict]) -> str:
+    r_med = np.nanmedian([r["radius_m"] for r in rows]) if rows else np.nan
+    kind = np.array([r["kind"] for r in rows])
+    counted = np.array([r["left_out"] == "" for r in rows], bool)
+    lines = []
+    for name, sel in (("counted", counted), ("left out", ~counted)):
+        lines.append(f"{name}: {int(sel.sum())} (" + ", ".join(f"{k} {int((sel & (kind == k)).sum())}" for k in KINDS) + ")")
+    lines.append("\napples counted, quartiles (25 / 50 / 75) by kind:")
+    lines.append("| feature | " + " | ".join(KINDS) + " |")
+    lines.append("| --- | " + " | ".join("---" for _ in KINDS) + " |")
+    for feat in FEATURES:
+        v = np.array([r["radius_m"] / r_med if feat == "radius" else r[feat] for r in rows], float)
+        cells = []
+        for k in KINDS:
+            x = v[counted & (kind == k)]
+            x = x[np.isfinite(x)]
+            cells.append(" / ".join(f"{q:.2f}" for q in np.percentile(x, [25, 50, 75])) if len(x) else "–")
+        lines.append(f"| {feat} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("flight_dir")
+    ap.add_argument("journal", type=Path, help="its recorded stream (a ground's journal.bin)")
+    ap.add_argument("--json", type=Path, help="write every candidate's kind and features here")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    rows = candidates(FlightDir(args.flight_dir), args.journal)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+    print(report(rows))
+
+
+if __name__ == "__main__":
+    main()
