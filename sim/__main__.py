@@ -104,12 +104,14 @@ def main(argv=None) -> int:
     lg.set_defaults(func=_cmd_logs)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    from pomar.camera import CameraFileError
     from pomar.flight import FlightFormatError
+    from pomar.telemetry.base import TelemetryError
     from sim.config import ConfigError
 
     try:
         return args.func(args)
-    except (ConfigError, FlightFormatError) as exc:
+    except (ConfigError, FlightFormatError, CameraFileError, TelemetryError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
 

@@ -8,20 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from pomar.flight import FlightDir
-
-
-def tlog_message_counts(path) -> Counter:
-    from pomar.mavlink import dialect  # noqa: F401  (sets MAVLink 2 before pymavlink loads)
-    from pymavlink import mavutil
-
-    conn = mavutil.mavlink_connection(str(path), dialect="ardupilotmega")
-    counts = Counter()
-    try:
-        while (msg := conn.recv_match()) is not None:
-            counts[msg.get_type()] += 1
-    finally:
-        conn.close()
-    return counts
+from pomar.telemetry import read_log
 
 
 def flight_info(flight_dir) -> str:
@@ -37,9 +24,11 @@ def flight_info(flight_dir) -> str:
         f"  camera: {cam.model} fx={cam.fx:.1f} fy={cam.fy:.1f} cx={cam.cx:.1f} cy={cam.cy:.1f} "
         f"(HFOV {np.degrees(2 * np.arctan(cam.width / 2 / cam.fx)):.1f} deg)",
     ]
-    counts = tlog_message_counts(fd.tlog)
-    lines.append(f"  telemetry: {sum(counts.values())} MAVLink messages: "
-                 + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
+    # the flight's log in whatever format it is (an assembled flight names its own), read by the one reader
+    tl = read_log(fd.telemetry_log)
+    lines.append(f"  telemetry ({tl.format}, {fd.telemetry_log.name}): {sum(tl.counts.values())} records: "
+                 + ", ".join(f"{k} {v}" for k, v in sorted(tl.counts.items())))
+    lines += [f"  problem: {p}" for p in tl.problems]
     if fd.has_truth:
         a, d, o = fd.truth_apples(), fd.truth_detections(), fd.origin()
         seen = np.unique(d["apple_id"])

@@ -227,6 +227,47 @@ def test_flight_built_from_video_log_and_camera(sim_logs, replayed_test_flight, 
     assert 0.5 * ref["apples"] - 2 <= rep["apples"] <= 1.5 * ref["apples"] + 2, (rep["apples"], ref["apples"])
 
 
+def test_python_m_pomar_builds_a_flight_that_sim_info_reads_through_its_own_log(sim_logs, tmp_path):
+    """`python -m pomar flight` from the tiny flight's video, its DataFlash .bin and camera.json: the directory names
+    the .bin (no telemetry.tlog in it), and `sim info` reads it with the DataFlash reader; a log that is not there is
+    a clear error naming it, and no directory is written."""
+    flight, binf, _ = sim_logs
+    out = tmp_path / "built"
+    r = subprocess.run([sys.executable, "-m", "pomar", "flight", "--video", str(flight.video), "--log", str(binf),
+                        "--camera", str(flight.path / "camera.json"), "--out", str(out), "--json", str(tmp_path / "f.json")],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    rep = json.loads((tmp_path / "f.json").read_text())
+    assert rep["frames"] == flight.meta().frame_count and rep["log_format"] == "dataflash"
+    assert not (out / "telemetry.tlog").exists()
+    r = subprocess.run([sys.executable, "-m", "sim", "info", str(out)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert f"telemetry (dataflash, {binf.name})" in r.stdout and "CAM " in r.stdout
+    missing = tmp_path / "nowhere.bin"
+    r = subprocess.run([sys.executable, "-m", "pomar", "flight", "--video", str(flight.video), "--log", str(missing),
+                        "--camera", str(flight.path / "camera.json"), "--out", str(tmp_path / "not-built")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2 and str(missing) in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "not-built").exists()
+
+
+def test_python_m_pomar_foresees_the_apples_size_as_the_onboard_node_does():
+    """`python -m pomar scale` for the paper's setting (Phantom 4 Pro, 4K, 12 m, 30 degrees off nadir) against the
+    shipped model's metadata: the scale the onboard node's policy gives for that radius."""
+    from pomar.apple_scale import ScalePolicy, expected_radius_px
+    from pomar.assemble import camera_for
+
+    meta = Path(__file__).resolve().parents[1] / "onboard" / "models" / "apple-detector.json"
+    r = subprocess.run([sys.executable, "-m", "pomar", "scale", "--camera", "phantom-4-pro", "--width", "3840",
+                        "--height-m", "12", "--tilt-deg", "60", "--model", str(meta)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    cam, _ = camera_for("phantom-4-pro", 3840, 2160)
+    radius = float(expected_radius_px(cam.fx, 12.0, 30.0))
+    target = json.loads(meta.read_text())["apple_radius_px"]
+    assert f"{radius:.2f} px" in r.stdout and f"{ScalePolicy(target_px=target).scale(radius):.2f}" in r.stdout
+    assert 0.25 < ScalePolicy(target_px=target).scale(radius) < 1.0  # a 4K frame from 12 m is shrunk
+
+
 @needs_logs
 def test_a_log_from_another_time_is_refused(replay_test_flight, tmp_path):
     """A PX4 log without camera events, from 2024, with a video whose container says 2010: a clear error naming

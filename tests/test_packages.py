@@ -8,7 +8,7 @@ import sys
 import pytest
 
 
-@pytest.mark.parametrize("package", ["sim", "onboard", "ground", "export"])
+@pytest.mark.parametrize("package", ["sim", "onboard", "ground", "export", "pomar"])
 def test_help(package):
     r = subprocess.run([sys.executable, "-m", package, "--help"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr

@@ -86,13 +86,13 @@ def test_seed_changes_the_orchard(tmp_path):
 
 def test_px4_capture_messages(tmp_path):
     from sim.flight import simulate_flight
-    from sim.preview import tlog_message_counts
+    from pomar.telemetry import read_log
 
     cfg = config.load(SMALL_CONFIG)
     cfg.telemetry.capture_message = "CAMERA_TRIGGER"
     cfg.camera.width, cfg.camera.height = 160, 96
     summary = simulate_flight(cfg, tmp_path / "px4", jobs=1, progress=False)
-    counts = tlog_message_counts(tmp_path / "px4" / "telemetry.tlog")
+    counts = read_log(tmp_path / "px4" / "telemetry.tlog").counts
     assert counts["CAMERA_TRIGGER"] == summary["frames"] and "CAMERA_FEEDBACK" not in counts
 
 

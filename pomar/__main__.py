@@ -1,0 +1,115 @@
+"""python -m pomar SUBCOMMAND: the shared core's own tools, for a flight of your own before either node runs.
+
+  flight   build a flight directory from a video, the drone's log (.tlog, DataFlash .bin, PX4 .ulg, DJI .SRT) and
+           a camera (a camera.json or a built-in camera); the onboard node and the ground read it as any other
+  cameras  list the built-in cameras, with the focal length in pixels each gives at a video width
+  scale    the apple radius in pixels a camera foresees from a height and a tilt, and the scale that brings it to
+           a detector's size (what the onboard node's --detector-scale auto does on each frame)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def _cmd_flight(args) -> int:
+    from pomar.assemble import assemble_flight, describe
+
+    rep = assemble_flight(args.video, args.log, args.camera, args.out, flight_id=args.flight_id,
+                          drone_id=args.drone_id, clock_offset_s=args.clock_offset_s)
+    print(describe(rep))
+    for problem in rep["problems"]:
+        print(f"  problem: {problem}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rep, indent=2) + "\n")
+    return 0
+
+
+def _cmd_cameras(args) -> int:
+    from pomar.assemble import CAMERAS, camera_for
+
+    for name in sorted(CAMERAS):
+        cam, _ = camera_for(name, args.width, round(args.width * 9 / 16))
+        print(f"{name:14s} fx {cam.fx:7.1f} px at {args.width} px wide  {CAMERAS[name][2]}")
+    return 0
+
+
+def _cmd_scale(args) -> int:
+    import numpy as np
+
+    from pomar.apple_scale import ScalePolicy, expected_radius_px
+    from pomar.assemble import camera_for
+
+    target = args.model_radius_px
+    if args.model:
+        target = json.loads(Path(args.model).read_text()).get("apple_radius_px")
+        if not target:
+            raise ValueError(f"{args.model}: no apple_radius_px in the model's metadata: it does not say its apple size")
+    cam, source = camera_for(args.camera, args.width, args.height or round(args.width * 9 / 16))
+    r = float(np.asarray(expected_radius_px(cam.fx, args.height_m, 90.0 - args.tilt_deg)).reshape(-1)[0])
+    print(f"camera {source}: fx {cam.fx:.1f} px")
+    if not np.isfinite(r):
+        print(f"{args.height_m:g} m is too near the canopy to foresee the apples' size: frames go at their own size")
+        return 0
+    print(f"apple radius foreseen at {args.height_m:g} m, camera {args.tilt_deg:g} deg below the horizon: {r:.2f} px")
+    print(f"the onboard node's scale for a model of {target:g} px: {ScalePolicy(target_px=target).scale(r):.2f}")
+    return 0
+
+
+def _positive(value: str) -> float:
+    v = float(value)
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"must be positive, not {value}")
+    return v
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m pomar", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    f = sub.add_parser("flight", help="build a flight directory from a video, a log and a camera")
+    f.add_argument("--video", required=True, help="the video file (MP4/MOV)")
+    f.add_argument("--log", required=True, help="the drone's log: .tlog, DataFlash .bin, PX4 .ulg or DJI .SRT")
+    f.add_argument("--camera", required=True,
+                   help="a camera.json, or a built-in camera's name (python -m pomar cameras lists them)")
+    f.add_argument("--out", required=True, help="the flight directory to write")
+    f.add_argument("--flight-id", help="default: from the video's name")
+    f.add_argument("--drone-id", default="drone-1")
+    f.add_argument("--clock-offset-s", type=float, default=0.0,
+                   help="the camera's clock minus the log's, where the log has no camera events to time the frames")
+    f.add_argument("--json", help="write what was found (start time and how, camera, the log's problems) here")
+    f.set_defaults(func=_cmd_flight)
+
+    c = sub.add_parser("cameras", help="list the built-in cameras")
+    c.add_argument("--width", type=int, default=3840, help="the video's width in pixels (default 3840)")
+    c.set_defaults(func=_cmd_cameras)
+
+    s = sub.add_parser("scale", help="the apple size a camera foresees, and the detector scale for it")
+    s.add_argument("--camera", required=True, help="a camera.json, or a built-in camera's name")
+    s.add_argument("--width", type=int, default=3840, help="the video's width in pixels (built-in cameras)")
+    s.add_argument("--height", type=int, help="the video's height in pixels (default: 16:9)")
+    s.add_argument("--height-m", type=_positive, required=True, help="the camera's height above the ground (m)")
+    s.add_argument("--tilt-deg", type=float, default=90.0, help="the camera's pitch below the horizon (90: nadir)")
+    m = s.add_mutually_exclusive_group(required=True)
+    m.add_argument("--model", help="a detector's metadata (JSON beside its .onnx, e.g. onboard/models/apple-detector.json)"
+                                   ": the apple radius it works best at")
+    m.add_argument("--model-radius-px", type=_positive, help="that radius, given by hand")
+    s.set_defaults(func=_cmd_scale)
+
+    args = p.parse_args(argv)
+    from pomar.camera import CameraFileError
+    from pomar.flight import FlightFormatError
+
+    try:
+        return args.func(args)
+    except (FlightFormatError, CameraFileError, OSError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
