@@ -6,10 +6,12 @@ truth counts it (at least half visible in 3 frames), *hidden* when it is a real 
 
     python benchmarks/candidate_views.py FLIGHT_DIR JOURNAL [--json OUT]
 
-Prints, for the apples counted and those the count's checks left out, how many are of each kind, then the
-quartiles of what tells them apart: the detection score (median over the apple's views), the views, the radius
-(as a share of the map's median), the boxes' roundness (short side over long side), the best view's visible
-fraction, the depth and the parallax of the views.
+Prints, for the apples counted and those the count's checks left out, how many are of each kind; where the
+visible apples the count misses were lost (never detected, detected in fewer than 3 frames, detected but in no
+apple, in an apple with too few strong views to be confirmed, or left out by a check); then the quartiles of what
+tells the kinds apart: the detection score (median over the apple's views), the views, the radius (as a share of
+the map's median), the boxes' roundness (short side over long side), the best view's visible fraction, the depth
+and the parallax of the views.
 """
 
 from __future__ import annotations
@@ -43,12 +45,21 @@ def truth_index(flight: FlightDir, min_visible: float = 0.5, min_views: int = 3)
     return td, by_frame, set(ids[n >= min_views].tolist())
 
 
-def candidates(flight: FlightDir, journal: Path) -> list[dict]:
-    """Every candidate apple of the lock-step map, with its kind and features."""
+def candidates(flight: FlightDir, journal: Path) -> tuple[list[dict], dict[str, int]]:
+    """Every candidate apple of the lock-step map, with its kind and features; and where the visible apples the
+    count misses were lost (:func:`missed`)."""
     td, by_frame, visible = truth_index(flight)
     boxes, scores = {}, {}
+    emitted = {}  # every apple the association gave, confirmed or not
     with tempfile.TemporaryDirectory() as work:
         pipe = GroundPipeline(Path(work), GroundSettings(mapping="inline"))
+        confirm = pipe._confirm
+
+        def _confirm(apples):
+            emitted.update((a.id, a) for a in apples)
+            return confirm(apples)
+
+        pipe._confirm = _confirm
         for payload in read_journal(journal):
             m = wire.decode(payload)
             if isinstance(m, wire.FrameMessage):  # the detections as the pipeline keeps them (it forgets old ones)
@@ -70,13 +81,10 @@ def candidates(flight: FlightDir, journal: Path) -> list[dict]:
                 pose = pipe.frame_poses.get(f)
                 depth = float((pose.R @ a.X + pose.t)[2]) if pose is not None else np.nan
                 vis = np.nan
-                if f in by_frame:
-                    J = by_frame[f]
-                    dist = np.hypot(td["u"][J] - (b[0] + b[2]) / 2, td["v"][J] - (b[1] + b[3]) / 2)
-                    j = J[np.argmin(dist)]
-                    if dist.min() < max(4.0, td["r_px"][j]):
-                        votes[int(td["apple_id"][j])] = votes.get(int(td["apple_id"][j]), 0) + 1
-                        vis = float(td["visible_fraction"][j])
+                t = _truth_of(b, f, td, by_frame)
+                if t is not None:
+                    votes[t] = votes.get(t, 0) + 1
+                    vis = float(td["visible_fraction"][(td["frame"] == f) & (td["apple_id"] == t)].max())
                 views.append((b[2] - b[0], b[3] - b[1], depth, scores[f][d], vis))
             V = np.array(views)
             w, h, dep = V[:, 0], V[:, 1], V[:, 2]
@@ -88,16 +96,61 @@ def candidates(flight: FlightDir, journal: Path) -> list[dict]:
                 "roundness": float(np.median(np.minimum(w, h) / np.maximum(w, h))),
                 "best_visible": float(np.nanmax(V[:, 4])) if np.isfinite(V[:, 4]).any() else float("nan"),
                 "depth_m": float(np.nanmedian(dep)), "parallax_deg": float(pipe.parallax_deg(a))})
+        lost = missed(pipe, emitted, out, td, by_frame, visible, boxes)
+    return out, lost
+
+
+def _truth_of(b: np.ndarray, f: int, td, by_frame) -> int | None:
+    """The truth apple a box in frame f shows: the nearest projected centre, within its radius or 4 px."""
+    if f not in by_frame:
+        return None
+    J = by_frame[f]
+    dist = np.hypot(td["u"][J] - (b[0] + b[2]) / 2, td["v"][J] - (b[1] + b[3]) / 2)
+    j = J[np.argmin(dist)]
+    return int(td["apple_id"][j]) if dist.min() < max(4.0, td["r_px"][j]) else None
+
+
+def missed(pipe, emitted: dict, rows: list[dict], td, by_frame, visible: set, boxes: dict) -> dict[str, int]:
+    """Where each visible apple that no counted apple shows was lost, the furthest it got: left out by a check
+    (small, narrow, few_views), in an apple without enough strong views (unconfirmed), detected in 3 frames or more
+    but in no apple, detected in fewer, never detected."""
+    det = {}  # truth apple -> frames it was detected in
+    for f, B in boxes.items():
+        for b in B:
+            t = _truth_of(b, f, td, by_frame)
+            if t is not None:
+                det[t] = det.get(t, 0) + 1
+    left = {r["id"]: r["left_out"] for r in rows}
+    stage = {}  # truth apple -> (rank, stage), the furthest any apple showing it got
+    for i, a in emitted.items():
+        votes: dict[int, int] = {}
+        for seq, d in a.observations:
+            f = pipe._seq_frame[seq]
+            t = _truth_of(boxes[f][d], f, td, by_frame)
+            if t is not None:
+                votes[t] = votes.get(t, 0) + 1
+        if not votes:
+            continue
+        t = max(votes, key=votes.get)
+        st = ((2, f"left out: {left[i]}") if left[i] else (3, "counted")) if i in left else (1, "unconfirmed")
+        stage[t] = max(stage.get(t, (0, "")), st)
+    out: dict[str, int] = {}
+    for t in visible:
+        st = stage.get(t, (0, ""))[1] or ("never detected" if not det.get(t) else
+                                           "detected in < 3 frames" if det[t] < 3 else "detected, in no apple")
+        out[st] = out.get(st, 0) + 1
     return out
 
 
-def report(rows: list[dict]) -> str:
+def report(rows: list[dict], lost: dict[str, int]) -> str:
     r_med = np.nanmedian([r["radius_m"] for r in rows]) if rows else np.nan
     kind = np.array([r["kind"] for r in rows])
     counted = np.array([r["left_out"] == "" for r in rows], bool)
     lines = []
     for name, sel in (("counted", counted), ("left out", ~counted)):
         lines.append(f"{name}: {int(sel.sum())} (" + ", ".join(f"{k} {int((sel & (kind == k)).sum())}" for k in KINDS) + ")")
+    n_visible = sum(lost.values())
+    lines.append(f"visible apples: {n_visible}; " + ", ".join(f"{k} {v}" for k, v in sorted(lost.items(), key=lambda kv: -kv[1])))
     lines.append("\napples counted, quartiles (25 / 50 / 75) by kind:")
     lines.append("| feature | " + " | ".join(KINDS) + " |")
     lines.append("| --- | " + " | ".join("---" for _ in KINDS) + " |")
@@ -119,10 +172,10 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="write every candidate's kind and features here")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
-    rows = candidates(FlightDir(args.flight_dir), args.journal)
+    rows, lost = candidates(FlightDir(args.flight_dir), args.journal)
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=1))
-    print(report(rows))
+        args.json.write_text(json.dumps({"candidates": rows, "visible_apples_by_stage": lost}, indent=1))
+    print(report(rows, lost))
 
 
 if __name__ == "__main__":
