@@ -45,9 +45,15 @@ def _cmd_scale(args) -> int:
 
     target = args.model_radius_px
     if args.model:
-        target = json.loads(Path(args.model).read_text()).get("apple_radius_px")
+        try:
+            target = json.loads(Path(args.model).read_text()).get("apple_radius_px")
+        except json.JSONDecodeError as e:
+            print(f"error: {args.model}: not a model's metadata (not valid JSON: {e})", file=sys.stderr)
+            return 2
         if not target:
-            raise ValueError(f"{args.model}: no apple_radius_px in the model's metadata: it does not say its apple size")
+            print(f"error: {args.model}: no apple_radius_px in the model's metadata: it does not say its apple size",
+                  file=sys.stderr)
+            return 2
     cam, source = camera_for(args.camera, args.width, args.height or round(args.width * 9 / 16))
     r = float(np.asarray(expected_radius_px(cam.fx, args.height_m, 90.0 - args.tilt_deg)).reshape(-1)[0])
     print(f"camera {source}: fx {cam.fx:.1f} px")
@@ -103,10 +109,12 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     from pomar.camera import CameraFileError
     from pomar.flight import FlightFormatError
+    from pomar.telemetry.base import TelemetryError
+    from pomar.video import VideoError
 
     try:
         return args.func(args)
-    except (FlightFormatError, CameraFileError, OSError, ValueError) as e:
+    except (FlightFormatError, CameraFileError, TelemetryError, VideoError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
 
