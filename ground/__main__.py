@@ -298,7 +298,8 @@ def main(argv=None) -> int:
     from ground.evaluate import __doc__ as evaluate_doc
     from pomar.flight import id_argument
 
-    p = argparse.ArgumentParser(prog="python -m ground", description=__doc__)
+    p = argparse.ArgumentParser(prog="python -m ground", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     e = sub.add_parser("evaluate", help="run the association on a simulated flight and score it against the truth",
                        description=evaluate_doc,
