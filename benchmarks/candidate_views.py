@@ -69,7 +69,6 @@ def candidates(flight: FlightDir, journal: Path) -> tuple[list[dict], dict[str, 
             pipe.feed(m)
         pipe.finish()
         checks = pipe.count_checks(all_expected=True)
-        fx = pipe.camera.fx
         out = []
         for k, i in enumerate(checks["id"]):
             a = pipe.apples[int(i)]
@@ -81,33 +80,41 @@ def candidates(flight: FlightDir, journal: Path) -> tuple[list[dict], dict[str, 
                 pose = pipe.frame_poses.get(f)
                 depth = float((pose.R @ a.X + pose.t)[2]) if pose is not None else np.nan
                 vis = np.nan
-                t = _truth_of(b, f, td, by_frame)
-                if t is not None:
+                j = _truth_row(b, f, td, by_frame)
+                if j is not None:
+                    t = int(td["apple_id"][j])
                     votes[t] = votes.get(t, 0) + 1
-                    vis = float(td["visible_fraction"][(td["frame"] == f) & (td["apple_id"] == t)].max())
+                    vis = float(td["visible_fraction"][j])
                 views.append((b[2] - b[0], b[3] - b[1], depth, scores[f][d], vis))
             V = np.array(views)
-            w, h, dep = V[:, 0], V[:, 1], V[:, 2]
+            w, h = V[:, 0], V[:, 1]
             tid = max(votes, key=votes.get) if votes else None
             out.append({
                 "id": int(i), "kind": "false" if tid is None else ("visible" if tid in visible else "hidden"),
                 "left_out": str(checks["left_out"][k]), "score": float(np.median(V[:, 3])), "views": len(V),
-                "radius_m": float(np.nanmedian((w + h) / 4 * dep / fx)),
+                "radius_m": float(checks["radius_m"][k]),
                 "roundness": float(np.median(np.minimum(w, h) / np.maximum(w, h))),
                 "best_visible": float(np.nanmax(V[:, 4])) if np.isfinite(V[:, 4]).any() else float("nan"),
-                "depth_m": float(np.nanmedian(dep)), "parallax_deg": float(pipe.parallax_deg(a))})
+                "depth_m": float(np.nanmedian(V[:, 2])), "parallax_deg": float(pipe.parallax_deg(a))})
         lost = missed(pipe, emitted, out, td, by_frame, visible, boxes)
     return out, lost
 
 
-def _truth_of(b: np.ndarray, f: int, td, by_frame) -> int | None:
-    """The truth apple a box in frame f shows: the nearest projected centre, within its radius or 4 px."""
+def _truth_row(b: np.ndarray, f: int, td, by_frame) -> int | None:
+    """The truth detection (its row in ``td``) a box in frame f shows: the nearest projected centre, within its
+    radius or 4 px."""
     if f not in by_frame:
         return None
     J = by_frame[f]
     dist = np.hypot(td["u"][J] - (b[0] + b[2]) / 2, td["v"][J] - (b[1] + b[3]) / 2)
     j = J[np.argmin(dist)]
-    return int(td["apple_id"][j]) if dist.min() < max(4.0, td["r_px"][j]) else None
+    return int(j) if dist.min() < max(4.0, td["r_px"][j]) else None
+
+
+def _truth_of(b: np.ndarray, f: int, td, by_frame) -> int | None:
+    """The truth apple a box in frame f shows (:func:`_truth_row`)."""
+    j = _truth_row(b, f, td, by_frame)
+    return None if j is None else int(td["apple_id"][j])
 
 
 def missed(pipe, emitted: dict, rows: list[dict], td, by_frame, visible: set, boxes: dict) -> dict[str, int]:
