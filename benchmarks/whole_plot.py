@@ -10,13 +10,16 @@ against the previous ones); and with ``--no-revisit --no-cross-pass`` as well (t
 only within its window of recent apples: the behaviour before issue 16). Without journals each replay runs both
 processes (``python -m ground replay``, the shipped detector, about 1 s a frame here); with ``--journals`` (one per
 flight, in order: the journal.bin of an earlier replay of it) the recorded stream is played instead and no detector
-runs. Time nothing else meanwhile (2 cores).
+runs. ``--ground-args`` passes more options to every replay, for example the count's checks off with the journal
+of a truth-detection replay (``--detector truth-replay``): what the ground does with perfect detections. Time
+nothing else meanwhile (2 cores).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -70,6 +73,8 @@ def main(argv=None) -> int:
     ap.add_argument("flights", nargs="+", type=Path)
     ap.add_argument("--journals", nargs="+", type=Path, help="a recorded stream per flight, in order (no detector runs)")
     ap.add_argument("--modes", nargs="+", choices=[m for m, _ in MODES], default=[m for m, _ in MODES])
+    ap.add_argument("--ground-args", default="", help="more options for every replay, one string "
+                    "(e.g. '--min-view-ratio 0 --min-parallax-deg 0')")
     ap.add_argument("--out", type=Path, default=Path("out/bench/whole-plot"))
     a = ap.parse_args(argv)
     if a.journals and len(a.journals) != len(a.flights):
@@ -85,7 +90,7 @@ def main(argv=None) -> int:
             out = a.out / path.name / mode.replace("+", "-").replace(" ", "-")
             print(f"{path.name}: replay ({mode}) ...", file=sys.stderr, flush=True)
             subprocess.run([sys.executable, "-m", "ground", "replay", str(path), "--out", str(out), "--quiet"] + source
-                           + extra, check=True, stdout=subprocess.DEVNULL)
+                           + extra + shlex.split(a.ground_args), check=True, stdout=subprocess.DEVNULL)
             rep = json.loads((out / "report.json").read_text())
             ev, reg = rep["evaluation"], rep["registration"]
             rows = [r for r in ev["rows"] if r["truth_visible"] >= 30]
@@ -99,6 +104,8 @@ def main(argv=None) -> int:
                          + " ".join(f"{x:.2f}" for x in spf) + " |")
             row_lines.append(f"{path.name}, {mode}: rows (count / visible) "
                              + ", ".join(f"{r['row']}: {r['count']}/{r['truth_visible']}" for r in ev["rows"]))
+    if a.ground_args:
+        print(f"every replay with: {a.ground_args}")
     print("| flight | mode | count | visible | error % | counted twice | worst row % (30+) | F1 | median error cm | "
           "revisits / re-anchored / re-joined | merged across passes | wall s | ground s/frame by pass |")
     print("|" + " --- |" * 13)

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from sim.config import SimConfig
 
@@ -103,6 +104,24 @@ def _ground_texture(cfg: SimConfig, rng, row_x, sun_enu, to_enu):
     return rgb, (x_min, x_max, y_min, y_max)
 
 
+def _without_interpenetration(xyz: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """Mask of the apples to keep: of two apples whose spheres overlap, the later one goes.
+
+    Real apples do not pass through each other; two drawn that way would be one blob in
+    the image but two apples in the truth.
+    """
+    keep = np.ones(len(xyz), bool)
+    if len(xyz) < 2:
+        return keep
+    pairs = cKDTree(xyz).query_pairs(2.0 * float(radius.max()), output_type="ndarray")
+    d = np.linalg.norm(xyz[pairs[:, 0]] - xyz[pairs[:, 1]], axis=1)
+    pairs = pairs[d < radius[pairs[:, 0]] + radius[pairs[:, 1]]]
+    for i, j in sorted(map(tuple, np.sort(pairs, axis=1))):
+        if keep[i]:
+            keep[j] = False
+    return keep
+
+
 def build_scene(cfg: SimConfig) -> Scene:
     rng = np.random.default_rng(cfg.seed)
     o, a = cfg.orchard, cfg.apples
@@ -181,21 +200,31 @@ def build_scene(cfg: SimConfig) -> Scene:
             aidx.append(np.arange(first, first + m, dtype=np.int32))
 
     pos_o = np.concatenate(pos)
-    pos_enu = np.column_stack([pos_o[:, :2] @ to_enu.T, pos_o[:, 2]]).astype(np.float32)
+    rad_a, col_a, kind_a, aidx_a = (np.concatenate(v) for v in (rad, col, kind, aidx))
     xyz_o = np.array(apples["xyz"]).reshape(-1, 3)
+    r_apple = np.array(apples["radius_m"])
+    keep_apple = _without_interpenetration(xyz_o, r_apple)
+    # drop the primitives of removed apples and renumber the rest; no draw from rng here,
+    # so the ground (drawn next) is the same as without the removal
+    keep_prim = (kind_a != APPLE) | keep_apple[np.maximum(aidx_a, 0)]
+    new_index = np.cumsum(keep_apple) - 1
+    aidx_a = np.where(kind_a == APPLE, new_index[np.maximum(aidx_a, 0)], -1).astype(np.int32)
+    pos_o, rad_a, col_a, kind_a, aidx_a = (v[keep_prim] for v in (pos_o, rad_a, col_a, kind_a, aidx_a))
+    xyz_o = xyz_o[keep_apple]
+    pos_enu = np.column_stack([pos_o[:, :2] @ to_enu.T, pos_o[:, 2]]).astype(np.float32)
     ground, extent = _ground_texture(cfg, rng, row_x, sun, to_enu)
     return Scene(
         pos=pos_enu,
-        radius=np.concatenate(rad).astype(np.float32),
-        colour=np.concatenate(col).astype(np.float32),
-        kind=np.concatenate(kind),
-        apple_index=np.concatenate(aidx),
+        radius=rad_a.astype(np.float32),
+        colour=col_a.astype(np.float32),
+        kind=kind_a,
+        apple_index=aidx_a,
         apples={
-            "apple_id": np.array(apples["apple_id"], np.int64),
-            "row": np.array(apples["row"], np.int64),
-            "variety": np.array(apples["variety"], dtype=str),
+            "apple_id": np.arange(len(xyz_o), dtype=np.int64),
+            "row": np.array(apples["row"], np.int64)[keep_apple],
+            "variety": np.array(apples["variety"], dtype=str)[keep_apple],
             "xyz": np.column_stack([xyz_o[:, :2] @ to_enu.T, xyz_o[:, 2]]),
-            "radius_m": np.array(apples["radius_m"]),
+            "radius_m": r_apple[keep_apple],
         },
         ground=ground,
         ground_extent=extent,

@@ -84,6 +84,33 @@ def test_seed_changes_the_orchard(tmp_path):
     assert not np.array_equal(a.apples["xyz"][:5], b.apples["xyz"][:5])
 
 
+def test_apples_do_not_interpenetrate():
+    from scipy.spatial import cKDTree
+
+    from sim.orchard import APPLE, build_scene
+
+    # dense apples, so the draw puts some through each other before the removal
+    sc = build_scene(config.from_dict({"seed": 3, "orchard": {"rows": 2, "row_length_m": 6.0}, "apples": {"per_tree": 60}}))
+    xyz, r = sc.apples["xyz"], sc.apples["radius_m"]
+    pairs = cKDTree(xyz).query_pairs(2 * r.max(), output_type="ndarray")
+    gap = np.linalg.norm(xyz[pairs[:, 0]] - xyz[pairs[:, 1]], axis=1) - r[pairs].sum(axis=1)
+    assert len(pairs) > 0 and gap.min() >= 0
+    # each apple is drawn by exactly one primitive, at its truth position
+    apple = sc.kind == APPLE
+    assert np.array_equal(np.sort(sc.apple_index[apple]), np.arange(len(xyz)))
+    assert np.allclose(sc.pos[apple], xyz[sc.apple_index[apple]], atol=1e-5)
+    assert np.array_equal(sc.apples["apple_id"], np.arange(len(xyz)))
+
+
+def test_interpenetration_removes_the_later_apple_only():
+    from sim.orchard import _without_interpenetration
+
+    # a chain: 0 overlaps 1, 1 overlaps 2, 0 and 2 are clear; 3 is 9 cm from 2, 1 cm clear of it
+    xyz = np.array([[0, 0, 0], [0.06, 0, 0], [0.12, 0, 0], [0.12, 0.09, 0]], float)
+    r = np.full(4, 0.04)
+    assert _without_interpenetration(xyz, r).tolist() == [True, False, True, True]
+
+
 def test_px4_capture_messages(tmp_path):
     from sim.flight import simulate_flight
     from pomar.telemetry import read_log
