@@ -60,7 +60,8 @@ def _settings(args):
     from ground.tracking import TrackingSettings
 
     return GroundSettings(association=AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom,
-                                                        min_inliers=args.min_inliers, cross_pass=not args.no_cross_pass),
+                                                        min_inliers=args.min_inliers, cross_pass=not args.no_cross_pass,
+                                                        max_merge_shift_m=args.max_merge_shift_m),
                           registration=_registration_settings(args),
                           max_wait_s=args.max_wait_s, mapping=args.mapping, init_spacing_s=args.init_spacing_s,
                           correction_every_s=args.correction_every_s, drift_sigma_s=args.drift_sigma_s,
@@ -251,6 +252,9 @@ def _ground_options(p):
     p.add_argument("--no-cross-pass", action="store_true",
                    help="association: merge an apple only with apples of the last merge window (one pass), not with "
                         "the whole map (the behaviour before cross-pass identity; a baseline)")
+    p.add_argument("--max-merge-shift-m", type=float, default=a.max_merge_shift_m,
+                   help="association: an apple from another pass merges only if their joint position stays within "
+                        "this of the better-seen one (m); 0 = off")
     _registration_options(p, g.registration.init_frames)
     p.add_argument("--max-wait-s", type=float, default=5.0,
                    help="live, frames wait for the keyframe after them unless no keyframe came for this long (s); with "

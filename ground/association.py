@@ -56,6 +56,12 @@ class AssociationParams:
     #: as the map grows): an apple seen again from a later pass, minutes after, merges into the first estimate.
     #: False = only apples of the last merge_window frames (one pass's worth).
     cross_pass: bool = True
+    #: An apple from another pass (beyond merge_window), or one merging after a pose correction, merges only if the
+    #: joint point stays within this of the better-seen of the two (more observations): one apple's two estimates
+    #: differ by a cap's offset (at most its radius) and the poses' disagreement (a few cm), while a glimpse of a
+    #: neighbour along the other apple's rays can triangulate with its views by pulling it 10 cm or more along them.
+    #: 0 = off. Not applied to the other merges within merge_window, where it refused true ones (docs/benchmarks.md).
+    max_merge_shift_m: float = 0.08
     #: An apple's final position minimises the reprojection error over its inliers (the linear
     #: solution's depth is biased over the short baselines of a few frames); False = linear only.
     nonlinear: bool = True
@@ -340,8 +346,8 @@ def merge_into(a: Apple, b: Apple, X: np.ndarray | None = None) -> None:
 def find_duplicate(apple: Apple, candidates: list[Apple], params: "AssociationParams", strict: bool = False):
     """The candidate that apple duplicates, and their joint position (None: their mean): within merge_m, or within
     merge_search_m and consistent (their views triangulate together within tau_geom; ``strict``: also within
-    tau_geom / 2 in the median of each one's views, for apples from another pass, which only their views can tell
-    from a neighbour a few cm away)."""
+    tau_geom / 2 in the median of each one's views, to a point within max_merge_shift_m of the better-seen one, for
+    apples from another pass, which only their views can tell from a neighbour a few cm away)."""
     if not candidates:
         return None, None
     C = np.array([c.X for c in candidates])
@@ -354,6 +360,10 @@ def find_duplicate(apple: Apple, candidates: list[Apple], params: "AssociationPa
             return c, joint_point(c, apple)
         if apple.views is not None and c.views is not None:
             X = same_apple(c, apple, params.tau_geom, max_median_px=params.tau_geom / 2 if strict else None)
+            if X is not None and strict and params.max_merge_shift_m > 0:
+                better = c if c.n_observations >= apple.n_observations else apple
+                if np.linalg.norm(X - better.X) > params.max_merge_shift_m:
+                    continue
             if X is not None:
                 return c, X
     return None, None

@@ -235,3 +235,31 @@ def test_apples_merge_once_their_poses_are_corrected():
     assert assoc.stats["merged_after_repose"] == len(merged) >= 0.8 * len(apples)
     # poses that did not move leave the map as it is
     assert assoc.repose({}) == ([], [])
+
+
+def test_a_glimpse_along_another_apples_rays_stays_a_second_apple():
+    """Two passes on the same side of a row, 4 m apart. Apple B, 12 cm beyond apple A along the second pass's line of
+    sight to A, is glimpsed in 4 frames of the first pass; A is seen in 11 frames of the second. The glimpse's rays and
+    A's triangulate together within tau_geom by pulling A 9 cm along them: a false merge, which the cap on how far a
+    merge may move the better-seen apple refuses."""
+    from pomar.camera import Camera
+    from pomar.rotations import R_GIMBAL_FROM_CAMERA_NOMINAL, camera_from_gimbal_attitude, ned_euler_to_rotation, world_to_camera
+
+    cam = Camera.from_fov(1280, 720, 50.0)
+    n, y = 70, np.arange(70) * 0.2
+    A = np.array([8.0, 7.0, 2.0])
+    B = A + 0.12 * (A - [4.0, 7.0, 12.0]) / np.linalg.norm(A - [4.0, 7.0, 12.0])
+    frames = []
+    # (pass's x, its frames' y, the apple it sees, in which of its frames)
+    for k, (x, ys, apple, seen) in enumerate([(0.0, y, B, range(30, 34)), (4.0, y[::-1], A, range(25, 36))]):
+        centres = np.stack([np.full(n, x), ys, np.full(n, 12.0)], 1)
+        rot = ned_euler_to_rotation(np.zeros(n), np.full(n, -60.0), np.full(n, 90.0))
+        R, t = world_to_camera(camera_from_gimbal_attitude(rot, R_GIMBAL_FROM_CAMERA_NOMINAL), centres)
+        for i in range(n):
+            uv = cam.project(apple[None], R[i], t[i])[0] if i in seen else np.zeros((0, 2))
+            frames.append(FrameDetections(len(frames), cam.projection_matrix(R[i], t[i]), uv))
+        frames += [FrameDetections(len(frames) + j, frames[-1].P, np.zeros((0, 2))) for j in range(40)] if k == 0 else []
+    two = WindowedAssociation(AssociationParams(k=5, merge_window=50)).run(frames)
+    assert len(two) == 2 and np.max(nearest_errors(two, np.stack([A, B]))) < 0.01
+    one = WindowedAssociation(AssociationParams(k=5, merge_window=50, max_merge_shift_m=0)).run(frames)
+    assert len(one) == 1
