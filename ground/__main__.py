@@ -61,7 +61,8 @@ def _settings(args):
 
     return GroundSettings(association=AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom,
                                                         min_inliers=args.min_inliers, cross_pass=not args.no_cross_pass,
-                                                        max_merge_shift_m=args.max_merge_shift_m),
+                                                        max_merge_shift_m=args.max_merge_shift_m,
+                                                        merge_window=args.merge_window),
                           registration=_registration_settings(args),
                           max_wait_s=args.max_wait_s, mapping=args.mapping, init_spacing_s=args.init_spacing_s,
                           correction_every_s=args.correction_every_s, drift_sigma_s=args.drift_sigma_s,
@@ -252,6 +253,9 @@ def _ground_options(p):
     p.add_argument("--no-cross-pass", action="store_true",
                    help="association: merge an apple only with apples of the last merge window (one pass), not with "
                         "the whole map (the behaviour before cross-pass identity; a baseline)")
+    p.add_argument("--merge-window", type=int, default=a.merge_window,
+                   help="association: frames an emitted apple stays a candidate for the window's merge test; older "
+                        "apples (another pass) take the stricter cross-pass test")
     p.add_argument("--max-merge-shift-m", type=float, default=a.max_merge_shift_m,
                    help="association: an apple from another pass merges only if their joint position stays within "
                         "this of the better-seen one (m); 0 = off")
