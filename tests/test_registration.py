@@ -142,8 +142,10 @@ def test_a_broken_chain_rejoins_the_same_map(gap_flight, tmp_path):
     assert res["rejoined"] == 1 and res["submodels"] == 2
     before, after, n_after = _offset_before_and_after(gap_flight, tmp_path / "r", range(6, 15))
     assert n_after == 23 - 15  # every keyframe after the gap registered
-    # one map: both sides carry the same GPS bias, within the telemetry's error (the map alone would be metres off)
-    assert np.linalg.norm(before - after) < 0.5
+    # one map: both sides carry the same GPS bias, within the telemetry's error (the map alone would be metres off).
+    # The new sub-model is placed by the GPS of its 8 keyframes (0.5 m horizontal, 0.8 m vertical a fix): the two
+    # sides' mean errors differ by about 0.5 m at one standard deviation, so the bound is one fix's error, 1 m.
+    assert np.linalg.norm(before - after) < 1.0
     assert res["rotation_error_median_deg"] < 0.5
 
 
