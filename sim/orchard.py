@@ -116,7 +116,7 @@ def _without_interpenetration(xyz: np.ndarray, radius: np.ndarray) -> np.ndarray
     pairs = cKDTree(xyz).query_pairs(2.0 * float(radius.max()), output_type="ndarray")
     d = np.linalg.norm(xyz[pairs[:, 0]] - xyz[pairs[:, 1]], axis=1)
     pairs = pairs[d < radius[pairs[:, 0]] + radius[pairs[:, 1]]]
-    for i, j in sorted(map(tuple, np.sort(pairs, axis=1))):
+    for i, j in sorted(map(tuple, pairs)):  # i < j in every pair
         if keep[i]:
             keep[j] = False
     return keep
