@@ -120,6 +120,7 @@ def _cmd_replay(args) -> int:
     from ground.replay import BUNDLED, ReplayError, format_evaluation, replay
 
     flight = args.flight_dir or BUNDLED
+    out = Path(args.out or f"out/replay/{Path(args.video).stem if args.video else Path(flight).name}")
     if args.recorded and (args.video or args.log):
         print("error: --recorded plays a recorded stream: no --video or --log with it", file=sys.stderr)
         return 2
@@ -129,7 +130,6 @@ def _cmd_replay(args) -> int:
         if args.flight_dir or not (args.log and args.camera):
             print("error: --video needs --log and --camera, and no flight directory", file=sys.stderr)
             return 2
-        out = Path(args.out or f"out/replay/{Path(args.video).stem}")
         try:
             built = assemble_flight(args.video, args.log, args.camera, out / "flight")
         except ValueError as exc:  # FlightFormatError, CameraFileError, VideoError, TelemetryError: they name the file
@@ -137,7 +137,6 @@ def _cmd_replay(args) -> int:
             return 2
         print(describe(built), file=sys.stderr)
         flight, args.log = built["flight_dir"], None  # the built flight names its log
-    out = Path(args.out or f"out/replay/{Path(flight).name}")
     ground_args = _ground_argv(args) \
         + (["--mapping", args.mapping] if args.realtime or (args.recorded and args.speed > 0) else [])  # lock-step: inline
     try:
@@ -146,7 +145,8 @@ def _cmd_replay(args) -> int:
                      ground_args=ground_args, quiet=args.quiet,
                      onboard_args=(["--score-thresh", str(args.detector_score_thresh)] if args.detector_score_thresh else [])
                      + (["--log", args.log] if args.log else [])
-                     + (["--camera-tilt-deg", str(args.camera_tilt_deg)] if args.camera_tilt_deg is not None else [])
+                     + (["--camera-tilt-deg", str(args.camera_tilt_deg), "--camera-yaw-deg", str(args.camera_yaw_deg)]
+                        if args.camera_tilt_deg is not None else [])
                      + ["--detector-scale", args.detector_scale],
                      recorded=args.recorded, speed=args.speed)
     except ReplayError as exc:
@@ -363,8 +363,9 @@ def main(argv=None) -> int:
     rp.add_argument("--camera", help="with --video: a camera.json or a built-in camera (phantom-4-pro, mavic-3, ...)")
     rp.add_argument("--log", help="the telemetry from this log (.tlog, DataFlash .bin, PX4 .ulg, DJI .SRT) instead of "
                                   "the flight directory's telemetry.tlog")
-    rp.add_argument("--camera-tilt-deg", type=float,
-                    help="for a log without gimbal attitudes: the camera's fixed pitch below the horizon (90 = down)")
+    from pomar.telemetry import mount_arguments
+
+    mount_arguments(rp)
     _ground_options(rp)
     rp.set_defaults(func=_cmd_replay)
     pl = sub.add_parser("play", help="publish a recorded stream (journal.bin) over zenoh at its capture-time pace",
@@ -432,4 +433,8 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM before the ground set its own handling: no traceback
+        print("interrupted", file=sys.stderr)
+        sys.exit(130)

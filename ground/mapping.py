@@ -185,7 +185,11 @@ class Mapper:
         g = np.array([self.tel[f][0] for f in frames])
         sig = np.array([self.tel[f][2] for f in frames])
         R_tel = camera_rotations(np.array([self.tel[f][1] for f in frames]), self.cam)
+        if np.linalg.norm(g - g.mean(0), axis=1).max() < 0.01:
+            return None  # every position the same (a log's coarse rounding, a drone standing): nothing to scale by
         fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att)
+        if not (np.isfinite(fit.similarity.scale) and fit.similarity.scale > 0):
+            return None
         return fit.similarity, fit.position_rms_m
 
     # -- reading

@@ -13,6 +13,7 @@ import logging
 import sys
 
 from pomar.apple_scale import SCALE_HELP, scale_argument
+from pomar.telemetry import mount_arguments
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
@@ -36,9 +37,10 @@ def _cmd_telemetry(args) -> int:
     if args.flight:
         meta = FlightDir(args.flight).meta()
         t, flags = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps, args.clock_offset_s)
-        s = tl.at(t)
+        s = tl.at(t, args.camera_tilt_deg, args.camera_yaw_deg)
         flags = flags | s["flags"]
-        print(f"frames: {meta.frame_count}, {int((flags == 0).sum())} with complete telemetry")
+        print(f"frames: {meta.frame_count}, {int((flags & Flags.incomplete() == 0).sum())} with complete telemetry "
+              f"(a position, the camera's attitude and a GPS fix), {int((flags == 0).sum())} with no flag")
         for f in Flags:
             n = int((flags & f).astype(bool).sum())
             if n:
@@ -63,7 +65,8 @@ def _cmd_run(args) -> int:
     settings = NodeSettings(lockstep=not args.realtime, every=args.every, keyframe_every=args.keyframe_every,
                             keyframe_every_s=args.keyframe_every_s, keyframe_every_m=args.keyframe_every_m,
                             keyframe_width=args.keyframe_width, jpeg_quality=args.jpeg_quality, log=args.log,
-                            camera_tilt_deg=args.camera_tilt_deg, clock_offset_s=args.clock_offset_s,
+                            camera_tilt_deg=args.camera_tilt_deg, camera_yaw_deg=args.camera_yaw_deg,
+                            clock_offset_s=args.clock_offset_s,
                             detector_scale=args.detector_scale)
     if args.video:
         if not (args.log and args.camera):
@@ -224,9 +227,7 @@ def main(argv=None) -> int:
     r.add_argument("--every", type=int, default=1, help="process every Nth frame (lock-step)")
     r.add_argument("--log", help="the flight's telemetry from another log of any supported format (.tlog, ArduPilot "
                                  "DataFlash .bin, PX4 .ulg, DJI .SRT) instead of the flight directory's telemetry.tlog")
-    r.add_argument("--camera-tilt-deg", type=float,
-                   help="for a log without gimbal attitudes: the camera's fixed pitch below the vehicle's horizon "
-                        "(90 = straight down); frames are flagged FIXED_MOUNT")
+    mount_arguments(r)
     r.add_argument("--clock-offset-s", type=float, default=0.0,
                    help="camera clock minus the log's clock, for logs without camera events")
     _link_options(r)
@@ -262,6 +263,7 @@ def main(argv=None) -> int:
     t.add_argument("--flight", help="flight directory: sample the telemetry at its frames")
     t.add_argument("--clock-offset-s", type=float, default=0.0, help="camera clock minus autopilot clock")
     t.add_argument("--max-gap-s", type=float, default=1.0)
+    mount_arguments(t)
     t.add_argument("--show", type=int, default=0, help="print this many frames' samples")
     t.set_defaults(func=_cmd_telemetry)
     args = p.parse_args(argv)
@@ -280,4 +282,8 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM before the node set its own handling: no traceback
+        print("interrupted", file=sys.stderr)
+        sys.exit(130)

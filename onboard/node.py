@@ -90,6 +90,9 @@ class NodeSettings:
     clock_offset_s: float = 0.0  # camera clock minus autopilot clock, when there are no capture records
     log: str | None = None  # a telemetry log of any supported format, instead of the flight directory's .tlog
     camera_tilt_deg: float | None = None  # for logs without gimbal attitudes: the camera's fixed pitch below horizon
+    # with camera_tilt_deg: the camera's heading from the vehicle's nose, or from the track where the log has no
+    # vehicle attitude (most DJI .SRTs); 90 = looking right, as when flying along a row and looking across it
+    camera_yaw_deg: float = 0.0
     detector_scale: str = "auto"  # frames resized so apples reach the model at its size (pomar.apple_scale); off; or a number
 
 
@@ -146,8 +149,13 @@ class OnboardNode:
         if not len(tl.position):
             raise TelemetryError(f"{log_path}: no position in the log; frames cannot be placed")
         t_frames, cap_flags = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps, self.s.clock_offset_s)
-        tel = tl.at(t_frames, self.s.camera_tilt_deg)
+        tel = tl.at(t_frames, self.s.camera_tilt_deg, self.s.camera_yaw_deg)
         tel["flags"] = tel["flags"] | cap_flags
+        # the wire takes a position whole or not at all (pomar.wire): a part of one is none
+        part = ~np.isfinite(np.column_stack([tel["lat"], tel["lon"], tel["alt"]])).all(1)
+        for k in ("lat", "lon", "alt"):
+            tel[k] = np.where(part, np.nan, tel[k])
+        tel["flags"] = tel["flags"] | np.where(part, int(Flags.NO_POSITION), 0)
         if meta.frame_count and (tel["flags"] & Flags.NO_POSITION).all():
             raise TelemetryError(f"{log_path}: its positions span {tl.position.t[0]:.1f}-{tl.position.t[-1]:.1f} "
                                  f"(unix s), the video's frames {t_frames[0]:.1f}-{t_frames[-1]:.1f}: no frame falls "

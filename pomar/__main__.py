@@ -72,6 +72,16 @@ def _positive(value: str) -> float:
     return v
 
 
+def _pixels(value: str) -> int:
+    try:
+        v = int(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"a whole number of pixels, not {value!r}") from None
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"must be at least 1 pixel, not {value}")
+    return v
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m pomar", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -91,13 +101,13 @@ def main(argv=None) -> int:
     f.set_defaults(func=_cmd_flight)
 
     c = sub.add_parser("cameras", help="list the built-in cameras")
-    c.add_argument("--width", type=int, default=3840, help="the video's width in pixels (default 3840)")
+    c.add_argument("--width", type=_pixels, default=3840, help="the video's width in pixels (default 3840)")
     c.set_defaults(func=_cmd_cameras)
 
     s = sub.add_parser("scale", help="the apple size a camera foresees, and the detector scale for it")
     s.add_argument("--camera", required=True, help="a camera.json, or a built-in camera's name")
-    s.add_argument("--width", type=int, default=3840, help="the video's width in pixels (built-in cameras)")
-    s.add_argument("--height", type=int, help="the video's height in pixels (default: 16:9)")
+    s.add_argument("--width", type=_pixels, default=3840, help="the video's width in pixels (built-in cameras)")
+    s.add_argument("--height", type=_pixels, help="the video's height in pixels (default: 16:9)")
     s.add_argument("--height-m", type=_positive, required=True, help="the camera's height above the ground (m)")
     s.add_argument("--tilt-deg", type=float, default=90.0, help="the camera's pitch below the horizon (90: nadir)")
     m = s.add_mutually_exclusive_group(required=True)

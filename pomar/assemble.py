@@ -106,7 +106,7 @@ def start_time(tl: TelemetryLog, fps: float, container_unix: float | None, clock
         i0 = min(tl.captures)
         t0, how = tl.captures[i0] - i0 / fps, f"the log's camera events ({tl.capture_message})"
     elif len(tl.video_clock) >= 2:
-        t0, how = float(np.interp(0.0, tl.video_clock.t, tl.video_clock.values[:, 0])), "the subtitles' times"
+        t0, how = float(tl.log_time_of_video(0.0)), "the subtitles' times"
     elif container_unix is not None:
         t0, how = container_unix - clock_offset_s, "the container's creation time"
     elif len(tl.position):
@@ -115,6 +115,27 @@ def start_time(tl: TelemetryLog, fps: float, container_unix: float | None, clock
         raise FlightFormatError(f"{tl.path}: no camera events, no positions: the video cannot be placed in time")
     offset = container_unix - t0 if container_unix is not None and not how.startswith("the container") else None
     return t0, how, offset
+
+
+#: The most a camera's clock and its log's may differ and still be one flight: the widest time-zone offset (14 h:
+#: DJI writes local time without a zone) and an hour's drift.
+MAX_CLOCK_DIFFERENCE_S = 15 * 3600.0
+
+
+def check_same_flight(log_path, video: Path, t0: float, offset: float | None, clock_offset_s: float) -> None:
+    """Refuse a log whose clock puts the video's start ``t0`` further than MAX_CLOCK_DIFFERENCE_S from the container's
+    creation time (``offset``: container minus log): a log of another flight, refused as a .tlog whose positions
+    miss the video is. FlightFormatError names the file, both times and the way out."""
+    if offset is None or abs(offset - clock_offset_s) <= MAX_CLOCK_DIFFERENCE_S:
+        return
+
+    def when(t):
+        return datetime.fromtimestamp(t, timezone.utc).strftime("%Y-%m-%d %H:%M")
+
+    raise FlightFormatError(f"{log_path}: the log puts the video's start at {when(t0)}, its container "
+                            f"({video.name}) says {when(t0 + offset)} ({offset / 86400.0:+.1f} days): a log of another "
+                            "flight? If the camera's clock was wrong, give the difference, container minus log, as "
+                            f"--clock-offset-s {offset:.0f}")
 
 
 def describe(report: dict) -> str:
@@ -137,6 +158,7 @@ def assemble_flight(video: str | Path, log_path: str | Path, camera: str, out: s
         raise FlightFormatError(f"{log_path}: no position in the log: the frames cannot be placed")
     container = mp4_creation_time(video)
     t0, how, offset = start_time(tl, fps, container, clock_offset_s)
+    check_same_flight(log_path, video, t0, offset, clock_offset_s)
     t_end = t0 + (n - 1) / fps
     if tl.position.t[-1] < t0 or tl.position.t[0] > t_end:
         raise FlightFormatError(f"{log_path}: its positions span {tl.position.t[0]:.1f}-{tl.position.t[-1]:.1f} (unix s), "

@@ -131,8 +131,14 @@ class Camera:
             d = json.loads(path.read_text())
         except FileNotFoundError:
             raise CameraFileError(f"{path}: file not found") from None
+        except IsADirectoryError:
+            raise CameraFileError(f"{path}: is a folder, not a camera.json") from None
+        except UnicodeDecodeError:
+            raise CameraFileError(f"{path}: not a camera.json (binary, not JSON text)") from None
         except json.JSONDecodeError as exc:
             raise CameraFileError(f"{path}: not valid JSON ({exc})") from None
+        if not isinstance(d, dict):
+            raise CameraFileError(f"{path}: not a camera.json (JSON, but not an object of camera fields)")
         return cls.from_dict(d, str(path))
 
     def save(self, path: str | Path) -> None:

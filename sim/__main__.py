@@ -63,7 +63,8 @@ def _cmd_logs(args) -> int:
     out = Path(args.out or fd.path)
     out.mkdir(parents=True, exist_ok=True)
     counts = write_dataflash(fd.tlog, out / "telemetry.bin")
-    n = write_srt(fd.tlog, meta.frame_count, meta.fps, meta.video_start_utc, out / "video.SRT")
+    n = write_srt(fd.tlog, meta.frame_count, meta.fps, meta.video_start_utc, out / "video.SRT",
+                  layout=args.srt_layout, attitude=not args.no_attitude)
     print(f"wrote {out / 'telemetry.bin'} ({', '.join(f'{k} {v}' for k, v in counts.items())}) and "
           f"{out / 'video.SRT'} ({n} subtitles)")
     return 0
@@ -101,6 +102,12 @@ def main(argv=None) -> int:
                                      "ArduPilot DataFlash telemetry.bin and a DJI video.SRT (one subtitle a frame)")
     lg.add_argument("flight_dir")
     lg.add_argument("--out", help="folder for the two files (default: the flight directory)")
+    from sim.logs import SRT_LAYOUTS
+
+    lg.add_argument("--srt-layout", choices=sorted(SRT_LAYOUTS), default="mavic3",
+                    help="the DJI layout of video.SRT: " + "; ".join(f"{k}, {v[3]}" for k, v in SRT_LAYOUTS.items()))
+    lg.add_argument("--no-attitude", action="store_true",
+                    help="no attitude fields in video.SRT (most DJI drones write none)")
     lg.set_defaults(func=_cmd_logs)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")

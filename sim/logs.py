@@ -6,7 +6,8 @@
   DataFlash support (``DFReader.DFFormat`` and ``DFMessage.get_msgbuf``), with an FMT record for each type.
 - ``video.SRT``: a DJI subtitle per video frame, in the Mavic 3 layout (date, ``[latitude: …] [longitude: …]
   [rel_alt: … abs_alt: …] [gb_yaw: … gb_pitch: … gb_roll: …]``), from the tlog's samples at each frame's capture
-  time.
+  time; ``--srt-layout`` writes another DJI layout (``SRT_LAYOUTS``, each as a real file has it), and
+  ``--no-attitude`` leaves out the layout's attitude fields, as most DJI drones write none.
 
     python -m sim logs FLIGHT_DIR          # writes both
 """
@@ -138,33 +139,85 @@ def write_dataflash(tlog: Path, out: Path) -> dict:
     return counts
 
 
+#: The DJI subtitle layouts ``write_srt`` writes, each as a real file of ``shared/datasets/logs/dji-srt`` has it:
+#: name -> (subtitles a second (0 = one a frame), decimals of lat/lon, can carry attitudes, the real file).
+SRT_LAYOUTS = {
+    "mavic3": (0, 5, True, "mavic3.srt: FrameCnt, date.ms, [latitude] [longitude] [rel_alt abs_alt] ([gb_yaw ...])"),
+    "air2s": (0, 6, False, "air2s.srt: SrtCnt, date,ms,us, [latitude] [longitude] [altitude] (absolute)"),
+    "mavic2": (1, 4, False, "mavic_2_style.SRT: no timing lines, date, [latitude :] [longtitude :], no altitude"),
+    "p4p": (1, 4, True, "p4p_sample.SRT: GPS (lon, lat, sats), D, H (above take-off); with attitudes the Phantom 4 "
+                        "RTK's (mix_p4rtk_mavic2pro.srt): 6 decimals, HOME, F.PRY, G.PRY"),
+    "home": (1, 4, False, "mavic_pro.SRT: HOME(lon,lat) date, GPS(lon,lat,sats) BAROMETER:h"),
+    "m300": (1, 4, False, "matrice_300.srt: date, GPS(lat,lon,0.0M) BAROMETER:hM"),
+}
+
+
 def write_srt(tlog: Path, frame_count: int, fps: float, video_start_unix: float, out: Path,
-              clock_offset_s: float = 0.0) -> int:
-    """A DJI (Mavic 3 layout) subtitle per frame, from the tlog sampled at each frame's capture time; returns the
-    number written."""
+              clock_offset_s: float = 0.0, layout: str = "mavic3", attitude: bool = True) -> int:
+    """A DJI subtitle file from the tlog sampled at each subtitle's time, in one of SRT_LAYOUTS: one subtitle a
+    frame (mavic3, air2s) or a second (the older layouts, their first at 0 s); with ``attitude`` the layout's
+    attitude fields where it has them (the gimbal's, and the Phantom 4 RTK's vehicle angles). Returns the number
+    of subtitles written."""
     from pomar.telemetry.tlog import read_tlog
 
+    if layout not in SRT_LAYOUTS:
+        raise ValueError(f"unknown SRT layout {layout!r} (known: {', '.join(SRT_LAYOUTS)})")
+    per_s, dec, has_att, _ = SRT_LAYOUTS[layout]
+    attitude = attitude and has_att
     tl = read_tlog(tlog)
-    t, _ = tl.frame_times(frame_count, video_start_unix, fps, clock_offset_s)
+    t_frames, _ = tl.frame_times(frame_count, video_start_unix, fps, clock_offset_s)
+    if per_s:  # one a second over the video, at the frames' capture clock
+        video_t = np.arange(0.0, frame_count / fps, 1.0 / per_s)
+        t = np.interp(video_t, np.arange(frame_count) / fps, t_frames)
+        ends = video_t + 1.0 / per_s
+    else:
+        video_t, t = np.arange(frame_count) / fps, t_frames
+        ends = video_t + 1.0 / fps
     s = tl.at(t)
-    # rel_alt is above the take-off point, as DJI's: the ground where the tlog says so, else the first position
+    # altitudes above the take-off point, as DJI's: the ground where the tlog says so, else the first position
     home_alt = tl.home_alt if tl.home_alt is not None else float(tl.position.values[0, 2])
+    home_lat, home_lon = float(tl.position.values[0, 0]), float(tl.position.values[0, 1])
     gimbal = _euler_deg(np.where(np.isfinite(s["q_gimbal"]), s["q_gimbal"], [1.0, 0, 0, 0]))
-    lines = []
-    for i in range(frame_count):
-        a, b = i / fps, (i + 1) / fps
+    vehicle = _euler_deg(np.where(np.isfinite(s["q_attitude"]), s["q_attitude"], [1.0, 0, 0, 0]))
+    blocks = []
+    for i in range(len(t)):
         stamp = datetime.fromtimestamp(t[i], timezone.utc)
-        date = stamp.strftime("%Y-%m-%d %H:%M:%S.") + f"{stamp.microsecond // 1000:03d}"
+        lat, lon = f"{s['lat'][i]:.{dec}f}", f"{s['lon'][i]:.{dec}f}"
+        rel, absolute = s["alt"][i] - home_alt, s["alt"][i]
         r, p, y = gimbal[i]
-        lines.append(f"{i + 1}\n{_srt_time(a)} --> {_srt_time(b)}\n"
-                     f'<font size="28">FrameCnt: {i + 1}, DiffTime: {1000 / fps:.0f}ms\n{date}\n'
-                     f"[iso: 100] [shutter: 1/1000.0] [fnum: 2.8] [ev: 0] [color_md: default] [focal_len: 24.00] "
-                     f"[latitude: {s['lat'][i]:.7f}] [longitude: {s['lon'][i]:.7f}] "
-                     f"[rel_alt: {s['alt'][i] - home_alt:.3f} abs_alt: {s['alt'][i]:.3f}] "
-                     f"[gb_yaw: {y:.2f} gb_pitch: {p:.2f} gb_roll: {r:.2f}] </font>\n")
-    Path(out).write_text("\n".join(lines), encoding="utf-8")
-    log.info("wrote %s: %d subtitles", out, frame_count)
-    return frame_count
+        timing = f"{_srt_time(video_t[i])} --> {_srt_time(ends[i])}\n"
+        if layout == "mavic3":
+            body = (f'<font size="28">FrameCnt: {i + 1}, DiffTime: {1000 / fps:.0f}ms\n'
+                    f"{stamp:%Y-%m-%d %H:%M:%S}.{stamp.microsecond // 1000:03d}\n"
+                    f"[iso: 100] [shutter: 1/1000.0] [fnum: 2.8] [ev: 0] [ct: 5500] [color_md : default] "
+                    f"[focal_len: 24.00] [latitude: {lat}] [longitude: {lon}] [rel_alt: {rel:.3f} abs_alt: {absolute:.3f}]"
+                    + (f" [gb_yaw: {y:.1f} gb_pitch: {p:.1f} gb_roll: {r:.1f}]" if attitude else "") + " </font>")
+        elif layout == "air2s":
+            body = (f'<font size="36">SrtCnt : {i + 1}, DiffTime : {1000 / fps:.0f}ms\n'
+                    f"{stamp:%Y-%m-%d %H:%M:%S},{stamp.microsecond // 1000:03d},{stamp.microsecond % 1000:03d}\n"
+                    f"[iso : 100] [shutter : 1/1000.0] [fnum : 280] [ev : 0] [ct : 5500] [color_md : default] "
+                    f"[focal_len : 240] [latitude: {lat}] [longitude: {lon}] [altitude: {absolute:.6f}] </font>")
+        elif layout == "mavic2":
+            timing = ""
+            body = (f"{stamp:%Y.%m.%d %H:%M:%S},{stamp.microsecond // 1000:03d},{stamp.microsecond % 1000:03d}\n"
+                    f"[latitude : {lat}] [longtitude : {lon}] [iso : 100] [shutter : 1/60.0] [ev : 0] [fnum : 220]")
+        elif layout == "p4p" and attitude:  # the Phantom 4 RTK's
+            vr, vp, vy = vehicle[i]
+            body = (f"F/5.6, SS 400, ISO 100, EV +0.7, GPS ({s['lon'][i]:.6f}, {s['lat'][i]:.6f}, 16), "
+                    f"HOME ({home_lon:.6f}, {home_lat:.6f}, {home_alt:.2f}m), D 10.00m, H {rel:.2f}m, H.S 2.00m/s, "
+                    f"V.S 0.00m/s, F.PRY ({vp:.1f}°, {vr:.1f}°, {vy:.1f}°), G.PRY ({p:.1f}°, {r:.1f}°, {y:.1f}°)")
+        elif layout == "p4p":
+            body = (f"F/3.2, SS 160, ISO 100, EV 0, GPS ({lon}, {lat}, 18), D 10.00m, H {rel:.2f}m, H.S 2.00m/s, "
+                    "V.S 0.00m/s ")
+        elif layout == "home":
+            body = (f"HOME({home_lon:.4f},{home_lat:.4f}) {stamp:%Y.%m.%d %H:%M:%S}\n"
+                    f"GPS({lon},{lat},16) BAROMETER:{rel:.1f}\nISO:100 Shutter:60 EV: Fnum:2.2")
+        else:  # m300
+            body = f"{stamp:%Y.%m.%d %H:%M:%S}\nGPS({lat},{lon},0.0M) BAROMETER:{rel:.1f}M"
+        blocks.append(f"{i + 1}\n{timing}{body}\n")
+    Path(out).write_text("\n".join(blocks), encoding="utf-8")
+    log.info("wrote %s: %d subtitles, layout %s%s", out, len(blocks), layout, " with attitudes" if attitude else "")
+    return len(blocks)
 
 
 def _srt_time(t: float) -> str:

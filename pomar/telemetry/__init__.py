@@ -14,9 +14,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pomar.telemetry.base import Flags, Gap, Series, TelemetryError, TelemetryLog
+from pomar.telemetry.base import Flags, Gap, Series, TelemetryError, TelemetryLog, existing
 
-__all__ = ["Flags", "Gap", "Series", "TelemetryError", "TelemetryLog", "FORMATS", "detect_format", "read_log"]
+__all__ = ["Flags", "Gap", "Series", "TelemetryError", "TelemetryLog", "FORMATS", "detect_format", "mount_arguments", "read_log"]
 
 #: format -> (reader module, reader function)
 FORMATS = {"tlog": ("pomar.telemetry.tlog", "read_tlog"), "dataflash": ("pomar.telemetry.dataflash", "read_dataflash"),
@@ -25,9 +25,7 @@ SUFFIXES = {".tlog": "tlog", ".bin": "dataflash", ".ulg": "ulog", ".srt": "srt"}
 
 
 def detect_format(path: str | Path) -> str:
-    path = Path(path)
-    if not path.is_file():
-        raise TelemetryError(f"{path}: file not found")
+    path = existing(path)
     with open(path, "rb") as f:
         head = f.read(64)
     if head.startswith(b"ULog"):
@@ -53,3 +51,15 @@ def read_log(path: str | Path, max_gap_s: float = 1.0, format: str | None = None
         raise TelemetryError(f"{path}: unknown telemetry format {fmt!r} (known: {', '.join(FORMATS)})")
     module, func = FORMATS[fmt]
     return getattr(importlib.import_module(module), func)(path, max_gap_s=max_gap_s)
+
+
+def mount_arguments(parser) -> None:
+    """The command-line options for a camera on a fixed mount (``TelemetryLog.at``'s mount_tilt_deg and
+    mount_yaw_deg), for logs without gimbal attitudes: one declaration for every command that reads a log."""
+    parser.add_argument("--camera-tilt-deg", type=float,
+                        help="for a log without gimbal attitudes: the camera's fixed pitch below the vehicle's horizon "
+                             "(90 = straight down); frames are flagged FIXED_MOUNT")
+    parser.add_argument("--camera-yaw-deg", type=float, default=0.0,
+                        help="with --camera-tilt-deg: the camera's heading from the vehicle's nose, or from the "
+                             "direction of flight where the log has no vehicle attitude (90 = looking right of the "
+                             "track; default 0)")

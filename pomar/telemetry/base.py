@@ -25,7 +25,7 @@ from enum import IntFlag
 import numpy as np
 from scipy.spatial.transform import Slerp
 
-from pomar.rotations import quat_wxyz_to_rotation, rotation_to_quat_wxyz
+from pomar.rotations import ned_euler_to_rotation, quat_wxyz_to_rotation, rotation_to_quat_wxyz
 
 
 class Flags(IntFlag):
@@ -40,6 +40,21 @@ class Flags(IntFlag):
     NO_CAPTURE_RECORD = 64  # the frame time comes from the video clock, not a camera event of the log
     NO_GPS_FIX = 128  # GPS fix type below 3D at the frame, or no GPS report around it
     FIXED_MOUNT = 256  # the camera's attitude is the vehicle's plus a fixed mount tilt, not a gimbal report
+    POSITION_JUMP = 512  # the frame lies between two positions further apart than a drone can fly: no position
+
+    @classmethod
+    def incomplete(cls) -> int:
+        """The flags that leave a frame short of what its map pose needs from telemetry: a position, the camera's
+        attitude (gimbal or fixed mount) and a GPS fix. The vehicle's attitude and a capture record are not."""
+        return int(cls.POSITION_GAP | cls.NO_POSITION | cls.POSITION_JUMP | cls.GIMBAL_GAP | cls.NO_GIMBAL
+                   | cls.NO_GPS_FIX)
+
+
+#: Faster than any multirotor flies (the DJI FPV's top speed is 39 m/s): two positions further apart than this
+#: speed allows, plus JUMP_FLOOR_M, are a jump (a cut-off number, two flights in one file), not a flight.
+MAX_SPEED_MPS = 45.0
+#: Beyond GNSS wander and the rounding of positions written to 5 decimals (1.1 m), even between 50-Hz samples.
+JUMP_FLOOR_M = 10.0
 
 
 class TelemetryError(ValueError):
@@ -105,11 +120,33 @@ class TelemetryLog:
     #: The take-off (home) point's altitude in ``alt``'s reference, where the log says it (a relative altitude
     #: beside the absolute one): the height above the ground is alt - home_alt. None where the log does not say.
     home_alt: float | None = None
+    #: Steps of the position stream further than a drone can fly (see MAX_SPEED_MPS): (start, end) times.
+    jumps: list[Gap] = field(default_factory=list)
 
     def __post_init__(self):
         if self.home_alt is None and self.altitude_reference == "takeoff":
             self.home_alt = 0.0
         self.find_gaps()
+        self.find_jumps()
+
+    def find_jumps(self) -> None:
+        """Steps of the position stream no drone can fly: a named problem each, and the frames between their two
+        positions get none (flagged POSITION_JUMP) rather than a point on a line between two places."""
+        self.jumps = []
+        p = self.position
+        if len(p) < 2:
+            return
+        step = step_m(p.values)
+        limit = MAX_SPEED_MPS * np.diff(p.t) + JUMP_FLOOR_M
+        for i in np.nonzero(step > limit)[0]:
+            self.jumps.append(Gap("position", float(p.t[i]), float(p.t[i + 1])))
+            if len(self.jumps) <= 3:
+                self.problems.append(
+                    f"the position jumps {step[i]:.0f} m in {p.t[i + 1] - p.t[i]:.3f} s (from {p.values[i, 0]:.6f}, "
+                    f"{p.values[i, 1]:.6f} to {p.values[i + 1, 0]:.6f}, {p.values[i + 1, 1]:.6f}), faster than a "
+                    f"drone flies: frames between them are flagged POSITION_JUMP and get no position")
+        if len(self.jumps) > 3:
+            self.problems.append(f"{len(self.jumps)} position jumps in all (the first 3 above)")
 
     def height_above_home(self, alt) -> np.ndarray:
         """Heights (m) above the take-off point of altitudes in this log's reference; NaN where home is unknown."""
@@ -156,6 +193,7 @@ class TelemetryLog:
             "camera_events": int(len(self.captures)), "camera_event_message": self.capture_message,
             "max_jump_m": max_jump_m(pos),
             "gaps": [{"stream": g.stream, "start": g.start, "seconds": g.seconds} for g in self.gaps],
+            "position_jumps": [{"start": g.start, "seconds": g.seconds} for g in self.jumps],
             "bad_packets": int(self.bad_packets), "bad_packets_by_type": dict(self.bad_by_type),
             "truncated_bytes": int(self.truncated_bytes),
             "messages": dict(self.counts.most_common()),
@@ -173,7 +211,7 @@ class TelemetryLog:
         t = video_start_unix - clock_offset_s + np.arange(n_frames) / fps
         flags = np.full(n_frames, int(Flags.NO_CAPTURE_RECORD), np.int64)
         if len(self.video_clock) >= 2:
-            t = np.interp(np.arange(n_frames) / fps, self.video_clock.t, self.video_clock.values[:, 0])
+            t = self.log_time_of_video(np.arange(n_frames) / fps)
             flags[:] = 0
         for i, tc in self.captures.items():
             if 0 <= i < n_frames:
@@ -181,18 +219,35 @@ class TelemetryLog:
                 flags[i] = 0
         return t, flags
 
-    def at(self, t: np.ndarray, mount_tilt_deg: float | None = None) -> dict[str, np.ndarray]:
+    def log_time_of_video(self, video_s) -> np.ndarray:
+        """The log's time of moments in the video (seconds from its start), by the log's own video clock (a DJI
+        .SRT): interpolated between its entries and carried on at the video's rate past either end (a video longer
+        than its log, a first subtitle after the start), so that those frames fall outside the log, not on its
+        ends."""
+        v = np.asarray(video_s, float)
+        vt, lt = self.video_clock.t, self.video_clock.values[:, 0]
+        out = np.interp(v, vt, lt)
+        out = np.where(v < vt[0], lt[0] + (v - vt[0]), out)
+        return np.where(v > vt[-1], lt[-1] + (v - vt[-1]), out)
+
+    def at(self, t: np.ndarray, mount_tilt_deg: float | None = None,
+           mount_yaw_deg: float = 0.0) -> dict[str, np.ndarray]:
         """Telemetry at times t (unix s, the log's clock): lat, lon, alt, height (above home; NaN where the log does
         not place home), q_attitude, q_gimbal (wxyz), gps_fix, h_acc, flags. Values outside a stream are NaN; frames in a gap are interpolated and flagged.
 
         A log without gimbal attitudes gives the camera's attitude only with ``mount_tilt_deg`` (the camera's
-        pitch below the vehicle's horizon, 90 = straight down): the vehicle's attitude turned by it, or, without
-        vehicle attitudes either (a DJI .SRT), the track's heading, level, turned by it; those frames are flagged
-        FIXED_MOUNT."""
+        pitch below the vehicle's horizon, 90 = straight down) and ``mount_yaw_deg`` (the camera's heading from the
+        vehicle's nose, or from the track where the log has no vehicle attitude; 90 = looking right): the vehicle's
+        attitude turned by them, or, without vehicle attitudes either (most DJI .SRTs), the track's heading, level,
+        turned by them; those frames are flagged FIXED_MOUNT."""
         t = np.atleast_1d(np.asarray(t, float))
         flags = np.zeros(len(t), np.int64)
         out: dict[str, np.ndarray] = {}
         pos = self._linear(self.position, t, flags, Flags.POSITION_GAP, Flags.NO_POSITION)
+        for j in self.jumps:  # between two positions no drone could join: no position
+            inside = (t > j.start) & (t < j.end)
+            pos[inside] = np.nan
+            flags[inside] |= int(Flags.POSITION_JUMP)
         out["lat"], out["lon"], out["alt"] = pos[:, 0], pos[:, 1], pos[:, 2]
         out["height"] = self.height_above_home(out["alt"])
         out["q_attitude"] = self._slerp(self.attitude, t, flags, Flags.ATTITUDE_GAP, Flags.NO_ATTITUDE)
@@ -208,16 +263,15 @@ class TelemetryLog:
             out["h_acc"][near] = self.gps.values[i[near], 1]
         flags |= np.where(out["gps_fix"] < 3, int(Flags.NO_GPS_FIX), 0)
         if not len(self.gimbal) and mount_tilt_deg is not None:
-            out["q_gimbal"] = self._fixed_mount(t, out, float(mount_tilt_deg))
+            out["q_gimbal"] = self._fixed_mount(t, out, float(mount_tilt_deg), float(mount_yaw_deg or 0.0))
             ok = np.isfinite(out["q_gimbal"]).all(1)
             flags[ok] = (flags[ok] & ~int(Flags.NO_GIMBAL)) | int(Flags.FIXED_MOUNT)
         out["flags"] = flags
         return out
 
-    def _fixed_mount(self, t, out, tilt_deg: float) -> np.ndarray:
-        from scipy.spatial.transform import Rotation
-
-        mount = Rotation.from_euler("Y", -tilt_deg, degrees=True)  # pitch down, in the vehicle's frame
+    def _fixed_mount(self, t, out, tilt_deg: float, yaw_deg: float = 0.0) -> np.ndarray:
+        # the camera turned yaw_deg right, then pitched tilt_deg down, in the vehicle's (or the track's) frame
+        mount = ned_euler_to_rotation(0.0, -tilt_deg, yaw_deg)
         if len(self.attitude):
             q = out["q_attitude"]
             ok = np.isfinite(q).all(1)
@@ -236,7 +290,9 @@ class TelemetryLog:
         yaw = np.arctan2((b[:, 1] - a[:, 1]) * np.cos(np.radians(out["lat"])), b[:, 0] - a[:, 0])
         res = np.full((len(t), 4), np.nan)
         ok = np.isfinite(yaw)
-        res[ok] = rotation_to_quat_wxyz(Rotation.from_euler("Z", yaw[ok]) * mount)
+        if ok.any():
+            zero = np.zeros(int(ok.sum()))
+            res[ok] = rotation_to_quat_wxyz(ned_euler_to_rotation(zero, zero, yaw[ok], degrees=False) * mount)
         return res
 
     def _bracket(self, s: Series, t, flags, gap_flag, none_flag):
@@ -274,8 +330,10 @@ class TelemetryLog:
 
 
 def existing(path) -> Path:
-    """The log's path, or TelemetryError naming it when there is no such file."""
+    """The log's path, or TelemetryError naming it when there is no such file (or it is a folder)."""
     path = Path(path)
+    if path.is_dir():
+        raise TelemetryError(f"{path}: is a folder, not a log file (give the log inside it)")
     if not path.is_file():
         raise TelemetryError(f"{path}: file not found")
     return path
@@ -304,6 +362,14 @@ def stream_gaps(name: str, t: np.ndarray, limit_s: float) -> list[Gap]:
     return [Gap(name, float(t[i]), float(t[i + 1])) for i in np.nonzero(d > limit_s)[0]]
 
 
+def step_m(latlon: np.ndarray) -> np.ndarray:
+    """Horizontal steps (m) between consecutive positions (lat, lon in degrees), on a local flat earth."""
+    v = np.asarray(latlon, float)
+    dn = np.diff(v[:, 0]) * 111_320.0
+    de = np.diff(v[:, 1]) * 111_320.0 * np.cos(np.radians(v[1:, 0]))
+    return np.hypot(dn, de)
+
+
 def max_jump_m(position: Series) -> float | None:
     """The largest horizontal step between consecutive positions (m), on a local flat earth."""
     v = position.values
@@ -311,7 +377,4 @@ def max_jump_m(position: Series) -> float | None:
     v = v[ok]
     if len(v) < 2:
         return None
-    lat = np.radians(v[:, 0])
-    dn = np.diff(v[:, 0]) * 111_320.0
-    de = np.diff(v[:, 1]) * 111_320.0 * np.cos(lat[1:])
-    return float(np.hypot(dn, de).max())
+    return float(step_m(v).max())

@@ -53,11 +53,10 @@ def read_dataflash(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
             rows[kind].append((m._timestamp, m))
     except Exception as exc:  # a damaged record DFReader cannot step over: keep what was read
         problems.append(f"stopped at a damaged record ({exc}): everything before it is used")
-    size = path.stat().st_size
-    # DFReader stops at the last whole record; anything after it is a record cut short
-    left = size - int(getattr(df, "offset", size))
+    left = unread_tail(path.read_bytes(), {k: f.len for k, f in df.formats.items()})
     if left > 0:
-        problems.append(f"the last {left} bytes are a record cut short (file cut?): everything before is used")
+        problems.append(f"the last {left} bytes are no whole record (a record cut short: file cut?): everything "
+                        "before is used")
     if not any(rows.values()):
         raise TelemetryError(f"{path}: no position, attitude or camera messages (not an ArduPilot DataFlash log?)")
     gps = rows["GPS"]
@@ -111,3 +110,19 @@ def read_dataflash(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
                       home_alt=float(np.median(home)) if home else None)
     tl.parse_seconds = time.perf_counter() - t0
     return tl
+
+
+def unread_tail(data: bytes, lengths: dict[int, int]) -> int:
+    """Bytes after the end of the last whole record (header A3 95, a known type, its format's length); bytes that
+    are no record in the middle are stepped over, as DFReader does. DFReader's own offset does not say this: it
+    stops short of, or past, a header cut 1-3 bytes in."""
+    n, pos, end = len(data), 0, 0
+    while pos + 3 <= n:
+        if data[pos] == 0xA3 and data[pos + 1] == 0x95 and data[pos + 2] in lengths:
+            if pos + lengths[data[pos + 2]] > n:
+                break
+            pos += lengths[data[pos + 2]]
+            end = pos
+        else:
+            pos += 1
+    return n - end

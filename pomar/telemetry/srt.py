@@ -5,7 +5,9 @@ layouts known here (``LAYOUTS``), each tested on a real file:
 
 - ``p4p``: Phantom 4 Pro, Mavic Mini, Mavic 2 (early firmware):
   ``F/3.2, SS 160, ISO 100, EV 0, GPS (lon, lat, satellites), D 49.21m, H 45.60m, H.S 0.00m/s, V.S 0.00m/s``;
-  H is the height above take-off. No date: the clock is the video's.
+  H is the height above take-off. No date: the clock is the video's. The Phantom 4 RTK adds ``HOME (lon, lat,
+  alt)`` and the vehicle's and the gimbal's angles, ``F.PRY (pitch°, roll°, yaw°), G.PRY (pitch°, roll°, yaw°)``
+  (the gimbal's yaw in the earth frame).
 - ``home``: Mavic Pro, older firmware: ``HOME(lon,lat) 2017.08.05 14:11:51`` then ``GPS(lon,lat,satellites)
   BAROMETER:1.9`` (or ``Hb:1.9 Hs:1.9``); the barometer gives the height above take-off.
 - ``m300``: Matrice 300: ``2022.06.21 16:06:17`` then ``GPS(lat,lon,0.0M) BAROMETER:0.3M`` (latitude first).
@@ -17,7 +19,8 @@ layouts known here (``LAYOUTS``), each tested on a real file:
 Times: the subtitle's start is the frame's time in the video; the date in the subtitle, where there is one, is
 the camera's local clock (DJI writes no time zone). Altitudes are above take-off unless the layout gives
 ``abs_alt``. A subtitle of an unknown layout is an error naming the file and quoting it; a file cut short keeps
-every whole subtitle before the cut.
+every whole subtitle before the cut (a subtitle whose brackets do not close is cut, not read). A position stands
+for a 3-D GPS fix unless the subtitle counts fewer than 4 satellites; lat/lon 0, 0 is no fix.
 """
 
 from __future__ import annotations
@@ -59,14 +62,24 @@ def _date(text: str) -> float | None:
     return datetime(y, mo, d, h, mi, s, ms * 1000, tzinfo=timezone.utc).timestamp()
 
 
+def _pry(text: str, name: str) -> tuple[float, float, float] | None:
+    """``F.PRY (pitch°, roll°, yaw°)`` -> (roll, pitch, yaw) in degrees, NED."""
+    m = re.search(rf"\b{re.escape(name)}\s*\(\s*({NUM})°?\s*,\s*({NUM})°?\s*,\s*({NUM})°?\s*\)", text)
+    return (float(m.group(2)), float(m.group(1)), float(m.group(3))) if m else None
+
+
 def parse_subtitle(text: str) -> tuple[str, dict]:
-    """One subtitle's content -> (layout, {lat, lon, alt, abs_alt?, sats?, date?, gimbal?}); ValueError if no known
-    layout matches."""
+    """One subtitle's content -> (layout, {lat, lon, alt, abs_alt?, sats?, date?, gimbal?, vehicle?}); ValueError if
+    no known layout matches or the subtitle is cut short (its brackets do not close)."""
+    if text.lstrip().startswith("<font") and "</font>" not in text:
+        raise ValueError("cut short: <font> is not closed")
     text = re.sub(r"<[^>]+>", " ", text)  # <font ...> tags
     out: dict = {"date": _date(text)}
     lat = _field(text, "latitude")
     lon = _field(text, "longitude", "longtitude")
     if lat is not None and lon is not None:
+        if text.count("[") != text.count("]"):
+            raise ValueError("cut short: a bracket is not closed")
         out.update(lat=lat, lon=lon)
         rel, absolute = _field(text, "rel_alt"), _field(text, "abs_alt")
         out["alt"] = rel if rel is not None else _field(text, "altitude")
@@ -75,6 +88,9 @@ def parse_subtitle(text: str) -> tuple[str, dict]:
         yaw, pitch, roll = _field(text, "gb_yaw"), _field(text, "gb_pitch"), _field(text, "gb_roll")
         if yaw is not None and pitch is not None:
             out["gimbal"] = (roll or 0.0, pitch, yaw)
+        yaw, pitch, roll = _field(text, "drone_yaw"), _field(text, "drone_pitch"), _field(text, "drone_roll")
+        if yaw is not None and pitch is not None:
+            out["vehicle"] = (roll or 0.0, pitch, yaw)
         return "bracket", out
     m = re.search(rf"GPS\s*\(\s*({NUM})\s*,\s*({NUM})\s*,\s*({NUM})\s*(M?)\s*\)", text)
     if m:
@@ -84,6 +100,10 @@ def parse_subtitle(text: str) -> tuple[str, dict]:
             out.update(lat=a, lon=b, alt=baro if baro is not None else c)
             return "m300", out
         out.update(lon=a, lat=b, sats=c)  # the older layouts put longitude first
+        for key, name in (("vehicle", "F.PRY"), ("gimbal", "G.PRY")):
+            angles = _pry(text, name)
+            if angles is not None:
+                out[key] = angles
         h = re.search(rf"\bH\s+({NUM})m", text)
         if h:
             out["alt"] = float(h.group(1))
@@ -155,6 +175,9 @@ def read_srt(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
     if not rows:
         raise TelemetryError(f"{path}: no subtitle holds a position")
     layout = layouts.most_common(1)[0][0]
+    if len(layouts) > 1:
+        problems.append("subtitles of " + " and ".join(f"{k} ({v})" for k, v in layouts.most_common())
+                        + " layouts in one file: recordings of more than one drone or firmware?")
     dates = np.array([r[1].get("date") or np.nan for r in rows], float)
     if any(r[0] is None for r in rows):  # subtitles without timing lines: one a second, or as their dates say
         first = np.nanmin(dates) if np.isfinite(dates).any() else np.nan
@@ -173,32 +196,65 @@ def read_srt(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
         clock = "video time (the subtitles carry no date)"
         problems.append("the subtitles carry no date: times are seconds into the video")
     t = video_t + offset
+    repeated = int(len(t) - len(np.unique(t)))
+    if repeated:
+        problems.append(f"{repeated} subtitle(s) repeat an earlier subtitle's time"
+                        + (" (their dates; the layout has no timing lines)" if any(r[0] is None for r in rows) else "")
+                        + ": the first of each time is used, the others dropped")
     lat = np.array([r[1]["lat"] for r in rows])
     lon = np.array([r[1]["lon"] for r in rows])
     alt = np.array([r[1].get("abs_alt", r[1].get("alt")) if r[1].get("abs_alt", r[1].get("alt")) is not None
                     else np.nan for r in rows], float)
     absolute = any("abs_alt" in r[1] for r in rows)
+    reference = "msl" if absolute else "takeoff"
     if not np.isfinite(alt).any():
-        problems.append("the subtitles carry no altitude")
+        # a position needs all three coordinates on the wire: a level flight at an unknown height still places and
+        # scales the map by its horizontal positions, so the height is taken as 0 and said to be unknown
+        alt[:] = 0.0
+        reference = "unknown"
+        problems.append("the subtitles carry no altitude: heights are taken as 0 (unknown), so the map is placed and "
+                        "scaled by the horizontal positions only, its heights are relative, and the apples' size "
+                        "cannot be foreseen")
+    elif not np.isfinite(alt).all():
+        problems.append(f"{int((~np.isfinite(alt)).sum())} subtitles without an altitude: left out")
+        k = np.isfinite(alt)
+        rows = [r for r, keep in zip(rows, k) if keep]
+        t, video_t, lat, lon, alt = t[k], video_t[k], lat[k], lon[k], alt[k]
     ok = ~((lat == 0) & (lon == 0))
     if (~ok).any():
         problems.append(f"{int((~ok).sum())} subtitles at lat/lon 0, 0 (no GPS fix yet): left out")
     position = Series.of(t[ok], np.stack([lat, lon, alt], 1)[ok], 3)
-    gimbal = Series.empty(4)
-    g = [(ti, r[1]["gimbal"]) for ti, r in zip(t, rows) if "gimbal" in r[1]]
-    if g:
-        ang = np.array([a for _, a in g], float)
-        gimbal = Series.of([ti for ti, _ in g], rotation_to_quat_wxyz(ned_euler_to_rotation(ang[:, 0], ang[:, 1], ang[:, 2])), 4)
+    # a position is a 3-D fix unless the subtitle counts fewer than 4 satellites; 0, 0 is no fix
+    sats = np.array([r[1].get("sats", np.nan) for r in rows], float)
+    fix = np.where(ok & ~(np.isfinite(sats) & (sats < 4)), 3.0, 0.0)
+    gps = Series.of(t, np.column_stack([fix, np.full(len(t), np.nan), np.full(len(t), np.nan), sats]), 4)
+
+    def angles(key: str) -> Series:
+        a = [(ti, r[1][key]) for ti, r in zip(t, rows) if key in r[1]]
+        if not a:
+            return Series.empty(4)
+        ang = np.array([x for _, x in a], float)
+        return Series.of([ti for ti, _ in a],
+                         rotation_to_quat_wxyz(ned_euler_to_rotation(ang[:, 0], ang[:, 1], ang[:, 2])), 4)
+
+    gimbal, attitude = angles("gimbal"), angles("vehicle")
+    g = len(gimbal)
     # rel_alt beside abs_alt gives the take-off point's altitude
     home = [r[1]["abs_alt"] - r[1]["alt"] for r in rows if "abs_alt" in r[1] and r[1].get("alt") is not None]
-    tl = TelemetryLog(str(path), position, Series.empty(4), Series.empty(4), gimbal, {}, None, clock, None,
+    tl = TelemetryLog(str(path), position, gps, attitude, gimbal, {}, None, clock, None,
                       Counter({f"subtitles ({k})": v for k, v in layouts.items()}), max_gap_s=max_gap_s, format="srt",
-                      altitude_reference="msl" if absolute else "takeoff", problems=problems,
+                      altitude_reference=reference, problems=problems,
                       video_clock=Series.of(video_t, t[:, None], 1),
                       home_alt=float(np.median(home)) if home else None)
-    if not g:
+    if not g and not len(attitude):
         problems.append("no gimbal or vehicle attitude in the subtitles: the camera's attitude needs a fixed mount "
-                        "tilt and the heading of the track")
+                        "tilt (--camera-tilt-deg), and its heading from the track (--camera-yaw-deg)")
+    elif not g:
+        problems.append("no gimbal attitude in the subtitles: the camera's attitude needs a fixed mount tilt "
+                        "(--camera-tilt-deg) on the vehicle's attitude")
+    if g and g < len(rows) or len(attitude) and len(attitude) < len(rows):
+        problems.append(f"attitudes on {g} (gimbal) and {len(attitude)} (vehicle) of {len(rows)} subtitles: "
+                        "frames away from them are flagged")
     tl.parse_seconds = time.perf_counter() - t0
     log.info("%s: %d subtitles, layout %s", path, len(rows), layout)
     return tl

@@ -250,6 +250,10 @@ def read_tlog(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
         conn.close()
     if sum(acc.counts.values()) == 0:
         raise TelemetryError(f"{path}: no MAVLink messages could be read (not a .tlog?)")
+    if not (acc.pos or acc.gps or acc.att or acc.gim or acc.mount or acc.caps):
+        raise TelemetryError(f"{path}: no position, GPS, attitude, gimbal or camera message among its "
+                             f"{sum(acc.counts.values())} MAVLink packets ({acc.bad} more failed to decode): not a "
+                             "flight's telemetry log")
     try:
         truncated = unread_tail(path)
     except OSError:
