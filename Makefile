@@ -1,8 +1,12 @@
-# The two commands of README.md: `make demo` and `make test`. Each sets up its own
-# virtual environment (idempotent: it reinstalls only when pyproject.toml changes).
+# The two commands of README.md: `make demo` and `make test`. Each sets up its own virtual environment from the lock
+# (requirements.lock: today's exact versions of everything, so that a fresh clone gets what CI tested); it reinstalls
+# only when pyproject.toml or the lock changes. `make test-latest` installs the newest versions pyproject's ranges
+# allow instead, in .venv-latest, so that a break in a new release shows up as a named failure; `make lock` writes
+# the lock again from those ranges.
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
+LOCK := requirements.lock
 # the demo needs no torch; the tests also cover training/export (torch, torchvision: the export extra)
 EXTRAS ?= onboard,ground,sim,dev
 TEST_EXTRAS ?= onboard,ground,sim,export,dev
@@ -11,21 +15,23 @@ STAMP := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 TEST_STAMP := $(VENV)/.installed-$(subst $(comma),-,$(TEST_EXTRAS))
 FLIGHT ?= replay_data/demo-flight
 OUT ?= out/demo
+LATEST := .venv-latest
 
-.PHONY: demo test setup clean
+.PHONY: demo test test-latest setup lock clean
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml
+# the lock as constraints: pip installs only what these extras need, each at the lock's version
+$(STAMP): pyproject.toml $(LOCK)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[$(EXTRAS)]"
+	$(PY) -m pip install --quiet -c $(LOCK) -e ".[$(EXTRAS)]"
 	touch $@
 
-$(TEST_STAMP): pyproject.toml
+$(TEST_STAMP): pyproject.toml $(LOCK)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e ".[$(TEST_EXTRAS)]"
+	$(PY) -m pip install --quiet -c $(LOCK) -e ".[$(TEST_EXTRAS)]"
 	touch $@
 
 # The bundled flight through both processes (onboard: ONNX detector; ground: registration,
@@ -36,5 +42,22 @@ demo: $(STAMP)
 test: $(TEST_STAMP)
 	$(PY) -m pytest
 
+# the newest releases the ranges allow, in a venv of their own (the lock's venv is left as it is)
+test-latest:
+	rm -rf $(LATEST)
+	$(PYTHON) -m venv $(LATEST)
+	$(LATEST)/bin/python -m pip install --quiet --upgrade pip
+	$(LATEST)/bin/python -m pip install --quiet --upgrade --upgrade-strategy eager -e ".[$(TEST_EXTRAS)]"
+	grep -E '^[A-Za-z0-9]' $(LOCK) > $(LATEST)/lock-pins.txt
+	@echo "newer than the lock:"; $(LATEST)/bin/python -m pip freeze --exclude-editable | grep -vixF -f $(LATEST)/lock-pins.txt || true
+	$(LATEST)/bin/python -m pytest
+
+# today's resolve of pyproject's ranges for Linux x86_64, CPython 3.11 (what CI runs), with uv's resolver
+lock:
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet uv
+	$(VENV)/bin/uv pip compile pyproject.toml $(foreach e,$(subst $(comma), ,$(TEST_EXTRAS)),--extra $(e)) \
+		--python-version 3.11 --python-platform x86_64-manylinux_2_28 --no-header -o $(LOCK)
+
 clean:
-	rm -rf $(VENV) out .pytest_cache
+	rm -rf $(VENV) $(LATEST) out .pytest_cache
