@@ -574,7 +574,9 @@ class IncrementalRegistrar:
             return fit_similarity(c, np.array([p[0] for p in pr]), np.array([p[2] for p in pr]), R,
                                   np.array([p[1] for p in pr]), self.sigma_att).similarity
 
-        first_to_enu = to_enu([sm for sm in self.submodels[-self.s.keep_submodels:] if sm.to_first is not None])
+        # the placed sub-models' last keyframes (to_enu keeps 200), whether or not they are still in memory: how many
+        # stay in memory must not move the map
+        first_to_enu = to_enu([sm for sm in self.submodels if sm.to_first is not None])
         new_to_enu = to_enu([new])  # not yet placed: its own frame
         if first_to_enu is None or new_to_enu is None:
             return None
