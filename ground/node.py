@@ -175,13 +175,16 @@ class GroundNode:
                 self.latency.append(latency)
             behind = self.pipe.newest_t - e.t_capture
             fps = self.ground_fps()
-            self._live = {"frame": e.frame, "behind_s": behind, "ground_fps": fps, "drone_fps": self.pipe.fps}
+            st = self.pipe.status
+            # the drone's rate as its heartbeat measures it (frames processed a second), not the video's nominal one
+            drone_fps = float(st.fps) if st is not None and st.fps > 0 else None
+            self._live = {"frame": e.frame, "behind_s": behind, "ground_fps": fps, "drone_fps": drone_fps}
             if rr is not None:
-                st = self.pipe.status
+                rr.fps = self.pipe.fps
                 rejected = self.stream.rejected if self.stream else {}
                 to_enu = self.pipe.poses.assoc_to_enu() if self.pipe.poses is not None else None
                 rr.frame(e, self.pipe.camera, {
-                    "rate/ground": fps, "rate/drone": self.pipe.fps,
+                    "rate/ground": fps, "rate/drone": drone_fps,
                     "delay/behind_drone_s": behind, "delay/ground_latency_s": latency,
                     "delay/detector_s": float(st.detector_latency_s) if st else None,
                     "link/dropped_onboard": float(st.frames_dropped) if st else None,

@@ -10,7 +10,8 @@ Entity tree::
     world/camera/image/detections       Boxes2D, that image's detections (logged only with their image)
     world/camera/image/epipolar/all     LineStrips2D: the previous image's detections' epipolar lines (hidden)
     world/camera/image/epipolar/<id>    apple <id>'s box on each image it was seen in, and the epipolar line of
-                                        its previous view (hidden; show one to follow that apple)
+                                        its previous view, on that image only (hidden; show one to follow that
+                                        apple, or the group to see the apples of the image shown)
     world/trajectory            LineStrips3D, the camera centres so far
     world/points/<k>            Points3D: sub-model k's sparse structure-from-motion points, coloured by
                                 height above the ground (ground grey-brown, canopy green)
@@ -20,7 +21,8 @@ Entity tree::
     map/apples, map/drone, map/trajectory, map/rows     GeoPoints and GeoLineStrings (WGS84)
     stats/apples                Scalars: apples so far
     stats/rows/row_<N>          Scalars: apples in row N, named "row N" in the row's colour
-    stats/rate/ground, stats/rate/drone             frames/s mapped by the ground, and the drone's frame rate
+    stats/rate/ground, stats/rate/drone             frames/s mapped by the ground (blue), and processed by the
+                                                    drone as its status heartbeat measures them (orange)
     stats/delay/behind_drone_s  capture time of the newest frame received minus that of the frame being mapped
     stats/delay/ground_latency_s   wall clock minus the mapped frame's capture time (live flights only)
     stats/delay/detector_s      the onboard detector's time per frame
@@ -66,7 +68,11 @@ APPLICATION_ID = "pomar"
 PANELS = ("summary", "camera", "apple map", "map", "apples per row", "ground rate (frames/s)",
           "delay behind the drone (s)")
 HIDDEN = ("world/camera/image/epipolar",)
-DEFAULT_RADIUS_M = 0.04
+#: Every plot spans the flight from its first frame to the one shown, so that their time axes line up whichever
+#: series started later.
+FROM_FIRST_FRAME = rrb.VisibleTimeRange("frame", start=rrb.TimeRangeBoundary.absolute(seq=0),
+                                        end=rrb.TimeRangeBoundary.cursor_relative(seq=0))
+APPLE_UI_POINTS = 4.0  # apples' radius on screen; the structure-from-motion cloud's is a quarter of it
 
 
 def blueprint(ground_z: float | None = None, eye: tuple | None = None, map_zoom: float = 19.0) -> rrb.Blueprint:
@@ -90,11 +96,11 @@ def blueprint(ground_z: float | None = None, eye: tuple | None = None, map_zoom:
                               overrides={p: rrb.EntityBehavior(visible=False) for p in HIDDEN}),
             rrb.Vertical(
                 rrb.MapView(origin="map", name="map", zoom=map_zoom),
-                rrb.TimeSeriesView(origin="stats/rows", name="apples per row",
+                rrb.TimeSeriesView(origin="stats/rows", name="apples per row", time_ranges=FROM_FIRST_FRAME,
                                    plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop)),
-                rrb.TimeSeriesView(origin="stats/rate", name="ground rate (frames/s)",
+                rrb.TimeSeriesView(origin="stats/rate", name="ground rate (frames/s)", time_ranges=FROM_FIRST_FRAME,
                                    plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftBottom)),
-                rrb.TimeSeriesView(origin="stats/delay", name="delay behind the drone (s)",
+                rrb.TimeSeriesView(origin="stats/delay", name="delay behind the drone (s)", time_ranges=FROM_FIRST_FRAME,
                                    plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop)),
                 row_shares=[4, 3, 2, 2],
             ),
@@ -173,13 +179,14 @@ def summary_markdown(report: dict, live: dict) -> str:
         lines += ["| row | apples | per m | length |", "|:---|---:|---:|---:|"]
         for r in rows:
             per_m = r.get("apples_per_m", float("nan"))
-            lines.append(f"| row {r['row']} | {r['count']} | {per_m:.1f} | {r['length_m']:.0f} m |")
+            per_m_txt = f"{per_m:.1f}" if per_m is not None and np.isfinite(per_m) else "–"  # a row too short yet
+            lines.append(f"| row {r['row']} | {r['count']} | {per_m_txt} | {r['length_m']:.0f} m |")
         lines.append("")
     fr = report.get("frames", {})
     behind, fps, drone_fps = live.get("behind_s"), live.get("ground_fps"), live.get("drone_fps")
     keeping = f"{behind:.1f} s behind the drone" if behind is not None and np.isfinite(behind) else "delay unknown"
     rate = (f", mapping {fps:.1f} frames/s" if fps is not None and np.isfinite(fps) else "")
-    rate += f" (drone: {drone_fps:g} fps)" if drone_fps is not None and np.isfinite(drone_fps) else ""
+    rate += f" (drone: {drone_fps:.1f} frames/s)" if drone_fps is not None and np.isfinite(drone_fps) else ""
     lines.append(f"**Mapping** frame {live.get('frame', '–')} ({fr.get('frames', 0)} frames received): {keeping}{rate}")
     reg = report.get("registration", {})
     gps = reg.get("georeference_gps_rms_m")
@@ -234,6 +241,11 @@ class RerunLog:
         self.ground_z: float | None = None
         self.scale: float | None = None
         self.camera = None
+        self.fps: float | None = None  # the video's, for the capture time of a frame not seen yet
+        # the rate series told apart by colour (Okabe & Ito: the ground blue, the drone orange)
+        for name, colour in (("ground", [0, 114, 178]), ("drone", [230, 159, 0])):
+            self.rec.log(f"stats/rate/{name}", rr.SeriesLines(names=f"{name} (frames/s)", colors=[colour], widths=2.0),
+                         static=True)
 
     def _time(self, frame: int, t_capture: float):
         self.rec.set_time("frame", sequence=int(frame))
@@ -302,6 +314,7 @@ class RerunLog:
         path = f"world/camera/image/epipolar/{apple_id}"
         prev = None
         frames, times, centres, halves, strips, n_strips = [], [], [], [], [], []
+        seen = {f for f, _ in boxes}
         for f, box in boxes:
             t, P, has_image = self._frames.get(f, (float("nan"), None, False))
             b = np.asarray(box, float) * s
@@ -312,10 +325,17 @@ class RerunLog:
                     lines = epipolar_segments(fundamental_from_projections(prev[0], P), prev[1][None], w, h)
                 frames.append(f)
                 times.append(t)
-                centres.append(centre)
-                halves.append((b[2:] - b[:2]) / 2)
+                centres.append([centre])
+                halves.append([(b[2:] - b[:2]) / 2])
                 strips.extend(lines)
                 n_strips.append(len(lines))
+                if f + 1 not in seen:  # the box and line belong to this image only: the next frame clears them
+                    nxt = self._frames.get(f + 1, (t + (1.0 / self.fps if self.fps else np.nan),))[0]
+                    frames.append(f + 1)
+                    times.append(nxt)
+                    centres.append([])
+                    halves.append([])
+                    n_strips.append(0)
             if P is not None:
                 prev = (P, centre)
         if not frames:
@@ -324,9 +344,14 @@ class RerunLog:
         indexes = [rr.TimeColumn("frame", sequence=frames)]
         if np.isfinite(times).all():
             indexes.append(rr.TimeColumn("capture_time", timestamp=times))
-        n = len(frames)
-        columns = [*rr.Boxes2D.columns(centers=centres, half_sizes=halves, colors=[[255, 255, 255]] * n,
-                                       labels=[f"apple {apple_id}"] * n),
+        n_boxes = [len(c) for c in centres]
+        nb = sum(n_boxes)
+        flat_c = [c for cs in centres for c in cs]
+        flat_h = [h for hs in halves for h in hs]
+        columns = [*rr.Boxes2D.columns(centers=np.array(flat_c, float).reshape(-1, 2),
+                                       half_sizes=np.array(flat_h, float).reshape(-1, 2),
+                                       colors=[[255, 255, 255]] * nb, labels=[f"apple {apple_id}"] * nb
+                                       ).partition(n_boxes),
                    *rr.LineStrips2D.columns(strips=strips, colors=[[255, 220, 0]] * len(strips),
                                             radii=[rr.Radius.ui_points(1.0)] * len(strips)).partition(n_strips)]
         rr.send_columns(path, indexes=indexes, columns=columns, recording=self.rec)
@@ -342,16 +367,17 @@ class RerunLog:
         n = len(table["id"])
         pos = np.stack([table["x"], table["y"], table["z"]], 1) if n else np.zeros((0, 3))
         col = row_colours(table["row"]) if n else np.zeros((0, 3), np.uint8)
-        radius = np.asarray(table.get("radius_m", np.full(n, np.nan)), float)
-        radius = np.clip(np.where(np.isfinite(radius), radius, DEFAULT_RADIUS_M), 0.02, 0.08)
         labels = [f"apple {i}, row {r}" for i, r in zip(table["id"], table["row"])]
-        self.rec.log("world/apples", rr.Points3D(pos, colors=col, radii=radius, labels=labels, show_labels=False))
+        # a fixed size on screen: at the eye's 10-20 m an apple's own radius is a pixel or two among the cloud
+        self.rec.log("world/apples", rr.Points3D(pos, colors=col, radii=rr.Radius.ui_points(APPLE_UI_POINTS),
+                                                 labels=labels, show_labels=False))
         ok = np.isfinite(table["lat"]) & np.isfinite(table["lon"]) if n else np.zeros(0, bool)
         self.rec.log("map/apples", rr.GeoPoints(lat_lon=np.stack([table["lat"][ok], table["lon"][ok]], 1) if ok.any()
                                                 else np.zeros((0, 2)), radii=rr.Radius.ui_points(5.0), colors=col[ok]))
         if drone_latlon is not None and np.isfinite(drone_latlon).all():
-            self.rec.log("map/drone", rr.GeoPoints(lat_lon=[drone_latlon], radii=rr.Radius.ui_points(9.0),
-                                                   colors=[[255, 255, 255]]))
+            # vermillion, larger than an apple: seen on a blank map (no tiles offline) as on an aerial photo
+            self.rec.log("map/drone", rr.GeoPoints(lat_lon=[drone_latlon], radii=rr.Radius.ui_points(12.0),
+                                                   colors=[[213, 94, 0]]))
         if trajectory_latlon is not None and len(trajectory_latlon) > 1:
             self.rec.log("map/trajectory", rr.GeoLineStrings(lat_lon=[trajectory_latlon], colors=[[200, 200, 200]],
                                                              radii=rr.Radius.ui_points(1.5)))
@@ -362,7 +388,7 @@ class RerunLog:
         for k, p in (points or {}).items():
             if self.ground_z is not None:
                 self.rec.log(f"world/points/{k}", rr.Points3D(p, colors=height_colours(p[:, 2], self.ground_z),
-                                                              radii=rr.Radius.ui_points(1.5)))
+                                                              radii=rr.Radius.ui_points(APPLE_UI_POINTS / 4)))
         if self.ground_z is not None and n >= 10:
             self._view_data = (pos, rows or [], float(np.nanmedian(table["lat"])))
             if not self._framed:

@@ -27,6 +27,25 @@ def _views(container) -> list:
     return out
 
 
+def test_a_row_too_short_for_a_density_shows_a_dash_not_nan():
+    from ground.rerun_log import summary_markdown
+
+    text = summary_markdown({"apples": 3, "rows": [{"row": 1, "count": 3, "apples_per_m": float("nan"), "length_m": 0.2}]},
+                            {})
+    assert "| row 1 | 3 | – | 0 m |" in text and "nan" not in text
+
+
+def test_the_plots_share_one_time_axis_from_the_first_frame():
+    """Every time-series panel spans the flight from frame 0 to the frame shown, whichever series started later."""
+    import rerun.blueprint as rrb
+
+    series = [v for v in _views(blueprint().root_container) if isinstance(v, rrb.TimeSeriesView)]
+    assert len(series) == 3
+    for v in series:
+        ranges = v.properties["VisibleTimeRanges"].ranges.as_arrow_array().to_pylist()
+        assert [(r["timeline"], r["range"]["start"]) for r in ranges] == [("frame", 0)], (v.name, ranges)
+
+
 def test_layout_names_its_panels():
     names = [v.name for v in _views(blueprint().root_container)]
     assert sorted(names) == sorted(PANELS)
@@ -102,9 +121,12 @@ def test_boxes_only_with_their_image_and_lines_inside_it(tmp_path):
     for path in ("/world/camera/image/detections", "/world/camera/image/epipolar/7"):
         box_frames = {r["frame"] for r in data[path] if r.get("Boxes2D:half_sizes")}
         assert box_frames and box_frames <= image_frames, (path, box_frames)
-    # the apple's own view: its box on frames 4, 6 and 8, the epipolar line of its previous view from frame 6 on
+    # the apple's own view: its box on frames 4, 6 and 8, the epipolar line of its previous view from frame 6 on, each
+    # cleared on the frame after it (7 is a view of its own, without an image: frame 6's box stays over its image)
     ap = data["/world/camera/image/epipolar/7"]
-    assert [r["frame"] for r in ap] == [4, 6, 8] and [len(r["LineStrips2D:strips"]) for r in ap] == [0, 1, 1]
+    assert [r["frame"] for r in ap] == [4, 5, 6, 8, 9]
+    assert [len(r.get("LineStrips2D:strips") or []) for r in ap] == [0, 0, 1, 1, 0]
+    assert [len(r.get("Boxes2D:half_sizes") or []) for r in ap] == [1, 0, 1, 1, 0]
     res = data["/world/camera"][0]["Pinhole:resolution"][0]
     assert res == [320.0, 180.0]
     n_lines = 0
@@ -171,8 +193,16 @@ def test_recording_of_a_replay_matches_its_map_files(replayed_test_flight):
     by_label = {lab: _rgb(c) for lab, c in zip(last["Points3D:labels"], last["Points3D:colors"])}
     for a in apples:
         assert by_label[f"apple {a['id']}, row {a['row']}"] == PALETTE[(int(a["row"]) - 1) % len(PALETTE)].tolist()
-    radii = np.array(last["Points3D:radii"])
-    assert ((radii >= 0.02) & (radii <= 0.08)).all()
+    # apples a fixed size on screen, the structure-from-motion cloud a quarter of it (rerun: negative = UI points)
+    from ground.rerun_log import APPLE_UI_POINTS
+
+    assert (np.array(last["Points3D:radii"]) == -APPLE_UI_POINTS).all()
+    cloud = [r for p, rws in data.items() if p.startswith("/world/points/") for r in rws]
+    assert cloud and all(np.array(r["Points3D:radii"]) == -APPLE_UI_POINTS / 4 for r in cloud)
+    # the ground's and the drone's rates in two colours
+    rates = {p: [x for x in data[p] if x.get("SeriesLines:colors")] for p in ("/stats/rate/ground", "/stats/rate/drone")}
+    colours = {p: _rgb(v[0]["SeriesLines:colors"][0]) for p, v in rates.items()}
+    assert colours["/stats/rate/ground"] != colours["/stats/rate/drone"], colours
     assert {_rgb(c)[0] for c in data["/map/apples"][-1]["GeoPoints:colors"]} <= {int(c[0]) for c in PALETTE}
     # every 2-D line inside the image it is drawn on
     res = data["/world/camera"][-1]["Pinhole:resolution"][0]
