@@ -38,12 +38,14 @@ class GeoFit:
 
 def fit_similarity(c_model: np.ndarray, g_enu: np.ndarray, sigma_pos: np.ndarray | float,
                    R_model: np.ndarray | None = None, R_tel: np.ndarray | None = None,
-                   sigma_att_rad: np.ndarray | float = np.radians(1.0), iterations: int = 20) -> GeoFit:
+                   sigma_att_rad: np.ndarray | float = np.radians(1.0), iterations: int = 20,
+                   scale: float | None = None) -> GeoFit:
     """Similarity taking model points to ENU.
 
     c_model (N, 3) camera centres in the model; g_enu (N, 3) their GPS positions in ENU; sigma_pos (N,)
     or scalar, metres. R_model (N, 3, 3) world(model)-to-camera rotations; R_tel (N, 3, 3) world(ENU)-to-
-    camera rotations from the telemetry; without them, positions only (Umeyama, weighted).
+    camera rotations from the telemetry; without them, positions only (Umeyama, weighted). ``scale``: the
+    scale, when something else than the positions gives it (only rotation and translation are fitted).
     """
     c = np.asarray(c_model, float)
     g = np.asarray(g_enu, float)
@@ -62,11 +64,12 @@ def fit_similarity(c_model: np.ndarray, g_enu: np.ndarray, sigma_pos: np.ndarray
         Hax = np.einsum("i,ikp,ikq->pq", v, B, A)
     else:
         Hax = np.zeros((3, 3))
-    s = np.sqrt((w * (gc**2).sum(1)).sum() / max((w * (cc**2).sum(1)).sum(), 1e-300))
+    s = scale if scale is not None else np.sqrt((w * (gc**2).sum(1)).sum() / max((w * (cc**2).sum(1)).sum(), 1e-300))
     Hpos = np.einsum("i,ip,iq->pq", w, gc, cc)
     R = _procrustes(Hpos) if not use_axes else _procrustes(Hax + s * Hpos)
     for _ in range(iterations):
-        s = float((w * np.einsum("ip,ip->i", gc, cc @ R.T)).sum() / max((w * (cc**2).sum(1)).sum(), 1e-300))
+        if scale is None:
+            s = float((w * np.einsum("ip,ip->i", gc, cc @ R.T)).sum() / max((w * (cc**2).sum(1)).sum(), 1e-300))
         R_new = _procrustes(s * Hpos + Hax)
         if np.allclose(R_new, R, atol=1e-12):
             R = R_new

@@ -117,12 +117,16 @@ class LivePoses:
         return self.mapper.fit_residual_m
 
     # -- inputs
-    def add_telemetry(self, frame: int, lat: float, lon: float, alt: float, q_gimbal, h_acc: float) -> None:
+    def add_telemetry(self, frame: int, lat: float, lon: float, alt: float, q_gimbal, h_acc: float,
+                      height: float = float("nan"), height_acc: float = float("nan")) -> None:
+        """A frame's telemetry: its ENU position, gimbal attitude, horizontal accuracy (2 m where unknown), height
+        above the take-off point and its accuracy (NaN where the log does not say)."""
         if self.origin is None and np.isfinite([lat, lon, alt]).all():
             self.origin = Origin(float(lat), float(lon), float(alt))
         enu = (np.asarray(self.origin.to_enu(lat, lon, alt), float).reshape(3) if self.origin is not None
                else np.full(3, np.nan))
-        self.tel[frame] = (enu, np.asarray(q_gimbal, float), float(h_acc) if np.isfinite(h_acc) and h_acc > 0 else 2.0)
+        self.tel[frame] = (enu, np.asarray(q_gimbal, float), float(h_acc) if np.isfinite(h_acc) and h_acc > 0 else 2.0,
+                           float(height), float(height_acc))
 
     def add_image(self, frame: int, image_bgr: np.ndarray, t_capture: float = float("nan")) -> None:
         """A frame's image, in frame order: tracked against the map once there is one (until then it waits, and goes
@@ -142,7 +146,7 @@ class LivePoses:
 
     def _map(self, frame: int, image_bgr: np.ndarray) -> None:
         t0 = time.perf_counter()
-        self.mapper.add(frame, image_bgr, self.tel.get(frame, (np.full(3, np.nan), np.full(4, np.nan), 2.0)))
+        self.mapper.add(frame, image_bgr, self.tel.get(frame, (np.full(3, np.nan), np.full(4, np.nan), 2.0, np.nan, np.nan)))
         self.seconds["mapping_inline"] += time.perf_counter() - t0
 
     def _collect_references(self) -> None:
@@ -384,7 +388,7 @@ class LivePoses:
                   m2a is not None, len(model_pose), len(self.tracked), self._first_ref)
         if frame not in self.tel or not np.isfinite(self.tel[frame][0]).all():
             return None
-        enu, qg, h_acc = self.tel[frame]
+        enu, qg, h_acc = self.tel[frame][:3]
         R_enu = camera_rotations(qg[None], self.cam)[0]
         e2a = inverse(self.assoc_to_enu())
         R, t = georeference_poses(R_enu[None], (-R_enu @ enu)[None], e2a)

@@ -51,7 +51,8 @@ class Mapper:
         self.registrar = IncrementalRegistrar(kf_camera, workdir, settings, sigma_att_deg)
         self.settings = self.registrar.s
         self.sigma_att = np.radians(sigma_att_deg)
-        self.tel: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}  # keyframe -> (enu, q_gimbal, h_acc)
+        # keyframe -> (enu, q_gimbal, h_acc, height above take-off, its accuracy; NaN where unknown)
+        self.tel: dict[int, tuple] = {}
         self.model_pose: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # registered keyframes, model frame
         self.kf_sorted: list[int] = []
         self.fit: Similarity | None = None  # model -> ENU
@@ -68,6 +69,7 @@ class Mapper:
         self.first_references: list[Reference] = []
         self._moved_all = (0, 0)  # the registrar's re-anchorings and global refinements, as last seen
         self.moved: set[int] = set()  # keyframes whose poses changed since take_moved
+        self.scale_source = "positions"  # what scales the georeference: the GPS positions, or the heights (_refit)
 
     # -- inputs
     def busy(self) -> bool:
@@ -100,7 +102,7 @@ class Mapper:
             for f in sorted(self._early)[:-2 * self.settings.init_frames]:
                 del self._early[f]
         self.changed = {}
-        enu, q, h_acc = tel
+        enu, q, h_acc = tel[:3]
         prior = (enu, camera_rotations(np.asarray(q, float)[None], self.cam)[0], h_acc) if np.isfinite(q).all() else None
         try:
             ok = self.registrar.add_keyframe(frame, image_bgr, prior, features)
@@ -190,7 +192,47 @@ class Mapper:
         fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att)
         if not (np.isfinite(fit.similarity.scale) and fit.similarity.scale > 0):
             return None
+        k = self._height_scale(fit.similarity, frames, c_m, g, sig)
+        if k is not None:
+            fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att, scale=fit.similarity.scale * k)
         return fit.similarity, fit.position_rms_m
+
+    #: The orchard floor in the map: this low percentile of its points' heights (the ground seen between the rows;
+    #: the canopy stands above it); its spread below that percentile is how well the floor is known.
+    FLOOR_PERCENTILE = 5.0
+
+    def _height_scale(self, fit: Similarity, frames, c_m, g, sig) -> float | None:
+        """The factor that brings the cameras' heights above the floor the map sees to the log's heights above the
+        take-off point, where those tell the map's scale better than the positions do: positions rounded coarsely
+        (a Phantom 4 Pro's SRT: 4 decimals, 11 m) over a short flight scale it by tens of percent, the heights (to
+        0.01 m) against the floor by about the floor's own spread over the height. None where the log gives no
+        heights, the map sees too little ground, or the positions know the scale better. Takes the take-off point to
+        be level with the orchard's floor (say how far it is not, and the scale is off by that over the height)."""
+        h = np.array([self.tel[f][3] if len(self.tel[f]) > 4 else np.nan for f in frames], float)
+        h_sigma = np.array([self.tel[f][4] if len(self.tel[f]) > 4 else np.nan for f in frames], float)
+        ok = np.isfinite(h) & (h > 0) & np.isfinite(h_sigma)  # a height whose accuracy the log does not say: unused
+        self.scale_source = "positions"
+        if ok.sum() < 3:
+            return None
+        pts = [compose(fit, sm.to_first).apply(np.array([p.xyz for p in sm.rec.points3D.values()
+                                                          if p.track.length() >= 3 and p.error <= 2.0], float).reshape(-1, 3))
+               for sm in self.registrar.submodels[-2:] if sm.rec is not None and sm.to_first is not None]
+        z = np.concatenate([p[:, 2] for p in pts]) if pts else np.zeros(0)
+        if len(z) < 200:
+            return None
+        floor = float(np.percentile(z, self.FLOOR_PERCENTILE))
+        floor_sigma = max(float(floor - np.percentile(z, 1.0)), 0.02)
+        h_map = fit.apply(c_m)[ok, 2] - floor
+        if not np.median(h_map) > 0:
+            return None
+        # the scale's relative error from each: the positions' accuracy over their spread (as independent samples:
+        # the most they can give), and the floor's spread with the heights' own accuracy, over the height
+        rel_pos = float(np.median(sig)) / max(float(np.sqrt(((g - g.mean(0)) ** 2).sum(1).mean() * len(g))), 1e-9)
+        rel_height = float(np.hypot(floor_sigma, np.median(h_sigma[ok]))) / float(np.median(h[ok]))
+        if rel_height >= rel_pos:
+            return None
+        self.scale_source = "heights"
+        return float(np.median(h[ok]) / np.median(h_map))
 
     # -- reading
     @property
@@ -209,6 +251,7 @@ class Mapper:
         st = np.asarray(reg.stage_seconds, float).reshape(-1, 3)
         return {"keyframes_processed": len(reg.seconds), "failed": len(reg.failed), "submodels": len(reg.submodels),
                 "revisits": reg.revisits, "reanchored": reg.reanchored, "rejoined": reg.rejoined,
+                "scale_from": self.scale_source,
                 "seconds": list(reg.seconds),
                 "stage_seconds_median": dict(zip(("features", "matching", "mapping"),
                                                  np.median(st, 0).tolist() if len(st) else [None] * 3))}

@@ -289,6 +289,8 @@ class GroundNode:
                 # keyframes before the first model whose SIFT features this process extracted, the mapper being busy
                 "features_extracted_here": p.poses.mapper.early_extracted if p.poses else 0,
                 "georeference_gps_rms_m": p.poses.fit_residual_m if p.poses else None,
+                # what scales the map: the GPS positions, or the heights above take-off against the floor it sees
+                "georeference_scale_from": reg.get("scale_from", "positions") if reg else None,
                 "origin": p.poses.origin.as_dict() if p.poses and p.poses.origin else None,
             },
             "tracking": {"tracked": p.poses.tracker.tracked if p.poses else 0,

@@ -188,7 +188,7 @@ class GroundPipeline:
                                init_spacing_s=self.s.init_spacing_s, mapping_worker=self._mapping_worker)
         for f in sorted(self.pending):
             t = self.pending[f].telemetry
-            self.poses.add_telemetry(f, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc)
+            self.poses.add_telemetry(f, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc, t.height, t.height_acc)
 
     def hold_gaps(self, seconds: float) -> None:
         """For the next ``seconds``, a frame after a missing one waits for it instead of leaving it to come late and
@@ -217,7 +217,7 @@ class GroundPipeline:
             self.kf_awaited.add(msg.frame)
         if self.poses is not None:
             t = msg.telemetry
-            self.poses.add_telemetry(msg.frame, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc)
+            self.poses.add_telemetry(msg.frame, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc, t.height, t.height_acc)
 
     def on_keyframe(self, msg: wire.KeyframeMessage):
         if msg.frame in self._kf_seen:

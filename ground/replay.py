@@ -241,8 +241,10 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
         # which then writes what it has
         if onboard.wait() != 0 and not stopping.is_set():
             failed.set()
+            # SIGTERM: a ground still starting ends quietly (SIGINT would print a KeyboardInterrupt traceback from
+            # wherever its imports were); one running takes it as Ctrl-C (pomar.shutdown) and writes what it has
             if "ground" in procs and procs["ground"].poll() is None:
-                procs["ground"].send_signal(signal.SIGINT)
+                procs["ground"].send_signal(signal.SIGTERM)
 
     stopping = threading.Event()
     threading.Thread(target=watch_onboard, daemon=True).start()
@@ -252,7 +254,7 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
             procs["ground"] = ground = subprocess.Popen(ground_cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                                         env=env, text=True)
             if failed.is_set():
-                ground.send_signal(signal.SIGINT)
+                ground.send_signal(signal.SIGTERM)
             for line in ground.stdout:  # the ground's progress, shown and kept
                 logs["ground"].write(line)
                 if not quiet:

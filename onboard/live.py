@@ -101,7 +101,8 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
             expected = float(telemetry_radius_px(camera_fx, s)[0])
             tel = wire.Telemetry(float(s["lat"][0]), float(s["lon"][0]), float(s["alt"][0]),
                                  tuple(map(float, s["q_attitude"][0])), tuple(map(float, s["q_gimbal"][0])),
-                                 int(s["gps_fix"][0]), float(s["h_acc"][0]), int(s["flags"][0]))
+                                 int(s["gps_fix"][0]), float(s["h_acc"][0]), int(s["flags"][0]), float(s["height"][0]),
+                                 float(s["height_acc"][0]))
             flagged += tel.flags != 0
             due = keyframes.due(t_capture, tel.lat, tel.lon, tel.alt)
             publisher.publish(wire.FrameMessage(flight_id, drone_id, i, t_capture, tel, img.shape[1], img.shape[0],

@@ -153,7 +153,7 @@ class OnboardNode:
         tel["flags"] = tel["flags"] | cap_flags
         # the wire takes a position whole or not at all (pomar.wire): a part of one is none
         part = ~np.isfinite(np.column_stack([tel["lat"], tel["lon"], tel["alt"]])).all(1)
-        for k in ("lat", "lon", "alt"):
+        for k in ("lat", "lon", "alt", "height"):
             tel[k] = np.where(part, np.nan, tel[k])
         tel["flags"] = tel["flags"] | np.where(part, int(Flags.NO_POSITION), 0)
         if meta.frame_count and (tel["flags"] & Flags.NO_POSITION).all():
@@ -197,7 +197,8 @@ class OnboardNode:
                 self.stats["scales"].append(scale)
                 telemetry = wire.Telemetry(float(tel["lat"][i]), float(tel["lon"][i]), float(tel["alt"][i]),
                                            tuple(map(float, tel["q_attitude"][i])), tuple(map(float, tel["q_gimbal"][i])),
-                                           int(tel["gps_fix"][i]), float(tel["h_acc"][i]), int(tel["flags"][i]))
+                                           int(tel["gps_fix"][i]), float(tel["h_acc"][i]), int(tel["flags"][i]),
+                                           float(tel["height"][i]), float(tel["height_acc"][i]))
                 due = policy.due(float(t_frames[i]), telemetry.lat, telemetry.lon, telemetry.alt)
                 self.pub.publish(wire.FrameMessage(meta.flight_id, meta.drone_id, i, float(t_frames[i]), telemetry,
                                                    img.shape[1], img.shape[0], boxes, scores, scale=scale,

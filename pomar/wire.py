@@ -202,15 +202,21 @@ class Telemetry:
     gps_fix: int = 0
     h_acc: float = float("nan")  # m
     flags: int = 0  # onboard.telemetry.Flags
+    #: m above the take-off point, where the log places it (a DJI .SRT's H, a .tlog's relative_alt); NaN unknown.
+    height: float = float("nan")
+    #: m, the height's accuracy where the log states it or its source is known (a DJI barometer's); NaN unknown.
+    height_acc: float = float("nan")
 
     def to_list(self) -> list:
-        return [self.lat, self.lon, self.alt, list(self.q_attitude), list(self.q_gimbal), self.gps_fix, self.h_acc, self.flags]
+        """8 fields, and the height and its accuracy as a 9th and 10th (older nodes and journals send 8)."""
+        return [self.lat, self.lon, self.alt, list(self.q_attitude), list(self.q_gimbal), self.gps_fix, self.h_acc,
+                self.flags, self.height, self.height_acc]
 
     @classmethod
     def from_list(cls, x: list) -> "Telemetry":
         """Position in range or all NaN (unknown), unit quaternions or all NaN; never inf."""
-        if not isinstance(x, (list, tuple)) or len(x) != 8:
-            raise WireError("telemetry must be a list of 8 fields", "malformed")
+        if not isinstance(x, (list, tuple)) or len(x) not in (8, 10):
+            raise WireError("telemetry must be a list of 8 or 10 fields", "malformed")
         lat = _float("telemetry lat", x[0], -90.0, 90.0, nan=True)
         lon = _float("telemetry lon", x[1], -180.0, 180.0, nan=True)
         alt = _float("telemetry alt", x[2], -1000.0, 20000.0, nan=True)
@@ -218,7 +224,9 @@ class Telemetry:
             raise WireError(f"telemetry position ({lat}, {lon}, {alt}) is partly NaN", "not_finite")
         return cls(lat, lon, alt, _quat("telemetry q_attitude", x[3]), _quat("telemetry q_gimbal", x[4]),
                    _int("telemetry gps_fix", x[5], 0, 255), _float("telemetry h_acc", x[6], 0.0, 1e6, nan=True),
-                   _int("telemetry flags", x[7], 0, 2**31 - 1))
+                   _int("telemetry flags", x[7], 0, 2**31 - 1),
+                   *((_float("telemetry height", x[8], -1000.0, 20000.0, nan=True),
+                      _float("telemetry height_acc", x[9], 0.0, 1e6, nan=True)) if len(x) == 10 else ()))
 
 
 @dataclass

@@ -22,7 +22,8 @@ def frame(i: int) -> wire.FrameMessage:
     n = i % 7
     xy = rng.uniform(4, 476, (n, 2)).astype(np.float32)
     boxes = np.concatenate([xy - 4, xy + 4], axis=1)
-    tel = wire.Telemetry(-28.5 + i * 1e-6, -50.9, 972.0, (1.0, 0.0, 0.0, 0.0), (0.5, 0.5, -0.5, 0.5), 3, 0.5, i % 3)
+    tel = wire.Telemetry(-28.5 + i * 1e-6, -50.9, 972.0, (1.0, 0.0, 0.0, 0.0), (0.5, 0.5, -0.5, 0.5), 3, 0.5, i % 3,
+                         12.0 + i, 0.1)
     return wire.FrameMessage("flight-1", "drone-1", i, 1.5e9 + i / 10, tel, 640, 480, boxes, rng.random(n).astype(np.float32))
 
 
@@ -43,6 +44,14 @@ def assert_same(a: wire.FrameMessage, b: wire.FrameMessage):
 def test_round_trips():
     for i in range(10):
         assert_same(frame(i), wire.FrameMessage.decode(frame(i).encode()))
+
+
+def test_telemetry_of_older_nodes_without_a_height_still_decodes():
+    """Nodes and journals from before the height (8 fields): the height and its accuracy are unknown (NaN)."""
+    t = wire.Telemetry.from_list(frame(3).telemetry.to_list()[:8])
+    assert t.h_acc == 0.5 and np.isnan(t.height) and np.isnan(t.height_acc)
+    with pytest.raises(wire.WireError, match="8 or 10 fields"):
+        wire.Telemetry.from_list(frame(3).telemetry.to_list()[:9])
     np.testing.assert_allclose(frame(3).centres, (frame(3).boxes[:, :2] + frame(3).boxes[:, 2:]) / 2)
     k = wire.KeyframeMessage("f", "d", 4, jpeg(64, 48))
     assert wire.decode(k.encode()) == k and k.size == (64, 48)

@@ -111,7 +111,7 @@ class TelemetryLog:
     gaps: list[Gap] = field(default_factory=list)
     parse_seconds: float = 0.0
     format: str = "tlog"
-    altitude_reference: str = "msl"  # "msl", "ellipsoid" or "takeoff"
+    altitude_reference: str = "msl"  # "msl", "ellipsoid", "takeoff", or "unstated"/"unknown" (SRTs that do not say)
     problems: list[str] = field(default_factory=list)
     bad_by_type: Counter = field(default_factory=Counter)
     #: Per-frame video times from the log itself (a DJI .SRT has one entry per frame or per second): seconds
@@ -120,6 +120,9 @@ class TelemetryLog:
     #: The take-off (home) point's altitude in ``alt``'s reference, where the log says it (a relative altitude
     #: beside the absolute one): the height above the ground is alt - home_alt. None where the log does not say.
     home_alt: float | None = None
+    #: The accuracy (m) of the height above take-off where the log states it or its source is known (a DJI
+    #: barometer's); None: unstated (an autopilot's relative altitude, whose error is the EKF's).
+    height_sigma_m: float | None = None
     #: Steps of the position stream further than a drone can fly (see MAX_SPEED_MPS): (start, end) times.
     jumps: list[Gap] = field(default_factory=list)
 
@@ -233,7 +236,8 @@ class TelemetryLog:
     def at(self, t: np.ndarray, mount_tilt_deg: float | None = None,
            mount_yaw_deg: float = 0.0) -> dict[str, np.ndarray]:
         """Telemetry at times t (unix s, the log's clock): lat, lon, alt, height (above home; NaN where the log does
-        not place home), q_attitude, q_gimbal (wxyz), gps_fix, h_acc, flags. Values outside a stream are NaN; frames in a gap are interpolated and flagged.
+        not place home), height_acc (its accuracy, where the log states it), q_attitude, q_gimbal (wxyz), gps_fix,
+        h_acc, flags. Values outside a stream are NaN; frames in a gap are interpolated and flagged.
 
         A log without gimbal attitudes gives the camera's attitude only with ``mount_tilt_deg`` (the camera's
         pitch below the vehicle's horizon, 90 = straight down) and ``mount_yaw_deg`` (the camera's heading from the
@@ -250,6 +254,7 @@ class TelemetryLog:
             flags[inside] |= int(Flags.POSITION_JUMP)
         out["lat"], out["lon"], out["alt"] = pos[:, 0], pos[:, 1], pos[:, 2]
         out["height"] = self.height_above_home(out["alt"])
+        out["height_acc"] = np.where(np.isfinite(out["height"]), self.height_sigma_m or np.nan, np.nan)
         out["q_attitude"] = self._slerp(self.attitude, t, flags, Flags.ATTITUDE_GAP, Flags.NO_ATTITUDE)
         out["q_gimbal"] = self._slerp(self.gimbal, t, flags, Flags.GIMBAL_GAP, Flags.NO_GIMBAL)
         out["gps_fix"] = np.zeros(len(t), int)

@@ -13,7 +13,8 @@ layouts known here (``LAYOUTS``), each tested on a real file:
 - ``m300``: Matrice 300: ``2022.06.21 16:06:17`` then ``GPS(lat,lon,0.0M) BAROMETER:0.3M`` (latitude first).
 - ``bracket``: Mavic 3, Mini 2/3, Air 2S, Mavic 2 (later firmware):
   ``2022-08-07 13:40:40,774,808`` then ``[latitude: 41.424724] [longitude: 2.234156]`` (some firmware spells it
-  ``longtitude``) and ``[rel_alt: 1.3 abs_alt: 120.5]`` or ``[altitude: 117.0]``; some add the gimbal,
+  ``longtitude``) and ``[rel_alt: 1.3 abs_alt: 120.5]`` or ``[altitude: 117.0]`` (above what, DJI does not say: no height above
+  take-off is taken from it); some add the gimbal,
   ``[gb_yaw: … gb_pitch: … gb_roll: …]``.
 
 Times: the subtitle's start is the frame's time in the video; the date in the subtitle, where there is one, is
@@ -62,6 +63,20 @@ def _date(text: str) -> float | None:
     return datetime(y, mo, d, h, mi, s, ms * 1000, tzinfo=timezone.utc).timestamp()
 
 
+def _decimals(text: str, prefix: str) -> int:
+    """The fewest decimals among the numbers that follow ``prefix`` (a regex) in the text."""
+    found = re.findall(prefix + rf"({NUM})", text)
+    return min(len((g.split(".") + [""])[1]) for g in found) if found else 0
+
+
+#: The horizontal accuracy of a position whose log does not state it (DJI's do not): the ground's own assumption
+#: (ground.live_poses). A position rounded to D decimals adds the rounding's error, (111 km x 10^-D) / sqrt(12).
+UNSTATED_H_ACC_M = 2.0
+#: The accuracy assumed of a DJI height above take-off (barometric; written to 0.01 m): its drift over a flight's
+#: minutes. The ground weighs it against the positions when it scales the map (ground.mapping).
+BARO_HEIGHT_SIGMA_M = 0.1
+
+
 def _pry(text: str, name: str) -> tuple[float, float, float] | None:
     """``F.PRY (pitch°, roll°, yaw°)`` -> (roll, pitch, yaw) in degrees, NED."""
     m = re.search(rf"\b{re.escape(name)}\s*\(\s*({NUM})°?\s*,\s*({NUM})°?\s*,\s*({NUM})°?\s*\)", text)
@@ -80,9 +95,11 @@ def parse_subtitle(text: str) -> tuple[str, dict]:
     if lat is not None and lon is not None:
         if text.count("[") != text.count("]"):
             raise ValueError("cut short: a bracket is not closed")
-        out.update(lat=lat, lon=lon)
+        out.update(lat=lat, lon=lon, decimals=_decimals(text, r"\b(?:latitude|longt?itude)\s*:\s*"))
         rel, absolute = _field(text, "rel_alt"), _field(text, "abs_alt")
         out["alt"] = rel if rel is not None else _field(text, "altitude")
+        if rel is None and out["alt"] is not None:
+            out["alt_unstated"] = True  # `[altitude: …]` alone: DJI does not say above what (take-off or sea)
         if absolute is not None:
             out["abs_alt"] = absolute
         yaw, pitch, roll = _field(text, "gb_yaw"), _field(text, "gb_pitch"), _field(text, "gb_roll")
@@ -95,6 +112,7 @@ def parse_subtitle(text: str) -> tuple[str, dict]:
     m = re.search(rf"GPS\s*\(\s*({NUM})\s*,\s*({NUM})\s*,\s*({NUM})\s*(M?)\s*\)", text)
     if m:
         a, b, c, metres = float(m.group(1)), float(m.group(2)), float(m.group(3)), m.group(4)
+        out["decimals"] = min(len((g.split(".") + [""])[1]) for g in (m.group(1), m.group(2)))
         if metres:  # Matrice 300: GPS(lat, lon, altitude M)
             baro = _field(text, "BAROMETER")
             out.update(lat=a, lon=b, alt=baro if baro is not None else c)
@@ -206,7 +224,7 @@ def read_srt(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
     alt = np.array([r[1].get("abs_alt", r[1].get("alt")) if r[1].get("abs_alt", r[1].get("alt")) is not None
                     else np.nan for r in rows], float)
     absolute = any("abs_alt" in r[1] for r in rows)
-    reference = "msl" if absolute else "takeoff"
+    reference = "msl" if absolute else "unstated" if any(r[1].get("alt_unstated") for r in rows) else "takeoff"
     if not np.isfinite(alt).any():
         # a position needs all three coordinates on the wire: a level flight at an unknown height still places and
         # scales the map by its horizontal positions, so the height is taken as 0 and said to be unknown
@@ -227,7 +245,13 @@ def read_srt(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
     # a position is a 3-D fix unless the subtitle counts fewer than 4 satellites; 0, 0 is no fix
     sats = np.array([r[1].get("sats", np.nan) for r in rows], float)
     fix = np.where(ok & ~(np.isfinite(sats) & (sats < 4)), 3.0, 0.0)
-    gps = Series.of(t, np.column_stack([fix, np.full(len(t), np.nan), np.full(len(t), np.nan), sats]), 4)
+    step = 111_320.0 * 10.0 ** -np.array([r[1].get("decimals", 7) for r in rows], float)
+    h_acc = np.sqrt(UNSTATED_H_ACC_M ** 2 + step ** 2 / 12.0)
+    gps = Series.of(t, np.column_stack([fix, h_acc, np.full(len(t), np.nan), sats]), 4)
+    if step.max() > 2.0 * UNSTATED_H_ACC_M:
+        problems.append(f"positions written to {int(min(r[1].get('decimals', 7) for r in rows))} decimals: "
+                        f"{step.max():.0f} m steps, which scale a map poorly; the heights above take-off scale it "
+                        "where they tell it better (the take-off point level with the orchard's floor)")
 
     def angles(key: str) -> Series:
         a = [(ti, r[1][key]) for ti, r in zip(t, rows) if key in r[1]]
@@ -245,7 +269,9 @@ def read_srt(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
                       Counter({f"subtitles ({k})": v for k, v in layouts.items()}), max_gap_s=max_gap_s, format="srt",
                       altitude_reference=reference, problems=problems,
                       video_clock=Series.of(video_t, t[:, None], 1),
-                      home_alt=float(np.median(home)) if home else None)
+                      home_alt=float(np.median(home)) if home else None,
+                      # the height above take-off is barometric wherever the layout gives it (H, BAROMETER, rel_alt)
+                      height_sigma_m=BARO_HEIGHT_SIGMA_M if reference == "takeoff" or home else None)
     if not g and not len(attitude):
         problems.append("no gimbal or vehicle attitude in the subtitles: the camera's attitude needs a fixed mount "
                         "tilt (--camera-tilt-deg), and its heading from the track (--camera-yaw-deg)")
