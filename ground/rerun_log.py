@@ -68,8 +68,8 @@ APPLICATION_ID = "pomar"
 PANELS = ("summary", "camera", "apple map", "map", "apples per row", "ground rate (frames/s)",
           "delay behind the drone (s)")
 HIDDEN = ("world/camera/image/epipolar",)
-#: Every plot spans the flight from its first frame to the one shown, so that their time axes line up whichever
-#: series started later.
+#: Every plot's data spans the flight from its first frame to the one shown; each row's series starts with a 0 at
+#: the first frame (RerunLog._rows), so that the plots' time axes line up.
 FROM_FIRST_FRAME = rrb.VisibleTimeRange("frame", start=rrb.TimeRangeBoundary.absolute(seq=0),
                                         end=rrb.TimeRangeBoundary.cursor_relative(seq=0))
 APPLE_UI_POINTS = 4.0  # apples' radius on screen; the structure-from-motion cloud's is a quarter of it
@@ -96,12 +96,11 @@ def blueprint(ground_z: float | None = None, eye: tuple | None = None, map_zoom:
                               overrides={p: rrb.EntityBehavior(visible=False) for p in HIDDEN}),
             rrb.Vertical(
                 rrb.MapView(origin="map", name="map", zoom=map_zoom),
-                rrb.TimeSeriesView(origin="stats/rows", name="apples per row", time_ranges=FROM_FIRST_FRAME,
-                                   plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop)),
-                rrb.TimeSeriesView(origin="stats/rate", name="ground rate (frames/s)", time_ranges=FROM_FIRST_FRAME,
-                                   plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftBottom)),
-                rrb.TimeSeriesView(origin="stats/delay", name="delay behind the drone (s)", time_ranges=FROM_FIRST_FRAME,
-                                   plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop)),
+                *(rrb.TimeSeriesView(origin=origin, name=name, time_ranges=FROM_FIRST_FRAME,
+                                     plot_legend=rrb.PlotLegend(corner=corner))
+                  for origin, name, corner in (("stats/rows", "apples per row", rrb.Corner2D.LeftTop),
+                                               ("stats/rate", "ground rate (frames/s)", rrb.Corner2D.LeftBottom),
+                                               ("stats/delay", "delay behind the drone (s)", rrb.Corner2D.LeftTop))),
                 row_shares=[4, 3, 2, 2],
             ),
             column_shares=[3, 5, 3],
@@ -244,12 +243,15 @@ class RerunLog:
         self.scale: float | None = None
         self.camera = None
         self.fps: float | None = None  # the video's, for the capture time of a frame not seen yet
+        self._first: int | None = None  # the first frame logged
         # the rate series told apart by colour (Okabe & Ito: the ground blue, the drone orange)
         for name, colour in (("ground", [0, 114, 178]), ("drone", [230, 159, 0])):
             self.rec.log(f"stats/rate/{name}", rr.SeriesLines(names=f"{name} (frames/s)", colors=[colour], widths=2.0),
                          static=True)
 
     def _time(self, frame: int, t_capture: float):
+        if self._first is None:
+            self._first = int(frame)
         self.rec.set_time("frame", sequence=int(frame))
         if np.isfinite(t_capture):
             self.rec.set_time("capture_time", timestamp=float(t_capture))
@@ -377,9 +379,10 @@ class RerunLog:
         self.rec.log("map/apples", rr.GeoPoints(lat_lon=np.stack([table["lat"][ok], table["lon"][ok]], 1) if ok.any()
                                                 else np.zeros((0, 2)), radii=rr.Radius.ui_points(5.0), colors=col[ok]))
         if drone_latlon is not None and np.isfinite(drone_latlon).all():
-            # vermillion, larger than an apple: seen on a blank map (no tiles offline) as on an aerial photo
-            self.rec.log("map/drone", rr.GeoPoints(lat_lon=[drone_latlon], radii=rr.Radius.ui_points(12.0),
-                                                   colors=[[213, 94, 0]]))
+            # black (the one Okabe & Ito colour no row takes), larger than an apple: seen on a blank map (no tiles
+            # offline) as on an aerial photo
+            self.rec.log("map/drone", rr.GeoPoints(lat_lon=[drone_latlon], radii=rr.Radius.ui_points(10.0),
+                                                   colors=[[0, 0, 0]]))
         if trajectory_latlon is not None and len(trajectory_latlon) > 1:
             self.rec.log("map/trajectory", rr.GeoLineStrings(lat_lon=[trajectory_latlon], colors=[[200, 200, 200]],
                                                              radii=rr.Radius.ui_points(1.5)))
@@ -415,11 +418,16 @@ class RerunLog:
                                                        colors=row_colours([r["row"] for r in geo]),
                                                        radii=rr.Radius.ui_points(2.0)))
         for r, c in zip(rows, col):
+            path = f"stats/rows/row_{r['row']}"
             if r["row"] not in self._series:
-                self.rec.log(f"stats/rows/row_{r['row']}", rr.SeriesLines(names=f"row {r['row']}", colors=[c], widths=2.0),
-                             static=True)
+                self.rec.log(path, rr.SeriesLines(names=f"row {r['row']}", colors=[c], widths=2.0), static=True)
                 self._series.add(r["row"])
-            self.rec.log(f"stats/rows/row_{r['row']}", rr.Scalars(float(r["count"])))
+                # a row's series starts at the flight's first frame, at 0, as the other plots do: their time axes
+                # then line up (a plot fits its axis to its own data)
+                if self._first is not None:
+                    self.rec.send_columns(path, indexes=[rr.TimeColumn("frame", sequence=[self._first])],
+                                          columns=rr.Scalars.columns(scalars=[0.0]))
+            self.rec.log(path, rr.Scalars(float(r["count"])))
 
     def _frame_view(self):
         """Send the layout again, now with the grid on the ground, the eye above the rows looking across them from

@@ -188,6 +188,10 @@ def test_recording_of_a_replay_matches_its_map_files(replayed_test_flight):
         assert _rgb(style[0]["SeriesLines:colors"][0]) == row_colours([int(r["row"])])[0].tolist()
         values = [x["Scalars:scalars"][0] for x in data[path] if x.get("Scalars:scalars")]
         assert values[-1] == float(r["count"]), (path, values)
+        # from the flight's first frame, as the delay plot: one time axis
+        first = [x["frame"] for x in data[path] if x.get("Scalars:scalars")][0]
+        assert first == min(x["frame"] for x in data["/world/camera"] if x["frame"] is not None), (path, first)
+        assert values[0] == 0.0
     # the 3-D apples and the map's apples in their rows' colours
     last = data["/world/apples"][-1]
     by_label = {lab: _rgb(c) for lab, c in zip(last["Points3D:labels"], last["Points3D:colors"])}
