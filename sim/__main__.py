@@ -55,6 +55,8 @@ def _cmd_telemetry(args) -> int:
 def _cmd_logs(args) -> int:
     from pathlib import Path
 
+    import numpy as np
+
     from pomar.flight import FlightDir
     from sim.logs import write_dataflash, write_srt
 
@@ -63,8 +65,13 @@ def _cmd_logs(args) -> int:
     out = Path(args.out or fd.path)
     out.mkdir(parents=True, exist_ok=True)
     counts = write_dataflash(fd.tlog, out / "telemetry.bin")
+    truth = None
+    if fd.has_truth:  # the height above take-off as a DJI barometer gives it: the truth's, drifting a little
+        fr = fd.truth_frames()
+        truth = (np.asarray(fr["t_unix"], float), np.asarray(fr["alt"], float) - fd.origin().alt)
     n = write_srt(fd.tlog, meta.frame_count, meta.fps, meta.video_start_utc, out / "video.SRT",
-                  layout=args.srt_layout, attitude=not args.no_attitude)
+                  layout=args.srt_layout, attitude=not args.no_attitude, truth_heights=truth,
+                  seed=int(meta.extra.get("seed", 0)))
     print(f"wrote {out / 'telemetry.bin'} ({', '.join(f'{k} {v}' for k, v in counts.items())}) and "
           f"{out / 'video.SRT'} ({n} subtitles)")
     return 0

@@ -152,12 +152,19 @@ SRT_LAYOUTS = {
 }
 
 
+#: A DJI barometer's height above take-off wanders this much over a flight (m; pomar.telemetry.srt assumes the same)
+BARO_DRIFT_M = 0.1
+
+
 def write_srt(tlog: Path, frame_count: int, fps: float, video_start_unix: float, out: Path,
-              clock_offset_s: float = 0.0, layout: str = "mavic3", attitude: bool = True) -> int:
+              clock_offset_s: float = 0.0, layout: str = "mavic3", attitude: bool = True,
+              truth_heights: tuple[np.ndarray, np.ndarray] | None = None, seed: int = 0) -> int:
     """A DJI subtitle file from the tlog sampled at each subtitle's time, in one of SRT_LAYOUTS: one subtitle a
     frame (mavic3, air2s) or a second (the older layouts, their first at 0 s); with ``attitude`` the layout's
-    attitude fields where it has them (the gimbal's, and the Phantom 4 RTK's vehicle angles). Returns the number
-    of subtitles written."""
+    attitude fields where it has them (the gimbal's, and the Phantom 4 RTK's vehicle angles). The height above
+    take-off is a barometer's where ``truth_heights`` ((unix times, true heights above take-off)) are given: the
+    true height plus a slow drift of BARO_DRIFT_M; else the tlog's (its GPS altitude's error with it). Returns the
+    number of subtitles written."""
     from pomar.telemetry.tlog import read_tlog
 
     if layout not in SRT_LAYOUTS:
@@ -176,6 +183,12 @@ def write_srt(tlog: Path, frame_count: int, fps: float, video_start_unix: float,
     s = tl.at(t)
     # altitudes above the take-off point, as DJI's: the ground where the tlog says so, else the first position
     home_alt = tl.home_alt if tl.home_alt is not None else float(tl.position.values[0, 2])
+    height = s["alt"] - home_alt
+    if truth_heights is not None:
+        from sim.trajectory import smooth_noise
+
+        drift = smooth_noise(np.random.default_rng([seed, 37]), len(t), 20.0, BARO_DRIFT_M, rate_hz=per_s or fps)
+        height = np.interp(t, truth_heights[0], truth_heights[1]) + drift
     home_lat, home_lon = float(tl.position.values[0, 0]), float(tl.position.values[0, 1])
     gimbal = _euler_deg(np.where(np.isfinite(s["q_gimbal"]), s["q_gimbal"], [1.0, 0, 0, 0]))
     vehicle = _euler_deg(np.where(np.isfinite(s["q_attitude"]), s["q_attitude"], [1.0, 0, 0, 0]))
@@ -183,7 +196,7 @@ def write_srt(tlog: Path, frame_count: int, fps: float, video_start_unix: float,
     for i in range(len(t)):
         stamp = datetime.fromtimestamp(t[i], timezone.utc)
         lat, lon = f"{s['lat'][i]:.{dec}f}", f"{s['lon'][i]:.{dec}f}"
-        rel, absolute = s["alt"][i] - home_alt, s["alt"][i]
+        rel, absolute = height[i], s["alt"][i]
         r, p, y = gimbal[i]
         timing = f"{_srt_time(video_t[i])} --> {_srt_time(ends[i])}\n"
         if layout == "mavic3":
