@@ -26,9 +26,10 @@ from pathlib import Path
 DJI = ["--camera", "phantom-4-pro", "--camera-tilt-deg", "60", "--camera-yaw-deg", "90"]
 
 
-def replay(args: list[str], out: Path) -> float:
+def replay(args: list[str], out: Path, scale: str | None = None) -> float:
     t0 = time.monotonic()
-    r = subprocess.run([sys.executable, "-m", "ground", "replay", *args, "--out", str(out), "--quiet"],
+    extra = ["--detector-scale", scale] if scale else []
+    r = subprocess.run([sys.executable, "-m", "ground", "replay", *args, *extra, "--out", str(out), "--quiet"],
                        capture_output=True, text=True)
     if r.returncode != 0:
         raise SystemExit(f"replay {' '.join(args)} failed:\n{r.stderr[-3000:]}")
@@ -43,6 +44,8 @@ def main(argv=None) -> int:
     p.add_argument("flight", help="the simulated flight (python -m sim flight --config sim/configs/paper-dji.toml)")
     p.add_argument("--out", default="out/dji")
     p.add_argument("--only", nargs="+", choices=["tlog", "mavic3", "p4pro"], default=["tlog", "mavic3", "p4pro"])
+    p.add_argument("--detector-scale", help="one detector scale for every replay (default: each its own, from the "
+                                            "apple size its log foresees: a log's height moves it a step)")
     a = p.parse_args(argv)
     flight, out = FlightDir(a.flight), Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -50,7 +53,7 @@ def main(argv=None) -> int:
     for name in a.only:
         res = out / name
         if name == "tlog":
-            wall = replay([str(flight.path)], res)
+            wall = replay([str(flight.path)], res, a.detector_scale)
         else:
             logs = out / f"{name}-srt"
             layout = {"mavic3": "mavic3", "p4pro": "p4p"}[name]
@@ -61,7 +64,7 @@ def main(argv=None) -> int:
             video = logs / "DJI_0001.MP4"
             shutil.copy(flight.video, video)
             (logs / "video.SRT").replace(logs / "DJI_0001.SRT")
-            wall = replay(["--video", str(video), "--log", str(logs / "DJI_0001.SRT"), *DJI], res)
+            wall = replay(["--video", str(video), "--log", str(logs / "DJI_0001.SRT"), *DJI], res, a.detector_scale)
         ev = evaluate_map(flight, res)
         rep = json.loads((res / "report.json").read_text())
         g = ev.get("georeference_error", {})
@@ -78,7 +81,8 @@ def main(argv=None) -> int:
             if name in rows:
                 print(f"{name} against tlog: F1 {rows[name]['f1'] - rows['tlog']['f1']:+.3f}, count error "
                       f"{rows[name]['count_error_pct'] - rows['tlog']['count_error_pct']:+.1f} points")
-    (out / "dji_paper.json").write_text(json.dumps(rows, indent=2) + "\n")
+    (out / f"dji_paper{'-scale-' + a.detector_scale if a.detector_scale else ''}.json").write_text(
+        json.dumps(rows, indent=2) + "\n")
     return 0
 
 

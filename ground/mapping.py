@@ -192,7 +192,7 @@ class Mapper:
         fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att)
         if not (np.isfinite(fit.similarity.scale) and fit.similarity.scale > 0):
             return None
-        k = self._height_scale(fit.similarity, frames, c_m, g, sig)
+        k = self._height_scale(fit.similarity, frames, c_m, g, fit.position_rms_m)
         if k is not None:
             fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att, scale=fit.similarity.scale * k)
         return fit.similarity, fit.position_rms_m
@@ -201,7 +201,7 @@ class Mapper:
     #: the canopy stands above it); its spread below that percentile is how well the floor is known.
     FLOOR_PERCENTILE = 5.0
 
-    def _height_scale(self, fit: Similarity, frames, c_m, g, sig) -> float | None:
+    def _height_scale(self, fit: Similarity, frames, c_m, g, residual_m: float) -> float | None:
         """The factor that brings the cameras' heights above the floor the map sees to the log's heights above the
         take-off point, where those tell the map's scale better than the positions do: positions rounded coarsely
         (a Phantom 4 Pro's SRT: 4 decimals, 11 m) over a short flight scale it by tens of percent, the heights (to
@@ -225,9 +225,12 @@ class Mapper:
         h_map = fit.apply(c_m)[ok, 2] - floor
         if not np.median(h_map) > 0:
             return None
-        # the scale's relative error from each: the positions' accuracy over their spread (as independent samples:
-        # the most they can give), and the floor's spread with the heights' own accuracy, over the height
-        rel_pos = float(np.median(sig)) / max(float(np.sqrt(((g - g.mean(0)) ** 2).sum(1).mean() * len(g))), 1e-9)
+        # the scale's relative error from each: the positions' scatter about the fit (measured, for the 7 degrees of
+        # freedom the fit took) over their spread, and the floor's spread with the heights' own accuracy, over the
+        # height. The scatter, not the accuracy the log states: a position rounded to 11 m scatters by metres
+        n = len(g)
+        scatter = residual_m / np.sqrt(3.0) * np.sqrt(n / (n - 7)) if n > 7 else np.inf  # per axis
+        rel_pos = scatter / max(float(np.sqrt(((g - g.mean(0)) ** 2).sum(1).sum())), 1e-9)
         rel_height = float(np.hypot(floor_sigma, np.median(h_sigma[ok]))) / float(np.median(h[ok]))
         if rel_height >= rel_pos:
             return None
