@@ -27,7 +27,6 @@ from collections import Counter, defaultdict, deque
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from pomar.rotations import ned_euler_to_rotation, quat_wxyz_to_rotation, rotation_to_quat_wxyz
 from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing
@@ -205,7 +204,8 @@ class MavlinkAccumulator:
             rot = quat_wxyz_to_rotation(q)
             if in_vehicle.any() and len(attitude) > 1:
                 yaw = vehicle_yaw(attitude, t[in_vehicle])
-                fixed = Rotation.from_euler("Z", yaw) * rot[in_vehicle]
+                zero = np.zeros(len(yaw))
+                fixed = ned_euler_to_rotation(zero, zero, yaw, degrees=False) * rot[in_vehicle]
                 q = q.copy()
                 q[in_vehicle] = rotation_to_quat_wxyz(fixed)
             return Series.of(t, rotation_to_quat_wxyz(quat_wxyz_to_rotation(q)), 4)
