@@ -125,8 +125,9 @@ class LivePoses:
             self.origin = Origin(float(lat), float(lon), float(alt))
         enu = (np.asarray(self.origin.to_enu(lat, lon, alt), float).reshape(3) if self.origin is not None
                else np.full(3, np.nan))
-        self.tel[frame] = (enu, np.asarray(q_gimbal, float), float(h_acc) if np.isfinite(h_acc) and h_acc > 0 else 2.0,
-                           float(height), float(height_acc))
+        stated = float(h_acc) if np.isfinite(h_acc) and h_acc > 0 else np.nan
+        self.tel[frame] = (enu, np.asarray(q_gimbal, float), stated if np.isfinite(stated) else 2.0,
+                           float(height), float(height_acc), stated)
 
     def add_image(self, frame: int, image_bgr: np.ndarray, t_capture: float = float("nan")) -> None:
         """A frame's image, in frame order: tracked against the map once there is one (until then it waits, and goes
@@ -146,7 +147,7 @@ class LivePoses:
 
     def _map(self, frame: int, image_bgr: np.ndarray) -> None:
         t0 = time.perf_counter()
-        self.mapper.add(frame, image_bgr, self.tel.get(frame, (np.full(3, np.nan), np.full(4, np.nan), 2.0, np.nan, np.nan)))
+        self.mapper.add(frame, image_bgr, self.tel.get(frame, (np.full(3, np.nan), np.full(4, np.nan), 2.0, np.nan, np.nan, np.nan)))
         self.seconds["mapping_inline"] += time.perf_counter() - t0
 
     def _collect_references(self) -> None:

@@ -51,7 +51,8 @@ class Mapper:
         self.registrar = IncrementalRegistrar(kf_camera, workdir, settings, sigma_att_deg)
         self.settings = self.registrar.s
         self.sigma_att = np.radians(sigma_att_deg)
-        # keyframe -> (enu, q_gimbal, h_acc, height above take-off, its accuracy; NaN where unknown)
+        # keyframe -> (enu, q_gimbal, h_acc (2 m where unstated), height above take-off, its accuracy, h_acc as the
+        # log states it; NaN where unknown)
         self.tel: dict[int, tuple] = {}
         self.model_pose: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # registered keyframes, model frame
         self.kf_sorted: list[int] = []
@@ -187,21 +188,25 @@ class Mapper:
         g = np.array([self.tel[f][0] for f in frames])
         sig = np.array([self.tel[f][2] for f in frames])
         R_tel = camera_rotations(np.array([self.tel[f][1] for f in frames]), self.cam)
-        if np.linalg.norm(g - g.mean(0), axis=1).max() < 0.01:
-            return None  # every position the same (a log's coarse rounding, a drone standing): nothing to scale by
-        fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att)
+        # every position the same (a log's coarse rounding, a drone standing): they cannot scale the map, only the
+        # heights can (a fit at scale 1 places and turns it; the heights' factor is then the scale)
+        still = np.linalg.norm(g - g.mean(0), axis=1).max() < 0.01
+        fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att, scale=1.0 if still else None)
         if not (np.isfinite(fit.similarity.scale) and fit.similarity.scale > 0):
             return None
-        k = self._height_scale(fit.similarity, frames, c_m, g, fit.position_rms_m)
+        k = self._height_scale(fit.similarity, frames, c_m, g, fit.position_rms_m, positions_scale=not still)
         if k is not None:
             fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att, scale=fit.similarity.scale * k)
+        elif still:
+            return None
         return fit.similarity, fit.position_rms_m
 
     #: The orchard floor in the map: this low percentile of its points' heights (the ground seen between the rows;
     #: the canopy stands above it); its spread below that percentile is how well the floor is known.
     FLOOR_PERCENTILE = 5.0
 
-    def _height_scale(self, fit: Similarity, frames, c_m, g, residual_m: float) -> float | None:
+    def _height_scale(self, fit: Similarity, frames, c_m, g, residual_m: float,
+                      positions_scale: bool = True) -> float | None:
         """The factor that brings the cameras' heights above the floor the map sees to the log's heights above the
         take-off point, where those tell the map's scale better than the positions do: positions rounded coarsely
         (a Phantom 4 Pro's SRT: 4 decimals, 11 m) over a short flight scale it by tens of percent, the heights (to
@@ -225,14 +230,18 @@ class Mapper:
         h_map = fit.apply(c_m)[ok, 2] - floor
         if not np.median(h_map) > 0:
             return None
-        # the scale's relative error from each: the positions' scatter about the fit (measured, for the 7 degrees of
-        # freedom the fit took) over their spread, and the floor's spread with the heights' own accuracy, over the
-        # height. The scatter, not the accuracy the log states: a position rounded to 11 m scatters by metres
+        # the scale's relative error from each: the positions' error over their spread, and the floor's spread with
+        # the heights' own accuracy, over the height. The positions' error: their scatter about the fit (measured,
+        # for the 7 degrees of freedom the fit took), and at least the accuracy the log states (a 4-decimal SRT's
+        # rounding, which a short flight's fit absorbs); not the 2 m assumed where it states none
         n = len(g)
         scatter = residual_m / np.sqrt(3.0) * np.sqrt(n / (n - 7)) if n > 7 else np.inf  # per axis
+        stated = np.array([self.tel[f][5] if len(self.tel[f]) > 5 else np.nan for f in frames], float)
+        if np.isfinite(stated).any():
+            scatter = max(scatter, float(np.nanmedian(stated)))
         rel_pos = scatter / max(float(np.sqrt(((g - g.mean(0)) ** 2).sum(1).sum())), 1e-9)
         rel_height = float(np.hypot(floor_sigma, np.median(h_sigma[ok]))) / float(np.median(h[ok]))
-        if rel_height >= rel_pos:
+        if positions_scale and rel_height >= rel_pos:
             return None
         self.scale_source = "heights"
         return float(np.median(h[ok]) / np.median(h_map))

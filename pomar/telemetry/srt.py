@@ -70,7 +70,7 @@ def _decimals(text: str, prefix: str) -> int:
 
 
 #: The horizontal accuracy of a position whose log does not state it (DJI's do not): the ground's own assumption
-#: (ground.live_poses). A position rounded to D decimals adds the rounding's error, (111 km x 10^-D) / sqrt(12).
+#: (ground.live_poses). A position rounded to D decimals is off by up to (111 km x 10^-D) / sqrt(12) from it.
 UNSTATED_H_ACC_M = 2.0
 #: The accuracy assumed of a DJI height above take-off (barometric; written to 0.01 m): its drift over a flight's
 #: minutes. The ground weighs it against the positions when it scales the map (ground.mapping).
@@ -246,7 +246,9 @@ def read_srt(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
     sats = np.array([r[1].get("sats", np.nan) for r in rows], float)
     fix = np.where(ok & ~(np.isfinite(sats) & (sats < 4)), 3.0, 0.0)
     step = 111_320.0 * 10.0 ** -np.array([r[1].get("decimals", 7) for r in rows], float)
-    h_acc = np.sqrt(UNSTATED_H_ACC_M ** 2 + step ** 2 / 12.0)
+    # DJI states no accuracy; where the rounding alone is worse than the accuracy assumed of an unstated position,
+    # the rounding is the accuracy (a Phantom 4 Pro's 4 decimals: 3.2 m), else it stays unstated (NaN)
+    h_acc = np.where(step / np.sqrt(12.0) > UNSTATED_H_ACC_M, step / np.sqrt(12.0), np.nan)
     gps = Series.of(t, np.column_stack([fix, h_acc, np.full(len(t), np.nan), sats]), 4)
     if step.max() > 2.0 * UNSTATED_H_ACC_M:
         problems.append(f"positions written to {int(min(r[1].get('decimals', 7) for r in rows))} decimals: "
