@@ -32,7 +32,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from ground.georeference import drift_offsets, georeference_poses
-from ground.mapping import Mapper, MapperProcess, MappingWorker
+from ground.mapping import KeyframeTelemetry, Mapper, MapperProcess, MappingWorker
 from ground.poses import camera_rotations
 from ground.registration import RegistrationSettings
 from ground.tracking import Tracker, TrackingSettings
@@ -79,7 +79,7 @@ class LivePoses:
         self.init_spacing_s = init_spacing_s
         self._t_init = float("-inf")  # capture time of the last image handed to the mapper for the first model
         self.sigma_att = np.radians(sigma_att_deg)
-        self.tel: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}  # frame -> (enu, q_gimbal, h_acc)
+        self.tel: dict[int, KeyframeTelemetry] = {}  # frame -> its telemetry
         self.tracked: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # tracked frames, model frame
         self.tracking_failed: list[int] = []  # frames with an image that tracking could not place
         self.kf_processed = -1  # the newest frame whose image went through tracking
@@ -125,9 +125,8 @@ class LivePoses:
             self.origin = Origin(float(lat), float(lon), float(alt))
         enu = (np.asarray(self.origin.to_enu(lat, lon, alt), float).reshape(3) if self.origin is not None
                else np.full(3, np.nan))
-        stated = float(h_acc) if np.isfinite(h_acc) and h_acc > 0 else np.nan
-        self.tel[frame] = (enu, np.asarray(q_gimbal, float), stated if np.isfinite(stated) else 2.0,
-                           float(height), float(height_acc), stated)
+        self.tel[frame] = KeyframeTelemetry(enu, np.asarray(q_gimbal, float), float(h_acc), float(height),
+                                            float(height_acc))
 
     def add_image(self, frame: int, image_bgr: np.ndarray, t_capture: float = float("nan")) -> None:
         """A frame's image, in frame order: tracked against the map once there is one (until then it waits, and goes
@@ -147,7 +146,7 @@ class LivePoses:
 
     def _map(self, frame: int, image_bgr: np.ndarray) -> None:
         t0 = time.perf_counter()
-        self.mapper.add(frame, image_bgr, self.tel.get(frame, (np.full(3, np.nan), np.full(4, np.nan), 2.0, np.nan, np.nan, np.nan)))
+        self.mapper.add(frame, image_bgr, self.tel.get(frame, KeyframeTelemetry.unknown()))
         self.seconds["mapping_inline"] += time.perf_counter() - t0
 
     def _collect_references(self) -> None:
@@ -311,13 +310,13 @@ class LivePoses:
         S = self.fit
         if S is None or self.frozen is None or not sigma_frames > 0:
             return zeros
-        kf = np.array([f for f in self.model_pose if f in self.tel and np.isfinite(self.tel[f][0]).all()], int)
+        kf = np.array([f for f in self.model_pose if f in self.tel and np.isfinite(self.tel[f].enu).all()], int)
         if len(kf) < 3:
             return zeros
         R = np.array([self.model_pose[f][0] for f in kf])
         t = np.array([self.model_pose[f][1] for f in kf])
-        res = np.array([self.tel[f][0] for f in kf]) - S.apply(-np.einsum("nji,nj->ni", R, t))
-        sigma = np.array([self.tel[f][2] for f in kf])
+        res = np.array([self.tel[f].enu for f in kf]) - S.apply(-np.einsum("nji,nj->ni", R, t))
+        sigma = np.array([self.tel[f].h_acc for f in kf])
         w = 1.0 / sigma**2
         at_kf = drift_offsets(kf, res, w, kf, sigma_frames)
         self.drift_m = float(np.linalg.norm(at_kf - np.average(at_kf, axis=0, weights=w), axis=1).max())
@@ -387,9 +386,9 @@ class LivePoses:
         # telemetry alone
         log.debug("frame %d: telemetry pose (model %s, %d registered, %d tracked, first reference %s)", frame,
                   m2a is not None, len(model_pose), len(self.tracked), self._first_ref)
-        if frame not in self.tel or not np.isfinite(self.tel[frame][0]).all():
+        if frame not in self.tel or not np.isfinite(self.tel[frame].enu).all():
             return None
-        enu, qg, h_acc = self.tel[frame][:3]
+        enu, qg, h_acc = self.tel[frame].enu, self.tel[frame].q_gimbal, self.tel[frame].h_acc
         R_enu = camera_rotations(qg[None], self.cam)[0]
         e2a = inverse(self.assoc_to_enu())
         R, t = georeference_poses(R_enu[None], (-R_enu @ enu)[None], e2a)

@@ -25,6 +25,7 @@ import queue
 import threading
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -35,8 +36,27 @@ from ground.registration import IncrementalRegistrar, RegistrationSettings, Subm
 from ground.tracking import Reference
 from pomar.align import Similarity, compose
 from pomar.camera import Camera
+from pomar.telemetry.base import UNSTATED_H_ACC_M
 
 log = logging.getLogger(__name__)
+
+class KeyframeTelemetry(NamedTuple):
+    """A keyframe's telemetry as the mapper uses it (NaN where unknown)."""
+
+    enu: np.ndarray  # position, ENU (m)
+    q_gimbal: np.ndarray  # camera attitude, wxyz, NED
+    h_acc_stated: float  # horizontal accuracy as the log states it (m)
+    height: float = float("nan")  # above the take-off point (m)
+    height_acc: float = float("nan")  # its accuracy (m)
+
+    @property
+    def h_acc(self) -> float:
+        """The position's accuracy: the log's, else UNSTATED_H_ACC_M."""
+        return self.h_acc_stated if self.h_acc_stated > 0 else UNSTATED_H_ACC_M
+
+    @classmethod
+    def unknown(cls) -> "KeyframeTelemetry":
+        return cls(np.full(3, np.nan), np.full(4, np.nan), float("nan"))
 
 
 class Mapper:
@@ -51,9 +71,7 @@ class Mapper:
         self.registrar = IncrementalRegistrar(kf_camera, workdir, settings, sigma_att_deg)
         self.settings = self.registrar.s
         self.sigma_att = np.radians(sigma_att_deg)
-        # keyframe -> (enu, q_gimbal, h_acc (2 m where unstated), height above take-off, its accuracy, h_acc as the
-        # log states it; NaN where unknown)
-        self.tel: dict[int, tuple] = {}
+        self.tel: dict[int, KeyframeTelemetry] = {}
         self.model_pose: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # registered keyframes, model frame
         self.kf_sorted: list[int] = []
         self.fit: Similarity | None = None  # model -> ENU
@@ -96,6 +114,7 @@ class Mapper:
             return False
         if image_bgr.shape[1] != self.kf_cam.width:
             image_bgr = cv2.resize(image_bgr, (self.kf_cam.width, self.kf_cam.height), interpolation=cv2.INTER_AREA)
+        tel = tel if isinstance(tel, KeyframeTelemetry) else KeyframeTelemetry(*tel)  # (enu, q_gimbal, h_acc) too
         self.tel[frame] = tel
         self.attempts += 1
         if not self.model_pose:
@@ -103,8 +122,8 @@ class Mapper:
             for f in sorted(self._early)[:-2 * self.settings.init_frames]:
                 del self._early[f]
         self.changed = {}
-        enu, q, h_acc = tel[:3]
-        prior = (enu, camera_rotations(np.asarray(q, float)[None], self.cam)[0], h_acc) if np.isfinite(q).all() else None
+        q = np.asarray(tel.q_gimbal, float)
+        prior = (tel.enu, camera_rotations(q[None], self.cam)[0], tel.h_acc) if np.isfinite(q).all() else None
         try:
             ok = self.registrar.add_keyframe(frame, image_bgr, prior, features)
         except Exception as exc:  # one keyframe that breaks the mapper must not stop the flight
@@ -178,16 +197,16 @@ class Mapper:
 
     def _refit(self, model_pose) -> tuple[Similarity, float] | None:
         """The model -> ENU similarity from the recent registered keyframes (the last 400: a bounded cost)."""
-        frames = [f for f in sorted(model_pose)[-400:] if f in self.tel and np.isfinite(self.tel[f][0]).all()
-                  and np.isfinite(self.tel[f][1]).all()]
+        frames = [f for f in sorted(model_pose)[-400:] if f in self.tel and np.isfinite(self.tel[f].enu).all()
+                  and np.isfinite(self.tel[f].q_gimbal).all()]
         if len(frames) < 3:
             return None
         R_m = np.array([model_pose[f][0] for f in frames])
         t_m = np.array([model_pose[f][1] for f in frames])
         c_m = -np.einsum("nji,nj->ni", R_m, t_m)
-        g = np.array([self.tel[f][0] for f in frames])
-        sig = np.array([self.tel[f][2] for f in frames])
-        R_tel = camera_rotations(np.array([self.tel[f][1] for f in frames]), self.cam)
+        g = np.array([self.tel[f].enu for f in frames])
+        sig = np.array([self.tel[f].h_acc for f in frames])
+        R_tel = camera_rotations(np.array([self.tel[f].q_gimbal for f in frames]), self.cam)
         # every position the same (a log's coarse rounding, a drone standing): they cannot scale the map, only the
         # heights can (a fit at scale 1 places and turns it; the heights' factor is then the scale)
         still = np.linalg.norm(g - g.mean(0), axis=1).max() < 0.01
@@ -213,8 +232,8 @@ class Mapper:
         0.01 m) against the floor by about the floor's own spread over the height. None where the log gives no
         heights, the map sees too little ground, or the positions know the scale better. Takes the take-off point to
         be level with the orchard's floor (say how far it is not, and the scale is off by that over the height)."""
-        h = np.array([self.tel[f][3] if len(self.tel[f]) > 4 else np.nan for f in frames], float)
-        h_sigma = np.array([self.tel[f][4] if len(self.tel[f]) > 4 else np.nan for f in frames], float)
+        h = np.array([self.tel[f].height for f in frames], float)
+        h_sigma = np.array([self.tel[f].height_acc for f in frames], float)
         ok = np.isfinite(h) & (h > 0) & np.isfinite(h_sigma)  # a height whose accuracy the log does not say: unused
         self.scale_source = "positions"
         if ok.sum() < 3:
@@ -236,7 +255,7 @@ class Mapper:
         # rounding, which a short flight's fit absorbs); not the 2 m assumed where it states none
         n = len(g)
         scatter = residual_m / np.sqrt(3.0) * np.sqrt(n / (n - 7)) if n > 7 else np.inf  # per axis
-        stated = np.array([self.tel[f][5] if len(self.tel[f]) > 5 else np.nan for f in frames], float)
+        stated = np.array([self.tel[f].h_acc_stated for f in frames], float)
         if np.isfinite(stated).any():
             scatter = max(scatter, float(np.nanmedian(stated)))
         rel_pos = scatter / max(float(np.sqrt(((g - g.mean(0)) ** 2).sum(1).sum())), 1e-9)

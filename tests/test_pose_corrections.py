@@ -6,6 +6,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ground.live_poses import LivePoses, Pose
+from ground.mapping import KeyframeTelemetry
 from pomar.align import IDENTITY
 from pomar.camera import Camera
 
@@ -62,7 +63,8 @@ def test_drift_correction_applies_only_where_the_map_drifted_beyond_the_gps_wand
 
         def gps(drift):
             for f, c, d in zip(kf, truth, drift):
-                lp.tel[int(f)] = (c + d + rng.normal(0, 0.5, 3) * [1, 1, 0], np.array([1.0, 0, 0, 0]), 0.5)
+                lp.tel[int(f)] = KeyframeTelemetry(c + d + rng.normal(0, 0.5, 3) * [1, 1, 0], np.array([1.0, 0, 0, 0]),
+                                                   0.5)
 
         gps(np.zeros((len(kf), 3)))  # rigid map, 0.5-m GPS noise stated as 0.5 m
         assert not lp.drift_correction(q, 60.0).any()

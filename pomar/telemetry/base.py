@@ -55,6 +55,9 @@ class Flags(IntFlag):
 MAX_SPEED_MPS = 45.0
 #: Beyond GNSS wander and the rounding of positions written to 5 decimals (1.1 m), even between 50-Hz samples.
 JUMP_FLOOR_M = 10.0
+#: The horizontal accuracy (m) taken for a position whose log states none (DJI's do not); the ground weighs such
+#: positions by it. A position rounded to D decimals is off by (111 km x 10^-D) / sqrt(12) besides.
+UNSTATED_H_ACC_M = 2.0
 
 
 class TelemetryError(ValueError):

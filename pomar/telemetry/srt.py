@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from pomar.rotations import ned_euler_to_rotation, rotation_to_quat_wxyz
-from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing
+from pomar.telemetry.base import UNSTATED_H_ACC_M, Series, TelemetryError, TelemetryLog, existing
 
 log = logging.getLogger(__name__)
 
@@ -69,9 +69,6 @@ def _decimals(text: str, prefix: str) -> int:
     return min(len((g.split(".") + [""])[1]) for g in found) if found else 0
 
 
-#: The horizontal accuracy of a position whose log does not state it (DJI's do not): the ground's own assumption
-#: (ground.live_poses). A position rounded to D decimals is off by up to (111 km x 10^-D) / sqrt(12) from it.
-UNSTATED_H_ACC_M = 2.0
 #: The accuracy assumed of a DJI height above take-off (barometric; written to 0.01 m): its drift over a flight's
 #: minutes. The ground weighs it against the positions when it scales the map (ground.mapping).
 BARO_HEIGHT_SIGMA_M = 0.1
