@@ -343,15 +343,17 @@ def merge_into(a: Apple, b: Apple, X: np.ndarray | None = None) -> None:
         a.view_frames = frames if both else None
 
 
-def find_duplicate(apple: Apple, candidates: list[Apple], params: "AssociationParams", strict: bool = False):
+def find_duplicate(apple: Apple, candidates: list[Apple], params: "AssociationParams", strict: bool = False,
+                   metres_per_unit: float = 1.0):
     """The candidate that apple duplicates, and their joint position (None: their mean): within merge_m, or within
     merge_search_m and consistent (their views triangulate together within tau_geom; ``strict``: also within
     tau_geom / 2 in the median of each one's views, to a point within max_merge_shift_m of the better-seen one, for
-    apples from another pass, which only their views can tell from a neighbour a few cm away)."""
+    apples from another pass, which only their views can tell from a neighbour a few cm away). The points are in
+    units of ``metres_per_unit`` metres; the distances in params are metres."""
     if not candidates:
         return None, None
     C = np.array([c.X for c in candidates])
-    d = np.linalg.norm(C - apple.X, axis=1)
+    d = np.linalg.norm(C - apple.X, axis=1) * metres_per_unit
     for i in np.argsort(d)[:4]:
         if d[i] > params.merge_search_m:
             break
@@ -362,7 +364,7 @@ def find_duplicate(apple: Apple, candidates: list[Apple], params: "AssociationPa
             X = same_apple(c, apple, params.tau_geom, max_median_px=params.tau_geom / 2 if strict else None)
             if X is not None and strict and params.max_merge_shift_m > 0:
                 better = c if c.n_observations >= apple.n_observations else apple
-                if np.linalg.norm(X - better.X) > params.max_merge_shift_m:
+                if np.linalg.norm(X - better.X) * metres_per_unit > params.max_merge_shift_m:
                     continue
             if X is not None:
                 return c, X
@@ -430,9 +432,11 @@ class SpatialIndex:
         kx, ky, kz = self._key(X)
         X = np.asarray(X, float)
         out = []
-        for dx in (-1, 0, 1):
-            for dy in (-1, 0, 1):
-                for dz in (-1, 0, 1):
+        n = max(1, int(np.ceil(r / self.cell)))  # a radius beyond one cell (the map's units changed): more cells
+        span = range(-n, n + 1)
+        for dx in span:
+            for dy in span:
+                for dz in span:
                     for a in self._cells.get((kx + dx, ky + dy, kz + dz), {}).values():
                         if np.linalg.norm(a.X - X) <= r:
                             out.append(a)
@@ -515,7 +519,9 @@ class WindowedAssociation:
     """Streaming association: feed frames in order with :meth:`add_frame`; apples come out as they close.
 
     ``add_frame`` returns the apples whose tracks can no longer grow (no detection for k frames);
-    :meth:`finish` closes the rest at the end of the flight.
+    :meth:`finish` closes the rest at the end of the flight. ``metres_per_unit``: the size of the frames' unit, as
+    well as it is known now (a map georeferenced from a few keyframes' GPS is off by tens of percent); the params'
+    distances are metres.
     """
 
     def __init__(self, params: AssociationParams | None = None):
@@ -525,6 +531,7 @@ class WindowedAssociation:
         self._next_id = 0
         self._recent: list[Apple] = []  # emitted apples that a later track may turn out to duplicate
         self._index = SpatialIndex(max(self.params.merge_search_m, 0.1))  # every apple, with cross_pass
+        self.metres_per_unit = 1.0
         self._geom: dict[int, tuple] = {}  # recent frames' (P, centre, pseudo-inverse)
         self._apples: dict[int, Apple] = {}  # every apple emitted and not merged away, by id
         self._by_frame: dict[int, set[int]] = {}  # frame -> ids of the apples with a view in it
@@ -565,14 +572,15 @@ class WindowedAssociation:
         """A new apple, or the earlier apple it duplicates (updated, same id)."""
         p = self.params
         if p.merge_search_m > 0:
-            target, X = find_duplicate(a, self._recent, p)
+            unit = self.metres_per_unit
+            target, X = find_duplicate(a, self._recent, p, metres_per_unit=unit)
             if target is None and p.cross_pass:
                 # the whole map: an apple seen again from another pass. Its views still triangulate with the first
                 # ones: the caps seen from two sides are offset along each pass's own rays, which the joint point
                 # (the apple's centre) absorbs; the stricter test keeps apples a few cm apart two.
                 recent = {id(r) for r in self._recent}
-                older = [c for c in self._index.near(a.X, p.merge_search_m) if id(c) not in recent]
-                target, X = find_duplicate(a, older, p, strict=True)
+                older = [c for c in self._index.near(a.X, p.merge_search_m / unit) if id(c) not in recent]
+                target, X = find_duplicate(a, older, p, strict=True, metres_per_unit=unit)
                 if target is not None:
                     self.stats["merged_across_passes"] += 1
             if target is not None:
@@ -634,8 +642,9 @@ class WindowedAssociation:
             for a in moved:
                 if a.id in gone:
                     continue
-                near = self._index.near(a.X, p.merge_search_m) if p.cross_pass else self._recent
-                target, X = find_duplicate(a, [c for c in near if c is not a and c.id not in gone], p, strict=True)
+                near = self._index.near(a.X, p.merge_search_m / self.metres_per_unit) if p.cross_pass else self._recent
+                target, X = find_duplicate(a, [c for c in near if c is not a and c.id not in gone], p, strict=True,
+                                           metres_per_unit=self.metres_per_unit)
                 if target is None:
                     continue
                 keep, drop = (target, a) if target.id < a.id else (a, target)

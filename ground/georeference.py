@@ -3,7 +3,8 @@
 GPS positions alone cannot fix the roll about a straight flight line (the camera centres are nearly
 collinear), so the fit also uses the camera orientation the telemetry gives (vehicle attitude x
 gimbal x mount): each frame contributes its GPS position, weighted by 1/sigma_pos^2, and its three
-camera axes in ENU, weighted by 1/sigma_att^2 (radians). The cost
+camera axes in ENU, weighted by 1/sigma_att^2 (radians); a frame whose heading the log does not know (a fixed
+mount on the track's heading) gives only which way is up, which a stabilised gimbal holds. The cost
 
     sum_i w_i |s R c_i + t - g_i|^2  +  sum_i,k v_i |R a_ik - b_ik|^2
 
@@ -39,13 +40,14 @@ class GeoFit:
 def fit_similarity(c_model: np.ndarray, g_enu: np.ndarray, sigma_pos: np.ndarray | float,
                    R_model: np.ndarray | None = None, R_tel: np.ndarray | None = None,
                    sigma_att_rad: np.ndarray | float = np.radians(1.0), iterations: int = 20,
-                   scale: float | None = None) -> GeoFit:
+                   scale: float | None = None, up_only: np.ndarray | None = None) -> GeoFit:
     """Similarity taking model points to ENU.
 
     c_model (N, 3) camera centres in the model; g_enu (N, 3) their GPS positions in ENU; sigma_pos (N,)
     or scalar, metres. R_model (N, 3, 3) world(model)-to-camera rotations; R_tel (N, 3, 3) world(ENU)-to-
     camera rotations from the telemetry; without them, positions only (Umeyama, weighted). ``scale``: the
-    scale, when something else than the positions gives it (only rotation and translation are fitted).
+    scale, when something else than the positions gives it (only rotation and translation are fitted). ``up_only``
+    (N,) bool: frames whose telemetry knows the camera's tilt but not its heading; only their up direction counts.
     """
     c = np.asarray(c_model, float)
     g = np.asarray(g_enu, float)
@@ -61,6 +63,14 @@ def fit_similarity(c_model: np.ndarray, g_enu: np.ndarray, sigma_pos: np.ndarray
         # camera axes in world coordinates are the rows of the world-to-camera rotations
         A = np.asarray(R_model, float)  # a_ik = A[i, k, :]
         B = np.asarray(R_tel, float)
+        up = np.zeros(n, bool) if up_only is None else np.broadcast_to(np.asarray(up_only, bool), (n,))
+        if up.any():
+            # a heading the log does not know (a fixed mount turned by the track's heading): only which way is up in
+            # the camera counts, as the pair (up in the model, seen through the camera) -> ENU's up
+            A, B = A.copy(), B.copy()
+            u_cam = B[up, :, 2]  # ENU's up in camera coordinates (the third column of world-to-camera)
+            A[up] = np.einsum("nkp,nk->np", A[up], u_cam)[:, None, :] * np.array([0.0, 0.0, 1.0])[None, :, None]
+            B[up] = np.array([0.0, 0.0, 1.0])[None, None, :] * np.array([0.0, 0.0, 1.0])[None, :, None]
         Hax = np.einsum("i,ikp,ikq->pq", v, B, A)
     else:
         Hax = np.zeros((3, 3))
@@ -81,7 +91,9 @@ def fit_similarity(c_model: np.ndarray, g_enu: np.ndarray, sigma_pos: np.ndarray
     ax = 0.0
     if use_axes:
         cosang = np.clip(np.einsum("ikp,ikp->ik", A @ R.T, B), -1, 1)
-        ax = float(np.degrees(np.sqrt(np.mean(np.arccos(cosang) ** 2))))
+        used = np.where(up[:, None], np.array([False, False, True])[None, :], True)  # the axes each frame gave
+        ang = np.arccos(cosang)[used]
+        ax = float(np.degrees(np.sqrt(np.mean(ang ** 2))))
     return GeoFit(sim, float(np.sqrt(np.mean(pos_res**2))), ax, n)
 
 

@@ -39,6 +39,7 @@ from ground.tracking import Tracker, TrackingSettings
 from pomar.align import IDENTITY, Similarity, compose, inverse
 from pomar.camera import Camera
 from pomar.geo import Origin
+from pomar.telemetry.base import Flags
 
 log = logging.getLogger(__name__)
 
@@ -118,15 +119,17 @@ class LivePoses:
 
     # -- inputs
     def add_telemetry(self, frame: int, lat: float, lon: float, alt: float, q_gimbal, h_acc: float,
-                      height: float = float("nan"), height_acc: float = float("nan")) -> None:
+                      height: float = float("nan"), height_acc: float = float("nan"), flags: int = 0) -> None:
         """A frame's telemetry: its ENU position, gimbal attitude, horizontal accuracy (2 m where unknown), height
-        above the take-off point and its accuracy (NaN where the log does not say)."""
+        above the take-off point and its accuracy (NaN where the log does not say), and its flags (a fixed mount
+        without the vehicle's attitude: the camera's heading is only the track's)."""
         if self.origin is None and np.isfinite([lat, lon, alt]).all():
             self.origin = Origin(float(lat), float(lon), float(alt))
         enu = (np.asarray(self.origin.to_enu(lat, lon, alt), float).reshape(3) if self.origin is not None
                else np.full(3, np.nan))
+        track_heading = int(Flags.FIXED_MOUNT | Flags.NO_ATTITUDE)
         self.tel[frame] = KeyframeTelemetry(enu, np.asarray(q_gimbal, float), float(h_acc), float(height),
-                                            float(height_acc))
+                                            float(height_acc), (int(flags) & track_heading) != track_heading)
 
     def add_image(self, frame: int, image_bgr: np.ndarray, t_capture: float = float("nan")) -> None:
         """A frame's image, in frame order: tracked against the map once there is one (until then it waits, and goes

@@ -48,6 +48,7 @@ class KeyframeTelemetry(NamedTuple):
     h_acc_stated: float  # horizontal accuracy as the log states it (m)
     height: float = float("nan")  # above the take-off point (m)
     height_acc: float = float("nan")  # its accuracy (m)
+    heading_known: bool = True  # False: the camera's heading is the track's (a fixed mount, no attitude in the log)
 
     @property
     def h_acc(self) -> float:
@@ -210,12 +211,14 @@ class Mapper:
         # every position the same (a log's coarse rounding, a drone standing): they cannot scale the map, only the
         # heights can (a fit at scale 1 places and turns it; the heights' factor is then the scale)
         still = np.linalg.norm(g - g.mean(0), axis=1).max() < 0.01
-        fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att, scale=1.0 if still else None)
+        up_only = np.array([not self.tel[f].heading_known for f in frames])
+        fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att, scale=1.0 if still else None, up_only=up_only)
         if not (np.isfinite(fit.similarity.scale) and fit.similarity.scale > 0):
             return None
         k = self._height_scale(fit.similarity, frames, c_m, g, fit.position_rms_m, positions_scale=not still)
         if k is not None:
-            fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att, scale=fit.similarity.scale * k)
+            fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att, scale=fit.similarity.scale * k,
+                                 up_only=up_only)
         elif still:
             return None
         return fit.similarity, fit.position_rms_m

@@ -304,7 +304,9 @@ class GroundNode:
             # poses given earlier, corrected as the mapper moved the keyframes about them; the apples triangulated again
             "corrections": dict(p.corrections),
             "association": {"params": vars(self.settings.association).copy(), "stats": dict(p.assoc.stats),
-                            "strong_views_needed": p.views_needed()},
+                            "strong_views_needed": p.views_needed(),
+                            # the association frame's unit in metres: its first georeference's scale error
+                            "metres_per_unit": p.metres_per_unit()},
             "timings": {"wall_seconds": time.monotonic() - self.t_start,
                         "pose_seconds": p.seconds["poses"],
                         "tracking_seconds": p.poses.seconds["tracking"] if p.poses else 0.0,

@@ -188,7 +188,8 @@ class GroundPipeline:
                                init_spacing_s=self.s.init_spacing_s, mapping_worker=self._mapping_worker)
         for f in sorted(self.pending):
             t = self.pending[f].telemetry
-            self.poses.add_telemetry(f, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc, t.height, t.height_acc)
+            self.poses.add_telemetry(f, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc, t.height, t.height_acc,
+                                     t.flags)
 
     def hold_gaps(self, seconds: float) -> None:
         """For the next ``seconds``, a frame after a missing one waits for it instead of leaving it to come late and
@@ -217,7 +218,8 @@ class GroundPipeline:
             self.kf_awaited.add(msg.frame)
         if self.poses is not None:
             t = msg.telemetry
-            self.poses.add_telemetry(msg.frame, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc, t.height, t.height_acc)
+            self.poses.add_telemetry(msg.frame, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc, t.height, t.height_acc,
+                                     t.flags)
 
     def on_keyframe(self, msg: wire.KeyframeMessage):
         if msg.frame in self._kf_seen:
@@ -292,6 +294,7 @@ class GroundPipeline:
             self.frame_poses[f] = pose
             seq = self._frame_seq[f]
             P[seq] = self._proj[seq] = self.camera.projection_matrix(pose.R, pose.t)
+        self.assoc.metres_per_unit = self.metres_per_unit()
         changed, merged = self.assoc.repose(P)
         for gone, into in merged:
             self._confirmed[into] = max(self._confirmed.get(into, 0), self._confirmed.pop(gone, 0))
@@ -383,6 +386,7 @@ class GroundPipeline:
                 old = seq - self.s.association.merge_window - 2 * self.s.association.k
                 self._scores.pop(old, None)
                 self._boxes.pop(old, None)
+                self.assoc.metres_per_unit = self.metres_per_unit()
                 new = self._confirm(self.assoc.add_frame(FrameDetections(seq, P, xy)))
                 self.seconds["association"] += time.perf_counter() - t0
             events.append(FrameEvent(f, msg.t_capture, pose, msg, new, self._kf_for_event.pop(f, None)))
@@ -404,6 +408,7 @@ class GroundPipeline:
             self.poses.close()  # maps what is waiting: the model files are written from it
         elif self._mapping_worker is not None:  # no image ever came
             self._mapping_worker.stop()
+        self.assoc.metres_per_unit = self.metres_per_unit()
         self._confirm(self.assoc.finish())
         self._correct(now=True)  # the mapper's last answers
         self._kf_for_event.clear()
@@ -433,8 +438,14 @@ class GroundPipeline:
                 out.append(a)
         return out
 
+    def metres_per_unit(self) -> float:
+        """The association frame's unit in metres, as the map's georeference knows it now: the frame was fixed by
+        the first fit, from a few keyframes' GPS, and the later fits scale it (tens of percent with a DJI log's)."""
+        return float(self.poses.assoc_to_enu().scale) if self.poses is not None else 1.0
+
     def _radius(self, a: Apple) -> float:
-        """The apple's radius (m): the median over its views of the box's half-size times depth over focal length."""
+        """The apple's radius in the association frame's unit: the median over its views of the box's half-size
+        times depth over focal length (compared with the others' median; metres_per_unit() makes it metres)."""
         r = []
         for seq, d in a.observations:
             pose = self.frame_poses.get(self._seq_frame[seq]) if seq < len(self._seq_frame) else None
@@ -534,7 +545,7 @@ class GroundPipeline:
         self.size_rejected = int((reason == "small").sum())
         self.parallax_rejected = int((reason == "narrow").sum())
         self.views_rejected = int((reason == "few_views").sum())
-        return {"id": np.array(ids, int), "radius_m": r, "observations": nobs,
+        return {"id": np.array(ids, int), "radius_m": r * self.metres_per_unit(), "observations": nobs,
                 "strong_views": np.array([self._confirmed.get(i, 0) for i in ids], int),
                 "expected_views": expected, "left_out": reason}
 
@@ -589,7 +600,7 @@ class GroundPipeline:
         return {"id": np.array(ids, int), "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
                 "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
                 "row": np.asarray(rows, int) + 1,  # rows 1..N, left to right looking along the row direction
-                "radius_m": np.array([self.radius_m.get(i, np.nan) for i in ids], float),
+                "radius_m": np.array([self.radius_m.get(i, np.nan) for i in ids], float) * self.metres_per_unit(),
                 "observations": np.array([a.n_observations for a in A], int),
                 "reprojection_error_px": np.array([a.reprojection_error for a in A], float),
                 "first_frame": np.array([self._seq_frame[a.first_frame] for a in A], int),

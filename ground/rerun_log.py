@@ -16,7 +16,8 @@ Entity tree::
     world/points/<k>            Points3D: sub-model k's sparse structure-from-motion points, coloured by
                                 height above the ground (ground grey-brown, canopy green)
     world/apples                Points3D at each apple's estimated radius, coloured by row, labelled
-    world/rows                  LineStrips3D: each row's line, labelled "row N"
+    world/rows                  LineStrips3D: each row's line, in its row's colour
+    world/row_labels            Points3D: "row N" in white at each row's end
     world/tracks/<id>           LineStrips3D from each observing camera to the apple (hidden)
     map/apples, map/drone, map/trajectory, map/rows     GeoPoints and GeoLineStrings (WGS84)
     stats/apples                Scalars: apples so far
@@ -410,7 +411,12 @@ class RerunLog:
         col = row_colours([r["row"] for r in rows])
         self.rec.log("world/rows", rr.LineStrips3D([[[r["start_x"], r["start_y"], r["z"]], [r["end_x"], r["end_y"], r["z"]]]
                                                     for r in rows], colors=col, radii=rr.Radius.ui_points(2.0),
-                                                   labels=[f"row {r['row']}" for r in rows], show_labels=True))
+                                                   labels=[f"row {r['row']}" for r in rows], show_labels=False))
+        # the labels apart, white at each row's end: rerun draws a label in its entity's colour on grey, which the
+        # darker row colours make hard to read
+        self.rec.log("world/row_labels", rr.Points3D([[r["end_x"], r["end_y"], r["z"]] for r in rows],
+                                                     colors=[[255, 255, 255]] * len(rows), radii=rr.Radius.ui_points(3.0),
+                                                     labels=[f"row {r['row']}" for r in rows], show_labels=True))
         geo = [r for r in rows if np.isfinite([r["start_lat"], r["start_lon"], r["end_lat"], r["end_lon"]]).all()]
         if geo:
             self.rec.log("map/rows", rr.GeoLineStrings(lat_lon=[[[r["start_lat"], r["start_lon"]],

@@ -263,3 +263,20 @@ def test_a_glimpse_along_another_apples_rays_stays_a_second_apple():
     assert len(two) == 2 and np.max(nearest_errors(two, np.stack([A, B]))) < 0.01
     one = WindowedAssociation(AssociationParams(k=5, merge_window=50, max_merge_shift_m=0)).run(frames)
     assert len(one) == 1
+
+
+def test_the_merge_distances_are_metres_whatever_the_association_frames_unit():
+    """The association frame is fixed by the map's first georeference, whose scale a few keyframes' GPS sets to tens
+    of percent: its distances are turned into metres before they meet merge_m, merge_search_m and
+    max_merge_shift_m, and the spatial index looks as far as the search reaches in the frame's units."""
+    from ground.association import Apple, AssociationParams, SpatialIndex, find_duplicate
+
+    p = AssociationParams()
+    a = Apple(0, np.array([0.0, 0.0, 0.0]), [(0, 0)], 0.1)
+    b = Apple(1, np.array([0.04, 0.0, 0.0]), [(1, 0)], 0.1)  # 4 cm in metres; 2 cm where a unit is half a metre
+    assert find_duplicate(b, [a], p)[0] is None
+    assert find_duplicate(b, [a], p, metres_per_unit=0.5)[0] is a
+    idx = SpatialIndex(1.0)
+    far = Apple(2, np.array([1.8, 0.0, 0.0]), [(2, 0)], 0.1)  # two cells away
+    idx.put(far)
+    assert idx.near(np.zeros(3), 1.0) == [] and idx.near(np.zeros(3), 2.0) == [far]

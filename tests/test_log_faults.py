@@ -71,6 +71,25 @@ def test_camera_yaw_turns_the_fixed_mount_from_the_track(srt_without_attitudes):
     assert err[90.0] < 5.0 and abs(err[0.0] - 90.0) < 10.0, err
 
 
+def test_a_track_heading_from_rounded_positions_points_along_the_track_at_every_frame(tmp_path):
+    """A Mavic 3 SRT's positions to 5 decimals (1.1 m) once a frame, flying east at 2 m/s: two neighbours are often
+    the same, or a rounding step apart. The heading is taken over TRACK_HEADING_S of track, so no frame's camera
+    points anywhere (from neighbours: north where two were the same, and 123 or 159 degrees in a flight heading 90)."""
+    lines = []
+    for i in range(300):  # 30 s at 10 Hz
+        t = i * 0.1
+        lat, lon = -28.516261, -50.881253 + 2.0 * t / (111320.0 * np.cos(np.radians(28.516261)))
+        lines.append(f"{i + 1}\n00:00:{t:06.3f} --> 00:00:{t + 0.1:06.3f}\n".replace(".", ",")
+                     + f'<font size="28">FrameCnt: {i + 1}, DiffTime: 100ms\n2023-05-01 10:00:{t:06.3f}\n'
+                     + f"[latitude: {lat:.5f}] [longitude: {lon:.5f}] [rel_alt: 12.000 abs_alt: 900.000] </font>\n")
+    srtf = tmp_path / "DJI_0001.SRT"
+    srtf.write_text("\n".join(lines))
+    tl = read_log(srtf)
+    t = tl.position.t[10:-10]
+    yaw = rotation_to_ned_euler(quat_wxyz_to_rotation(tl.at(t, 60.0, 90.0)["q_gimbal"]))[:, 2]
+    assert np.abs(yaw - 180.0).max() < 10.0, np.round(yaw, 1)
+
+
 @needs_logs
 def test_phantom_4_rtk_angles_are_read_and_the_jump_between_two_drones_is_named():
     """F.PRY (pitch, roll, yaw) is the vehicle's attitude and G.PRY the gimbal's; the 112-m jump to the Mavic 2 Pro's

@@ -218,4 +218,8 @@ def test_recording_of_a_replay_matches_its_map_files(replayed_test_flight):
                         assert -1e-3 <= x <= res[0] + 1e-3 and -1e-3 <= y <= res[1] + 1e-3, (path, r["frame"])
     # the rows' lines, in 3-D and on the map
     assert len(data["/world/rows"][-1]["LineStrips3D:strips"]) == len(rows)
+    # each row's name in white, not in its row's colour (rerun draws a label in its entity's colour on grey)
+    labels = data["/world/row_labels"][-1]
+    assert labels["Points3D:labels"] == [f"row {r['row']}" for r in rows]
+    assert {tuple(_rgb(c)) for c in labels["Points3D:colors"]} == {(255, 255, 255)}
     assert len(data["/map/rows"][-1]["GeoLineStrings:line_strings"]) == len(rows)

@@ -55,6 +55,9 @@ class Flags(IntFlag):
 MAX_SPEED_MPS = 45.0
 #: Beyond GNSS wander and the rounding of positions written to 5 decimals (1.1 m), even between 50-Hz samples.
 JUMP_FLOOR_M = 10.0
+#: The span (s) of positions a track's heading is taken over, at least: at a survey's 2-5 m/s, 4-10 m of track against
+#: positions off by a metre (a DJI log's 5 decimals, GNSS wander), so a few degrees rather than any direction.
+TRACK_HEADING_S = 2.0
 #: The horizontal accuracy (m) taken for a position whose log states none (DJI's do not); the ground weighs such
 #: positions by it. A position rounded to D decimals is off by (111 km x 10^-D) / sqrt(12) besides.
 UNSTATED_H_ACC_M = 2.0
@@ -287,15 +290,24 @@ class TelemetryLog:
             if ok.any():
                 res[ok] = rotation_to_quat_wxyz(quat_wxyz_to_rotation(q[ok]) * mount)
             return res
-        # no attitude at all: the heading of the track (north, east from the positions around each time)
+        # no attitude at all: the heading of the track (north, east from the positions around each time), over
+        # TRACK_HEADING_S at least: neighbouring positions rounded to 5 decimals (1.1 m) at 10 Hz point anywhere
         p = self.position
         if len(p) < 2:
             return np.full((len(t), 4), np.nan)
-        dt = 0.5 * max(gap_limit(p.t, 0.0), 0.2)
+        dt = 0.5 * max(gap_limit(p.t, 0.0), TRACK_HEADING_S)
         a, b = self._linear(p, t - dt, np.zeros(len(t), np.int64), 0, 0), self._linear(p, t + dt, np.zeros(len(t), np.int64), 0, 0)
         a = np.where(np.isfinite(a), a, np.column_stack([out["lat"], out["lon"], out["alt"]]))
         b = np.where(np.isfinite(b), b, np.column_stack([out["lat"], out["lon"], out["alt"]]))
-        yaw = np.arctan2((b[:, 1] - a[:, 1]) * np.cos(np.radians(out["lat"])), b[:, 0] - a[:, 0])
+        north, east = b[:, 0] - a[:, 0], (b[:, 1] - a[:, 1]) * np.cos(np.radians(out["lat"]))
+        yaw = np.arctan2(east, north)
+        # standing still (or positions that did not change): no heading there; the nearest moving time's, or north
+        # where the log never moves (the tilt still holds; the ground takes only the tilt from a track's heading)
+        still = ~(np.hypot(north, east) > 0)
+        if still.all():
+            yaw[:] = 0.0
+        elif still.any():
+            yaw[still] = yaw[~still][np.abs(t[still, None] - t[None, ~still]).argmin(1)]
         res = np.full((len(t), 4), np.nan)
         ok = np.isfinite(yaw)
         if ok.any():
