@@ -17,7 +17,7 @@ FLIGHT ?= replay_data/demo-flight
 OUT ?= out/demo
 LATEST := .venv-latest
 
-.PHONY: demo test test-latest setup lock clean
+.PHONY: demo test check test-latest setup lock clean
 
 setup: $(STAMP)
 
@@ -41,6 +41,10 @@ demo: $(STAMP)
 
 test: $(TEST_STAMP)
 	$(PY) -m pytest
+
+# the quick tier while working: the tests not marked `system` (those start processes, render or replay flights)
+check: $(TEST_STAMP)
+	$(PY) -m pytest -q -m "not system"
 
 # the newest releases the ranges allow, in a venv of their own (the lock's venv is left as it is)
 test-latest:

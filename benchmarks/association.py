@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ground.association import AssociationParams, FrameDetections, WindowedAssociation
-from ground.evaluate import Perturbation, evaluate, format_table
-from ground.synthetic import apples_along, camera_path, make_sequence
+from ground.apples.association import AssociationParams, FrameDetections, WindowedAssociation
+from ground.evaluation.evaluate import Perturbation, evaluate, format_table
+from ground.evaluation.synthetic import apples_along, camera_path, make_sequence
 from pomar.camera import Camera
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -147,8 +147,9 @@ def oracle(flight, pert, min_views=3):
     """Perfect association: the perturbed truth detections grouped by the apple they came from (false
     positives dropped), each apple with at least min_views views triangulated by least squares over
     its reprojection error, scored like the association."""
-    from ground.evaluate import projection_matrices, score_map, truth_detections
-    from ground.geometry import triangulate_nonlinear
+    from ground.evaluation.evaluate import projection_matrices, truth_detections
+    from ground.evaluation.scoring import score_map
+    from ground.apples.geometry import triangulate_nonlinear
     from pomar.flight import FlightDir
 
     fl = FlightDir(flight)
@@ -168,8 +169,9 @@ def oracle(flight, pert, min_views=3):
 
 def evaluate_prefix(flight, n_frames, params, pert):
     """Offline on the first n frames; F1 against truth apples seen in those frames."""
-    from ground.association import FruitAssociation
-    from ground.evaluate import match, projection_matrices, truth_detections
+    from ground.apples.association import FruitAssociation
+    from ground.evaluation.evaluate import projection_matrices, truth_detections
+    from ground.evaluation.scoring import match
     from pomar.flight import FlightDir
 
     fl = FlightDir(flight)
@@ -185,7 +187,7 @@ def evaluate_prefix(flight, n_frames, params, pert):
     d = fl.truth_detections()
     g = (d["visible_fraction"] >= pert.min_visible) & (d["frame"] < n_frames)
     ids, n = np.unique(d["apple_id"][g], return_counts=True)
-    vis = ids[n >= 3]  # same truth definition as ground.evaluate (truth_min_views=3)
+    vis = ids[n >= 3]  # same truth definition as ground.evaluation.evaluate (truth_min_views=3)
     T = np.stack([a["x"], a["y"], a["z"]], 1)
     pi, ti, _ = match(np.array([x.X for x in apples]).reshape(-1, 3), T, 0.10)
     prec = len(pi) / max(len(apples), 1)

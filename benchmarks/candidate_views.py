@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ground.journal import read_journal
+from ground.link.journal import read_journal
 from ground.pipeline import GroundPipeline, GroundSettings
 from pomar import wire
 from pomar.flight import FlightDir
@@ -53,13 +53,13 @@ def candidates(flight: FlightDir, journal: Path) -> tuple[list[dict], dict[str, 
     emitted = {}  # every apple the association gave, confirmed or not
     with tempfile.TemporaryDirectory() as work:
         pipe = GroundPipeline(Path(work), GroundSettings(mapping="inline"))
-        confirm = pipe._confirm
+        confirm = pipe.count.confirm
 
-        def _confirm(apples):
+        def _confirm(apples, steps):
             emitted.update((a.id, a) for a in apples)
-            return confirm(apples)
+            return confirm(apples, steps)
 
-        pipe._confirm = _confirm
+        pipe.count.confirm = _confirm
         for payload in read_journal(journal):
             m = wire.decode(payload)
             if isinstance(m, wire.FrameMessage):  # the detections as the pipeline keeps them (it forgets old ones)
@@ -68,16 +68,17 @@ def candidates(flight: FlightDir, journal: Path) -> tuple[list[dict], dict[str, 
                 scores[m.frame] = np.asarray(m.scores)[keep]
             pipe.feed(m)
         pipe.finish()
-        checks = pipe.count_checks(all_expected=True)
+        checks = pipe.count.checks(all_expected=True)
         out = []
         for k, i in enumerate(checks["id"]):
-            a = pipe.apples[int(i)]
+            a = pipe.count.apples[int(i)]
             votes: dict[int, int] = {}
             views = []
-            for seq, d in a.observations:
-                f = pipe._seq_frame[seq]
+            for o in a.observations:
+                seq, d = o.frame, o.index
+                f = pipe.frames.frame[seq]
                 b = boxes[f][d]
-                pose = pipe.frame_poses.get(f)
+                pose = pipe.frames.poses.get(f)
                 depth = float((pose.R @ a.X + pose.t)[2]) if pose is not None else np.nan
                 vis = np.nan
                 j = _truth_row(b, f, td, by_frame)
@@ -92,10 +93,10 @@ def candidates(flight: FlightDir, journal: Path) -> tuple[list[dict], dict[str, 
             out.append({
                 "id": int(i), "kind": "false" if tid is None else ("visible" if tid in visible else "hidden"),
                 "left_out": str(checks["left_out"][k]), "score": float(np.median(V[:, 3])), "views": len(V),
-                "radius_m": float(checks["radius_m"][k]),
+                "radius_m": float(checks["radius"][k] * pipe.metres_per_unit()),
                 "roundness": float(np.median(np.minimum(w, h) / np.maximum(w, h))),
                 "best_visible": float(np.nanmax(V[:, 4])) if np.isfinite(V[:, 4]).any() else float("nan"),
-                "depth_m": float(np.nanmedian(V[:, 2])), "parallax_deg": float(pipe.parallax_deg(a))})
+                "depth_m": float(np.nanmedian(V[:, 2])), "parallax_deg": float(pipe.count.parallax_deg(a))})
         lost = missed(pipe, emitted, out, td, by_frame, visible, boxes)
     return out, lost
 
@@ -131,8 +132,9 @@ def missed(pipe, emitted: dict, rows: list[dict], td, by_frame, visible: set, bo
     stage = {}  # truth apple -> (rank, stage), the furthest any apple showing it got
     for i, a in emitted.items():
         votes: dict[int, int] = {}
-        for seq, d in a.observations:
-            f = pipe._seq_frame[seq]
+        for o in a.observations:
+            seq, d = o.frame, o.index
+            f = pipe.frames.frame[seq]
             t = _truth_of(boxes[f][d], f, td, by_frame)
             if t is not None:
                 votes[t] = votes.get(t, 0) + 1

@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ground.geometry import triangulate_nonlinear
-from ground.journal import read_journal
-from ground.replay import replay_cameras, shape_fit
+from ground.apples.geometry import triangulate_nonlinear
+from ground.link.journal import read_journal
+from ground.evaluation.scoring import replay_cameras, shape_fit
 from pomar import wire
 from pomar.flight import FlightDir
 

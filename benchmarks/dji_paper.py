@@ -37,7 +37,7 @@ def replay(args: list[str], out: Path, scale: str | None = None) -> float:
 
 
 def main(argv=None) -> int:
-    from ground.replay import evaluate_map
+    from ground.evaluation.scoring import evaluate_map
     from pomar.flight import FlightDir
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

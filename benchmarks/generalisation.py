@@ -8,7 +8,7 @@ count error, per-row count error and per-tree correlation against each flight's 
 Tune on the tuning flights (tune-*); the evaluation flights (eval-*) are replayed once, at the end. Each flight is
 replayed lock-step (`python -m ground replay`, the shipped detector, arguments after ``--`` passed on) into
 out/bench/generalisation/NAME/FLIGHT; ``--rescore`` scores outputs already there again. Per-row errors count rows
-with at least 30 visible apples; per-tree correlation is over 1-m bins along those rows (ground/evaluate.py).
+with at least 30 visible apples; per-tree correlation is over 1-m bins along those rows (ground/evaluation/evaluate.py).
 Accuracy only: the replays' times depend on what else runs.
 """
 
@@ -48,7 +48,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=Path("out/bench/generalisation"))
     ap.add_argument("--rescore", action="store_true", help="score the replays already in the output folder again")
     a = ap.parse_args(argv)
-    from ground.replay import evaluate_map
+    from ground.evaluation.scoring import evaluate_map
 
     rows_out, summary = [], []
     for path in a.flights:

@@ -19,9 +19,9 @@ import numpy as np
 import pycolmap
 from scipy.spatial.transform import Rotation
 
-from ground.georeference import fit_similarity, georeference_poses
-from ground.poses import camera_rotations, frame_telemetry
-from ground.register_flight import apple_reprojection_errors
+from ground.poses.georeference import fit_similarity, georeference_poses
+from ground.poses.telemetry_poses import camera_rotations, frame_telemetry
+from ground.evaluation.scoring import apple_reprojection_errors
 from pomar.flight import FlightDir
 
 

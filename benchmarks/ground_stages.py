@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ground.journal import read_journal
+from ground.link.journal import read_journal
 from ground.pipeline import GroundPipeline, GroundSettings
 from pomar import wire
 from pomar.flight import FlightDir

@@ -21,8 +21,8 @@ from pathlib import Path
 
 
 def _cmd_evaluate(args) -> int:
-    from ground.association import AssociationParams
-    from ground.evaluate import Perturbation, evaluate, format_table
+    from ground.apples.association import AssociationParams
+    from ground.evaluation.evaluate import Perturbation, evaluate, format_table
 
     params = AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom,
                                ransac_iterations=args.ransac_iterations, min_inliers=args.min_inliers,
@@ -40,7 +40,7 @@ def _cmd_evaluate(args) -> int:
 
 
 def _cmd_register(args) -> int:
-    from ground.register_flight import register_flight
+    from ground.evaluation.register_flight import register_flight
 
     settings = _registration_settings(args, submodel_size=args.submodel_size)
     out = args.out or f"out/register/{Path(args.flight_dir).name}"
@@ -55,9 +55,10 @@ def _cmd_register(args) -> int:
 
 
 def _settings(args):
-    from ground.association import AssociationParams
+    from ground.apples.association import AssociationParams
+    from ground.apples.counting import CountingSettings
     from ground.pipeline import GroundSettings
-    from ground.tracking import TrackingSettings
+    from ground.poses.tracking import TrackingSettings
 
     return GroundSettings(association=AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom,
                                                         min_inliers=args.min_inliers, cross_pass=not args.no_cross_pass,
@@ -70,13 +71,15 @@ def _settings(args):
                                                     min_share_to_go_on=args.min_share_to_go_on,
                                                     max_points=args.track_points),
                           min_score=args.min_score,
-                          confirm_score=args.confirm_score, confirm_views=args.confirm_views,
-                          tree_spacing_m=args.tree_spacing_m, min_radius_ratio=args.min_radius_ratio,
-                          min_view_ratio=args.min_view_ratio, min_parallax_deg=args.min_parallax_deg)
+                          counting=CountingSettings(confirm_score=args.confirm_score, confirm_views=args.confirm_views,
+                                                    min_radius_ratio=args.min_radius_ratio,
+                                                    min_view_ratio=args.min_view_ratio,
+                                                    min_parallax_deg=args.min_parallax_deg),
+                          tree_spacing_m=args.tree_spacing_m)
 
 
 def _cmd_run(args) -> int:
-    from ground.node import run_ground
+    from ground.link.node import run_ground
     from pomar.transport import DEFAULT_ENDPOINT
 
     connect = args.connect or (None if args.listen or args.zenoh_config else [DEFAULT_ENDPOINT])
@@ -90,7 +93,7 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_play(args) -> int:
-    from ground.player import PlayerError, load_recording, play
+    from ground.link.player import PlayerError, load_recording, play
     from pomar import transport
 
     def write_summary(d):
@@ -117,7 +120,8 @@ def _cmd_play(args) -> int:
 
 
 def _cmd_replay(args) -> int:
-    from ground.replay import BUNDLED, ReplayError, format_evaluation, replay
+    from ground.evaluation.scoring import format_evaluation
+    from ground.replay import BUNDLED, ReplayError, replay
 
     flight = args.flight_dir or BUNDLED
     out = Path(args.out or f"out/replay/{Path(args.video).stem if args.video else Path(flight).name}")
@@ -192,7 +196,7 @@ def _cmd_replay(args) -> int:
 def _registration_options(p, init_frames: int | None = None):
     """Registration's options; ``init_frames``: this command's default (the ground's live default differs from
     a batch registration's)."""
-    from ground.registration import RegistrationSettings
+    from ground.poses.registration import RegistrationSettings
 
     p.add_argument("--max-features", type=int, default=RegistrationSettings.max_num_features,
                    help="registration: SIFT features per keyframe")
@@ -214,7 +218,7 @@ def _registration_options(p, init_frames: int | None = None):
 
 
 def _registration_settings(args, **extra):
-    from ground.registration import RegistrationSettings
+    from ground.poses.registration import RegistrationSettings
 
     try:
         return RegistrationSettings(max_num_features=args.max_features, match_window=args.match_window, sift=args.sift,
@@ -282,16 +286,16 @@ def _ground_options(p):
                    help="tracking: at most this many points of each keyframe are followed into the frames (KLT's "
                         "cost grows with them)")
     p.add_argument("--min-score", type=float, default=0.0, help="ignore detections scored below this")
-    p.add_argument("--confirm-score", type=float, default=g.confirm_score,
+    p.add_argument("--confirm-score", type=float, default=g.counting.confirm_score,
                    help="an apple counts once --confirm-views of its views scored this much")
-    p.add_argument("--confirm-views", type=int, default=g.confirm_views, help="see --confirm-score")
-    p.add_argument("--min-radius-ratio", type=float, default=g.min_radius_ratio,
+    p.add_argument("--confirm-views", type=int, default=g.counting.confirm_views, help="see --confirm-score")
+    p.add_argument("--min-radius-ratio", type=float, default=g.counting.min_radius_ratio,
                    help="size check: an apple counts only if its radius (boxes x depth) is at least this fraction of "
                         "the map's median (a partly hidden apple looks small); 0 = off")
-    p.add_argument("--min-view-ratio", type=float, default=g.min_view_ratio,
+    p.add_argument("--min-view-ratio", type=float, default=g.counting.min_view_ratio,
                    help="expected views: an apple counts only if detected in at least this share of the mapped frames "
                         "it projects into (one glimpsed through leaves is not); 0 = off")
-    p.add_argument("--min-parallax-deg", type=float, default=g.min_parallax_deg,
+    p.add_argument("--min-parallax-deg", type=float, default=g.counting.min_parallax_deg,
                    help="parallax: an apple counts only if the rays from its first and last views meet at this angle "
                         "or more, degrees (narrower leaves its depth a guess); 0 = off")
     p.add_argument("--tree-spacing-m", type=float, default=g.tree_spacing_m,
@@ -303,7 +307,8 @@ def _ground_options(p):
 
 
 def main(argv=None) -> int:
-    from ground.evaluate import __doc__ as evaluate_doc
+    from ground.evaluation import scoring
+    from ground.evaluation.evaluate import __doc__ as evaluate_doc
     from pomar.flight import id_argument
 
     p = argparse.ArgumentParser(prog="python -m ground", description=__doc__,
@@ -319,7 +324,8 @@ def main(argv=None) -> int:
     e.add_argument("--miss", type=float, default=0.0, help="probability a detection is missed")
     e.add_argument("--fp", type=float, default=0.0, help="false positives per frame (Poisson mean)")
     e.add_argument("--dup", type=float, default=0.0, help="probability a detection is duplicated")
-    e.add_argument("--min-visible", type=float, default=0.5)
+    e.add_argument("--min-visible", type=float, default=scoring.MIN_VISIBLE,
+                   help="the truth's apples counted: at least this visible (fraction)")
     e.add_argument("--mode", nargs="+", default=["windowed"], choices=["offline", "windowed"])
     e.add_argument("--k", type=int, default=5)
     e.add_argument("--tau-epipolar", type=float, default=4.0)
@@ -328,10 +334,10 @@ def main(argv=None) -> int:
     e.add_argument("--min-inliers", type=int, default=3)
     e.add_argument("--max-paths", type=int, default=500, help="offline DFS bound per node")
     e.add_argument("--merge-search-m", type=float, default=1.0, help="merge duplicate apples (one apple seen twice) within this distance when their views agree; 0 = the paper as is")
-    e.add_argument("--match-m", type=float, default=0.10)
+    e.add_argument("--match-m", type=float, default=scoring.MATCH_M, help="a predicted apple matches a true one within this (m)")
     e.add_argument("--remove-pose-offset", action="store_true",
                    help="score the map's shape: subtract the poses' mean camera offset from truth (the GPS bias)")
-    e.add_argument("--truth-min-views", type=int, default=3,
+    e.add_argument("--truth-min-views", type=int, default=scoring.TRUTH_MIN_VIEWS,
                    help="an apple is visible in the flight when seen (at least --min-visible) in this many frames")
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--json")
@@ -369,7 +375,7 @@ def main(argv=None) -> int:
     _ground_options(rp)
     rp.set_defaults(func=_cmd_replay)
     pl = sub.add_parser("play", help="publish a recorded stream (journal.bin) over zenoh at its capture-time pace",
-                        description=__import__("ground.player", fromlist=["x"]).__doc__,
+                        description=__import__("ground.link.player", fromlist=["x"]).__doc__,
                         formatter_class=argparse.RawDescriptionHelpFormatter)
     pl.add_argument("recording", help="a ground's journal.bin")
     pl.add_argument("--speed", type=float, default=1.0, help="S x real time (0 = as fast as it goes)")
@@ -421,7 +427,7 @@ def main(argv=None) -> int:
 
     stop_on_sigterm()
     logging.basicConfig(level=os.environ.get("POMAR_LOG_LEVEL", "INFO").upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
-    from ground.journal import JournalError
+    from ground.link.journal import JournalError
     from pomar.flight import FlightFormatError
     from pomar.transport import TransportError
 

@@ -24,8 +24,7 @@ import threading
 import time
 from pathlib import Path
 
-import numpy as np
-
+from ground.evaluation.scoring import evaluate_map
 from pomar.flight import FlightDir
 
 log = logging.getLogger(__name__)
@@ -67,131 +66,6 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def _enu(flight: FlightDir, path: Path) -> np.ndarray:
-    from pomar.flight import read_csv
-
-    d = read_csv(path, ["lat", "lon", "alt"])
-    geo = np.stack([d["lat"], d["lon"], d["alt"]], 1).reshape(-1, 3)
-    return flight.origin().to_enu(geo[:, 0], geo[:, 1], geo[:, 2]).reshape(-1, 3)
-
-
-def replay_cameras(flight: FlightDir, out: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A run's camera poses (poses.csv): frames (n,), centres (n, 3) in the flight's truth ENU frame and
-    world-to-camera rotations (n, 3, 3)."""
-    from pomar.flight import read_csv
-    from pomar.rotations import quat_wxyz_to_rotation
-
-    d = read_csv(out / "poses.csv", ["frame", "qw", "qx", "qy", "qz"])
-    R = quat_wxyz_to_rotation(np.stack([d[k] for k in ("qw", "qx", "qy", "qz")], 1)).as_matrix().reshape(-1, 3, 3)
-    return d["frame"].astype(int), _enu(flight, out / "poses.csv"), R
-
-
-def shape_fit(flight: FlightDir, frames: np.ndarray, centres: np.ndarray, R: np.ndarray):
-    """The similarity fit that best takes these camera poses onto the true ones (the georeferencing
-    error, which only the GPS sets); ``.similarity`` maps a run's ENU points into the truth's."""
-    from ground.georeference import fit_similarity
-
-    R_true, t_true = flight.truth_poses()
-    C_true = -np.einsum("nji,nj->ni", R_true, t_true)[frames]
-    return fit_similarity(centres, C_true, 0.05, R, R_true[frames], np.radians(0.05))
-
-
-#: The local score's windows (s of flight): the GPS error the map follows barely moves in this long.
-LOCAL_WINDOW_S = 20.0
-
-
-def local_offsets(frames: np.ndarray, centres: np.ndarray, C_true: np.ndarray, window_frames: float):
-    """The mean camera error of each window of ``window_frames`` frames (centres against the truth's), and each frame's
-    window: what is left of the GPS error after one similarity for the whole flight, taken as a translation per
-    window."""
-    win = ((frames - frames.min()) // max(window_frames, 1.0)).astype(int)
-    off = np.zeros((win.max() + 1, 3))
-    for k in np.unique(win):
-        off[k] = (C_true[win == k] - centres[win == k]).mean(0)
-    return off, win
-
-
-def evaluate_map(flight: FlightDir, out: Path, min_visible: float = 0.5, match_m: float = 0.10) -> dict:
-    """Score the written apples.csv against the flight's truth (in the truth's ENU frame).
-
-    Two scores. ``absolute``: the map where GPS put it. The headline: the map's *shape*, after taking
-    away the georeferencing error, i.e. the similarity that best takes our camera poses (poses.csv:
-    centres and orientations) onto the true ones. That error comes from the GPS (its bias over the
-    flight, and the scale it gives over a short straight line), which no image processing can see;
-    its size is reported as ``georeference_error``."""
-    from ground.evaluate import score_map
-    from pomar.flight import read_csv
-
-    keys = ("precision", "recall", "f1", "count", "truth_count", "count_error_pct", "median_error_m", "p95_error_m",
-            "recall_all_apples_in_rows_seen", "duplicates", "rows", "worst_row_error_pct", "trees")
-    apples = _enu(flight, out / "apples.csv")
-    frames, cams, R_ours = replay_cameras(flight, out)
-    res = {}
-    if len(frames) >= 3:
-        R_true, t_true = flight.truth_poses()
-        C_true = -np.einsum("nji,nj->ni", R_true, t_true)[frames]
-        fit = shape_fit(flight, frames, cams, R_ours)
-        S = fit.similarity
-        shape = score_map(flight, S.apply(apples), min_visible=min_visible, match_m=match_m)
-        res = {k: shape[k] for k in keys}
-        res["georeference_error"] = {
-            "offset_m": float(np.linalg.norm((cams - C_true).mean(0))),
-            "offset_enu_m": (cams - C_true).mean(0).tolist(),
-            "scale_error_pct": 100.0 * (1.0 / S.scale - 1.0),
-            "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(S.R) - 1) / 2, -1, 1)))),
-            "camera_rms_after_m": fit.position_rms_m,
-            # where GPS put the cameras (poses.csv): a map that drifts along a long flight shows here
-            "camera_error_median_m": float(np.median(np.linalg.norm(cams - C_true, axis=1))),
-            "camera_error_max_m": float(np.linalg.norm(cams - C_true, axis=1).max()),
-        }
-        # local: over minutes of flight the map follows the GPS's slow wander (a metre), which one similarity cannot
-        # take away; a translation per LOCAL_WINDOW_S of flight more does, and scores the map's shape at tree scale
-        C_fit = S.apply(cams)
-        off, win = local_offsets(frames, C_fit, C_true, LOCAL_WINDOW_S * flight.meta().fps)
-        a = read_csv(out / "apples.csv", ["first_frame", "last_frame"])
-        mid = (np.asarray(a["first_frame"]) + np.asarray(a["last_frame"])).reshape(-1) / 2
-        at = np.clip(np.searchsorted(frames, mid), 0, len(frames) - 1)
-        local = score_map(flight, S.apply(apples) + off[win[at]], min_visible=min_visible, match_m=match_m)
-        d = C_fit + off[win] - C_true
-        res["local"] = {**{k: local[k] for k in ("precision", "recall", "f1", "median_error_m", "p95_error_m")},
-                        "window_s": LOCAL_WINDOW_S, "windows": int(win.max() + 1),
-                        "camera_rms_m": float(np.sqrt((d ** 2).sum(1).mean()))}
-    absolute = score_map(flight, apples, min_visible=min_visible, match_m=match_m)
-    res["absolute"] = {k: absolute[k] for k in keys if k != "rows"}
-    if not res.get("rows"):
-        res.update({k: absolute[k] for k in keys})
-    return res
-
-
-def format_evaluation(ev: dict) -> str:
-    g = ev.get("georeference_error")
-    lines = []
-    if g:
-        lines.append(f"the map's shape, scored after removing the georeferencing error (GPS: offset {g['offset_m']:.2f} m, "
-                     f"scale {g['scale_error_pct']:+.2f} %, rotation {g['rotation_deg']:.2f} deg; cameras "
-                     f"{g['camera_error_median_m']:.2f} m off, at most {g['camera_error_max_m']:.2f} m)")
-    lines += [f"{'count':>7}{'truth':>7}{'err %':>8}{'prec':>7}{'rec':>7}{'F1':>7}{'med m':>8}{'p95 m':>8}",
-             f"{ev['count']:>7}{ev['truth_count']:>7}{ev['count_error_pct']:>8.1f}{ev['precision']:>7.3f}"
-             f"{ev['recall']:>7.3f}{ev['f1']:>7.3f}{ev['median_error_m']:>8.3f}{ev['p95_error_m']:>8.3f}"]
-    if ev.get("rows"):
-        lines.append("rows: truth row, count (row direction), count (K-means), truth visible")
-        for r in ev["rows"]:
-            lines.append(f"  row {r['row']:>2}: {r['count']:>5} {r['count_kmeans']:>5} {r['truth_visible']:>5}")
-    tr = ev.get("trees")
-    if tr and tr["bins"]:
-        lines.append(f"trees (1-m bins along rows of 30+ visible apples): {tr['bins']} bins, r {tr['r']:.3f}, mean "
-                     f"absolute error {tr['mae']:.2f} apples (truth mean {tr['truth_mean']:.2f})")
-    loc = ev.get("local")
-    if loc:
-        lines.append(f"local (a translation more per {loc['window_s']:g} s of flight: the GPS's wander over a long flight): "
-                     f"F1 {loc['f1']:.3f}, median error {loc['median_error_m']:.3f} m, cameras {loc['camera_rms_m']:.2f} m "
-                     f"RMS, {loc['windows']} windows")
-    a = ev["absolute"]
-    lines.append(f"absolute (where GPS put the map): F1 {a['f1']:.3f}, median error "
-                 f"{a['median_error_m'] if a['median_error_m'] == a['median_error_m'] else float('nan'):.3f} m")
-    return "\n".join(lines)
 
 
 def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: str = "onnx", model=None,
@@ -295,7 +169,7 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
         report["onboard_error"] = onboard_error
     if flight.has_truth:
         report["evaluation"] = evaluate_map(flight, out)
-    from ground.outputs import write_json
+    from ground.outputs.tables import write_json
 
     write_json(out / "report.json", report)
     return report

@@ -135,7 +135,7 @@ def test_a_rescaled_frame_gives_boxes_in_the_full_frames_pixels(bundled_flight):
 
 
 def test_trees_csv_cuts_rows_into_tree_segments(tmp_path):
-    from ground.outputs import rows_summary, trees_summary, write_map
+    from ground.outputs.tables import rows_summary, trees_summary, write_map
 
     rng = np.random.default_rng(1)
     n = 120
@@ -161,7 +161,7 @@ def test_trees_csv_cuts_rows_into_tree_segments(tmp_path):
 
 
 def test_per_tree_score_is_one_for_a_perfect_map_and_falls_with_misplaced_apples():
-    from ground.evaluate import per_tree
+    from ground.evaluation.scoring import per_tree
 
     rng = np.random.default_rng(2)
     truth = np.column_stack([np.repeat([0.0, 4.0], 60), rng.uniform(0, 20, 120) ** 1.3 / 2, np.full(120, 2.0)])
@@ -175,67 +175,78 @@ def test_per_tree_score_is_one_for_a_perfect_map_and_falls_with_misplaced_apples
     assert per_tree(shuffled, truth, truth_row, rows_id, across, direction)["r"] < 0.9
 
 
-def test_size_check_leaves_out_apples_too_small_to_be_whole(tmp_path):
+def _views(frames, index=0):
+    from ground.apples.association import Detection
+
+    return [Detection(f, index) for f in frames]
+
+
+def test_size_check_leaves_out_apples_too_small_to_be_whole():
     """With the size check on, apples whose radius is under the ratio times the map's median are not counted; with
     fewer than MIN_SIZED sized apples, or the check off, all are."""
-    from ground.association import Apple
-    from ground.pipeline import GroundPipeline, GroundSettings
+    from ground.apples.association import Apple
+    from ground.apples.counting import Counting, CountingSettings
+    from ground.apples.frames import AssociationFrames
 
-    pipe = GroundPipeline(tmp_path, GroundSettings(min_radius_ratio=0.85))
+    count = Counting(CountingSettings(min_radius_ratio=0.85), AssociationFrames(), reach=100)
     radii = np.r_[np.full(30, 0.036), np.full(6, 0.026)]  # 30 whole apples, 6 half hidden
-    pipe.apples = {i: Apple(i, np.zeros(3), [(0, 0), (1, 0), (2, 0)], 0.5) for i in range(len(radii) + 1)}
-    pipe.radius_m = {i: r for i, r in enumerate(radii)}  # the last apple has no radius: it counts
-    ids = pipe.counted_ids()
-    assert ids == list(range(30)) + [36] and pipe.size_rejected == 6
-    checks = pipe.count_checks()
+    count.apples = {i: Apple(i, np.zeros(3), _views([0, 1, 2]), 0.5) for i in range(len(radii) + 1)}
+    count.radius = {i: r for i, r in enumerate(radii)}  # the last apple has no radius: it counts
+    ids = count.counted_ids()
+    assert ids == list(range(30)) + [36] and count.size_rejected == 6
+    checks = count.checks()
     assert list(checks["left_out"]) == [""] * 30 + ["small"] * 6 + [""]
-    pipe.s.min_radius_ratio = 0.0
-    assert len(pipe.counted_ids()) == 37 and pipe.size_rejected == 0
-    pipe.s.min_radius_ratio = 0.85
-    pipe.radius_m = {i: pipe.radius_m[i] for i in list(range(10)) + [30, 31]}  # 12 sized apples: too few to judge
-    assert len(pipe.counted_ids()) == 37
+    count.s.min_radius_ratio = 0.0
+    assert len(count.counted_ids()) == 37 and count.size_rejected == 0
+    count.s.min_radius_ratio = 0.85
+    count.radius = {i: count.radius[i] for i in list(range(10)) + [30, 31]}  # 12 sized apples: too few to judge
+    assert len(count.counted_ids()) == 37
 
 
-def test_expected_views_leave_out_apples_seen_in_few_of_the_frames_they_lie_in(tmp_path):
-    from ground.association import Apple
-    from ground.pipeline import GroundPipeline, GroundSettings
+def test_expected_views_leave_out_apples_seen_in_few_of_the_frames_they_lie_in():
+    from ground.apples.association import Apple
+    from ground.apples.counting import Counting, CountingSettings
+    from ground.apples.frames import AssociationFrames
     from pomar.camera import Camera
 
-    pipe = GroundPipeline(tmp_path, GroundSettings(min_radius_ratio=0.0, min_view_ratio=0.15))
-    pipe.camera = Camera.from_fov(640, 360, 60.0)
-    P = pipe.camera.K_opencv @ np.hstack([np.eye(3), np.zeros((3, 1))])  # at the origin, looking along +z
-    pipe._proj = [P] * 40
-    seen = Apple(1, np.array([0.0, 0.0, 10.0]), [(i, 0) for i in range(10, 18)], 0.5)  # 8 views of 40
-    glimpsed = Apple(2, np.array([1.0, 0.5, 10.0]), [(20, 0), (21, 0), (22, 0)], 0.5)  # 3 of 40
-    behind = Apple(3, np.array([0.0, 0.0, -10.0]), [(5, 0), (6, 0), (7, 0)], 0.5)  # never in view: 3 of 0
-    pipe.apples = {1: seen, 2: glimpsed, 3: behind}
-    assert pipe.expected_views(seen) == 40 and pipe.expected_views(behind) == 0
-    assert pipe.counted_ids() == [1, 3] and pipe.views_rejected == 1
-    c = pipe.count_checks()
+    frames = AssociationFrames()
+    count = Counting(CountingSettings(min_radius_ratio=0.0, min_view_ratio=0.15), frames, reach=100)
+    count.camera = Camera.from_fov(640, 360, 60.0)
+    P = count.camera.K_opencv @ np.hstack([np.eye(3), np.zeros((3, 1))])  # at the origin, looking along +z
+    for f in range(40):
+        frames.add(f, None, P)
+    seen = Apple(1, np.array([0.0, 0.0, 10.0]), _views(range(10, 18)), 0.5)  # 8 views of 40
+    glimpsed = Apple(2, np.array([1.0, 0.5, 10.0]), _views([20, 21, 22]), 0.5)  # 3 of 40
+    behind = Apple(3, np.array([0.0, 0.0, -10.0]), _views([5, 6, 7]), 0.5)  # never in view: 3 of 0
+    count.apples = {1: seen, 2: glimpsed, 3: behind}
+    assert count.expected_views(seen) == 40 and count.expected_views(behind) == 0
+    assert count.counted_ids() == [1, 3] and count.views_rejected == 1
+    c = count.checks()
     assert list(c["left_out"]) == ["", "few_views", ""] and list(c["expected_views"]) == [40, 40, 0]
     assert list(c["observations"]) == [8, 3, 3]
 
 
-def test_apples_whose_views_meet_at_a_narrow_angle_are_left_out(tmp_path):
+def test_apples_whose_views_meet_at_a_narrow_angle_are_left_out():
     """An apple 10 m away seen from cameras 1 m apart (5.7 degrees) counts; one seen from cameras 10 cm apart (0.6
     degrees: its depth is a guess) does not, unless the check is off; an apple with a frame without a pose counts."""
-    from ground.association import Apple
-    from ground.live_poses import Pose
-    from ground.pipeline import GroundPipeline, GroundSettings
+    from ground.apples.association import Apple
+    from ground.apples.counting import Counting, CountingSettings
+    from ground.apples.frames import AssociationFrames
+    from ground.poses.live import Pose
 
-    pipe = GroundPipeline(tmp_path, GroundSettings(min_radius_ratio=0.0, min_view_ratio=0.0, min_parallax_deg=2.0))
-    xs = [0.0, 0.05, 0.1, 1.0]  # camera centres along x, looking along +z
-    pipe.frame_poses = {f: Pose(f, np.eye(3), -np.array([x, 0.0, 0.0]), "registered", 0.0, 0.0)
-                        for f, x in enumerate(xs)}
-    pipe._seq_frame = [0, 1, 2, 3, 4]
+    frames = AssociationFrames()
+    count = Counting(CountingSettings(min_radius_ratio=0.0, min_view_ratio=0.0, min_parallax_deg=2.0), frames, 100)
+    for f, x in enumerate([0.0, 0.05, 0.1, 1.0]):  # camera centres along x, looking along +z
+        frames.add(f, Pose(f, np.eye(3), -np.array([x, 0.0, 0.0]), "registered", 0.0, 0.0), np.eye(3, 4))
+    frames.frame.append(4)  # frame 4: fed, no pose
     X = np.array([0.5, 0.0, 10.0])
-    wide = Apple(1, X, [(0, 0), (1, 0), (3, 0)], 0.5)
-    narrow = Apple(2, X, [(0, 1), (1, 1), (2, 1)], 0.5)
-    unposed = Apple(3, X, [(2, 2), (3, 2), (4, 2)], 0.5)  # frame 4 has no pose
-    pipe.apples = {1: wide, 2: narrow, 3: unposed}
-    assert pipe.parallax_deg(wide) == pytest.approx(np.degrees(np.arctan(0.5 / 10) * 2), abs=0.01)
-    assert pipe.parallax_deg(narrow) < 1.0 and np.isnan(pipe.parallax_deg(unposed))
-    assert pipe.counted_ids() == [1, 3] and pipe.parallax_rejected == 1
-    assert list(pipe.count_checks()["left_out"]) == ["", "narrow", ""]
-    pipe.s.min_parallax_deg = 0.0
-    assert pipe.counted_ids() == [1, 2, 3] and pipe.parallax_rejected == 0
+    wide = Apple(1, X, _views([0, 1, 3]), 0.5)
+    narrow = Apple(2, X, _views([0, 1, 2], 1), 0.5)
+    unposed = Apple(3, X, _views([2, 3, 4], 2), 0.5)
+    count.apples = {1: wide, 2: narrow, 3: unposed}
+    assert count.parallax_deg(wide) == pytest.approx(np.degrees(np.arctan(0.5 / 10) * 2), abs=0.01)
+    assert count.parallax_deg(narrow) < 1.0 and np.isnan(count.parallax_deg(unposed))
+    assert count.counted_ids() == [1, 3] and count.parallax_rejected == 1
+    assert list(count.checks()["left_out"]) == ["", "narrow", ""]
+    count.s.min_parallax_deg = 0.0
+    assert count.counted_ids() == [1, 2, 3] and count.parallax_rejected == 0

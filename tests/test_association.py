@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ground.association import AssociationParams, FrameDetections, FruitAssociation, WindowedAssociation
-from ground.geometry import (epipolar_distances, fundamental_from_projections, project, reprojection_errors, triangulate,
+from ground.apples.association import AssociationParams, FrameDetections, FruitAssociation, WindowedAssociation
+from ground.apples.geometry import (epipolar_distances, fundamental_from_projections, project, reprojection_errors, triangulate,
                              triangulate_nonlinear)
-from ground.synthetic import make_sequence
+from ground.evaluation.synthetic import make_sequence
 
 MODES = [FruitAssociation, WindowedAssociation]
 
@@ -67,7 +67,7 @@ def test_exact_input_finds_every_apple(cls):
     assert len(apples) == len(seen)
     assert nearest_errors(apples, seq.apples[seen]).max() < 1e-4
     for a in apples:  # each apple's observations come from one true apple
-        assert len({int(seq.sources[f][d]) for f, d in a.observations}) == 1
+        assert len({int(seq.sources[o.frame][o.index]) for o in a.observations}) == 1
 
 
 @pytest.mark.parametrize("cls", MODES)
@@ -88,7 +88,7 @@ def test_crossing_apples_share_a_node(cls):
         assert len(apples) == 2
         shared = [f.frame for f in frames if len(f.xy) == 1]
         for a in apples:  # each track goes through the node where the apples meet
-            assert any(fr in shared for fr, _ in a.observations)
+            assert any(o.frame in shared for o in a.observations)
     else:
         # the paper's greedy path choice leaves partial tracks around the crossing (reported, not hidden)
         assert len(apples) <= 8
@@ -145,7 +145,7 @@ def test_rows_survive_a_wild_apple():
     """One apple estimated kilometres away (a bad early pose) neither changes the rows nor costs gigabytes."""
     import resource
 
-    from ground.rows import direction_rows
+    from ground.apples.rows import direction_rows
 
     rng = np.random.default_rng(3)
     xy = np.concatenate([np.stack([rng.uniform(-20, 20, 200), r * 4.0 + rng.normal(0, 0.2, 200)], 1) for r in range(3)])
@@ -269,14 +269,14 @@ def test_the_merge_distances_are_metres_whatever_the_association_frames_unit():
     """The association frame is fixed by the map's first georeference, whose scale a few keyframes' GPS sets to tens
     of percent: its distances are turned into metres before they meet merge_m, merge_search_m and
     max_merge_shift_m, and the spatial index looks as far as the search reaches in the frame's units."""
-    from ground.association import Apple, AssociationParams, SpatialIndex, find_duplicate
+    from ground.apples.association import Apple, AssociationParams, Detection, SpatialIndex, find_duplicate
 
     p = AssociationParams()
-    a = Apple(0, np.array([0.0, 0.0, 0.0]), [(0, 0)], 0.1)
-    b = Apple(1, np.array([0.04, 0.0, 0.0]), [(1, 0)], 0.1)  # 4 cm in metres; 2 cm where a unit is half a metre
+    a = Apple(0, np.array([0.0, 0.0, 0.0]), [Detection(0, 0)], 0.1)
+    b = Apple(1, np.array([0.04, 0.0, 0.0]), [Detection(1, 0)], 0.1)  # 4 cm in metres; 2 cm where a unit is half a metre
     assert find_duplicate(b, [a], p)[0] is None
     assert find_duplicate(b, [a], p, metres_per_unit=0.5)[0] is a
     idx = SpatialIndex(1.0)
-    far = Apple(2, np.array([1.8, 0.0, 0.0]), [(2, 0)], 0.1)  # two cells away
+    far = Apple(2, np.array([1.8, 0.0, 0.0]), [Detection(2, 0)], 0.1)  # two cells away
     idx.put(far)
     assert idx.near(np.zeros(3), 1.0) == [] and idx.near(np.zeros(3), 2.0) == [far]

@@ -8,9 +8,10 @@ import sys
 
 import numpy as np
 
-from ground.association import AssociationParams
-from ground.evaluate import Perturbation, evaluate, match, truth_detections
-from ground.rows import direction_rows, kmeans_rows, row_direction
+from ground.apples.association import AssociationParams
+from ground.evaluation.evaluate import Perturbation, evaluate, truth_detections
+from ground.evaluation.scoring import match
+from ground.apples.rows import direction_rows, kmeans_rows, row_direction
 from tests.conftest import BUNDLED
 
 
@@ -119,7 +120,7 @@ def test_poses_and_detections_from_files(tmp_path, bundled_flight):
 def test_local_offsets_take_away_a_wander_per_window_and_nothing_else():
     """The local score's windows: a camera error that wanders from window to window (the GPS over a long flight) is
     taken away window by window; what varies within a window stays."""
-    from ground.replay import local_offsets
+    from ground.evaluation.scoring import local_offsets
 
     frames = np.arange(0, 600)
     truth = np.stack([np.zeros(600), frames * 0.3, np.full(600, 12.0)], 1)

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ground.georeference import drift_offsets, fit_similarity, georeference_poses
-from ground.synthetic import camera_path
+from ground.poses.georeference import drift_offsets, fit_similarity, georeference_poses
+from ground.evaluation.synthetic import camera_path
 from pomar.align import Similarity
 
 
@@ -75,7 +75,7 @@ def test_exact_input_is_recovered_exactly():
 def test_telemetry_poses_are_the_truth_within_telemetry_error(bundled_flight):
     import json
 
-    from ground.poses import telemetry_poses
+    from ground.poses.telemetry_poses import telemetry_poses
 
     R, t, flags = telemetry_poses(bundled_flight)
     R_true, t_true = bundled_flight.truth_poses()

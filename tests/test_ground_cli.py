@@ -19,7 +19,7 @@ def test_replay_hands_every_ground_option_to_the_ground():
     s = _settings(again)
     assert s.tracking.max_points == 600 and s.tracking.min_share_to_go_on == 0.3
     assert s.registration.init_frames == 4 and s.init_spacing_s == 0.7
-    assert s.registration.upright and not s.registration.revisit and s.confirm_score == 0.8
+    assert s.registration.upright and not s.registration.revisit and s.counting.confirm_score == 0.8
     # switches left off stay off
     assert "--upright" not in _ground_argv(p.parse_args([]))
 

@@ -14,13 +14,13 @@ import time
 import numpy as np
 import pytest
 
-from ground.journal import Journal, read_journal
-from ground.outputs import APPLE_COLUMNS, CANDIDATE_COLUMNS, harvest_correlation, read_harvest
+from ground.link.journal import Journal, read_journal
+from ground.outputs.tables import APPLE_COLUMNS, CANDIDATE_COLUMNS, harvest_correlation, read_harvest
 
 
 def test_replay_end_to_end(replayed_test_flight):
-    from ground.rerun_log import rrd_entities
-    from ground.replay import evaluate_map
+    from ground.outputs.rerun_log import rrd_entities
+    from ground.evaluation.scoring import evaluate_map
 
     replay_test_flight, out, rep = replayed_test_flight
     # every frame went through, most with registered poses
@@ -161,7 +161,7 @@ def _gone(pids: list[int], timeout_s: float) -> bool:
 
 
 def test_journal_skips_damaged_records_and_keeps_every_intact_one(tmp_path):
-    from ground.journal import MARKER, JournalError, read_journal_report
+    from ground.link.journal import MARKER, JournalError, read_journal_report
 
     path = tmp_path / "journal.bin"
     payloads = [bytes([i % 251]) * (10 + i) + b"PJR" for i in range(100)]  # a marker's first bytes inside, too
@@ -201,6 +201,7 @@ def test_journal_skips_damaged_records_and_keeps_every_intact_one(tmp_path):
 def test_pipeline_survives_bad_keyframes_and_late_frames(replay_test_flight, tmp_path):
     """Messages made by the onboard node (no zenoh here): a keyframe that does not decode, a frame that comes
     after a later one was mapped, repeats; every other frame still gets a pose and nothing stops."""
+    from ground.outputs.tables import apple_table
     from ground.pipeline import GroundPipeline, GroundSettings
     from pomar import wire
 
@@ -220,8 +221,8 @@ def test_pipeline_survives_bad_keyframes_and_late_frames(replay_test_flight, tmp
     assert pipe.counters["bad_keyframes"] == 1 and pipe.counters["late_frames"] >= 1
     assert next(e for e in events if e.frame == 9).pose.source in ("interpolated", "telemetry")
     assert pipe.counters["registered"] >= 10
-    t = pipe.table()
-    assert len(t["id"]) == len(pipe.counted_ids()) > 0 and np.isfinite(t["lat"]).all()
+    t, _ = apple_table(pipe)
+    assert len(t["id"]) == len(pipe.count.counted_ids()) > 0 and np.isfinite(t["lat"]).all()
 
 
 def _onboard_messages(flight, **settings):
@@ -269,7 +270,7 @@ def test_every_frame_tracked_keyframes_mapped_and_a_failed_track_falls_back_flag
     assert pipe.counters["tracked"] >= 3, pipe.counters
     # fewer keyframes mapped than images: tracking carries the rest
     assert 3 <= pipe.poses.mapper.stats()["keyframes_processed"] < 19
-    assert len(pipe.apples) > 0
+    assert len(pipe.count.apples) > 0
 
 
 def test_lock_step_repeats_bit_for_bit(replay_test_flight, tmp_path):
@@ -284,8 +285,8 @@ def test_lock_step_repeats_bit_for_bit(replay_test_flight, tmp_path):
         for m in msgs:
             pipe.feed(m, step=not batched)
         pipe.finish()
-        poses = {f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.frame_poses.items()}
-        runs.append((poses, {i: a.X.copy() for i, a in pipe.apples.items()}))
+        poses = {f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.frames.poses.items()}
+        runs.append((poses, {i: a.X.copy() for i, a in pipe.count.apples.items()}))
     (p0, a0), (p1, a1) = runs
     assert p0.keys() == p1.keys() and all(np.array_equal(p0[f], p1[f]) for f in p0)
     assert a0.keys() == a1.keys() and len(a0) > 0 and all(np.array_equal(a0[i], a1[i]) for i in a0)
@@ -323,8 +324,8 @@ def test_lock_step_keeps_its_poses_when_the_images_come_late_on_a_busy_machine(r
             for m in images:
                 pipe.feed(m)
         pipe.finish()
-        runs.append(({f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.frame_poses.items()},
-                     {i: a.X.copy() for i, a in pipe.apples.items()}, pipe.counters))
+        runs.append(({f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.frames.poses.items()},
+                     {i: a.X.copy() for i, a in pipe.count.apples.items()}, pipe.counters))
     (p0, a0, c0), (p1, a1, c1) = runs[:2]
     assert c0["registered"] + c0["tracked"] >= 10 and c1 == c0, (c0, c1)
     assert p0.keys() == p1.keys() and all(np.array_equal(p0[f], p1[f]) for f in p0)
@@ -355,8 +356,8 @@ def test_lock_step_waits_for_the_keyframes_the_frames_announce_when_the_link_bri
                 pipe.feed(m)
             assert not pipe.kf_awaited
         pipe.finish()
-        runs.append(({f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.frame_poses.items()},
-                     {i: a.X.copy() for i, a in pipe.apples.items()}, pipe.counters))
+        runs.append(({f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.frames.poses.items()},
+                     {i: a.X.copy() for i, a in pipe.count.apples.items()}, pipe.counters))
     (p0, a0, c0), (p1, a1, c1) = runs
     assert c0["registered"] + c0["tracked"] >= 10 and c1 == c0, (c0, c1)
     assert p0.keys() == p1.keys() and all(np.array_equal(p0[f], p1[f]) for f in p0)
@@ -416,13 +417,13 @@ def test_a_backlog_mapped_in_one_step_shows_its_progress_as_it_goes(replay_test_
     import logging
     import re
 
-    from ground.node import GroundNode
+    from ground.link.node import GroundNode
 
     msgs = _onboard_messages(replay_test_flight, keyframe_every=1)
     node = GroundNode(tmp_path / "out", rrd=False, progress_s=0.0, expected_frames=20)
     for m in msgs:
         node.handle(m, step=False)
-    with caplog.at_level(logging.INFO, logger="ground.node"):
+    with caplog.at_level(logging.INFO, logger="ground.link.node"):
         node.step()
     mapped = [int(m.group(1)) for r in caplog.records if (m := re.search(r"(\d+)/20 mapped", r.getMessage()))]
     assert len(mapped) >= 3 and mapped == sorted(mapped) and mapped[0] < mapped[-1], mapped
@@ -452,7 +453,7 @@ def test_mapping_in_its_own_process_maps_every_frame(replay_test_flight, tmp_pat
 _MAPPING_OWNER = """
 import sys, time
 import numpy as np
-from ground.mapping import MapperProcess
+from ground.poses.mapping import MapperProcess
 from pomar.camera import Camera
 
 cam = Camera(320, 180, 300.0, 300.0, 160.0, 90.0)
@@ -486,15 +487,16 @@ def test_a_killed_ground_leaves_no_mapping_process_behind(tmp_path):
 
 
 def test_apples_need_fewer_strong_views_when_frames_come_sparser(replay_test_flight, tmp_path):
+    from ground.apples.counting import CountingSettings
     from ground.pipeline import GroundPipeline, GroundSettings
 
     needed = {}
     for every in (1, 2, 4):
-        pipe = GroundPipeline(tmp_path / f"work-{every}", GroundSettings(confirm_views=3))
+        pipe = GroundPipeline(tmp_path / f"work-{every}", GroundSettings(counting=CountingSettings(confirm_views=3)))
         for m in _onboard_messages(replay_test_flight, every=every, keyframe_every=0):
             pipe.feed(m)
         pipe.finish()
-        needed[every] = pipe.views_needed()
+        needed[every] = pipe.count.views_needed(pipe.steps)
     assert needed == {1: 3, 2: 2, 4: 2}
 
 
@@ -512,21 +514,26 @@ def test_harvest_correlation(tmp_path):
 
 def test_an_apple_counts_once_enough_views_are_strong(tmp_path):
     """Weak detections extend a track; the apple enters the map once confirm_views views scored
-    confirm_score, and a merge that brings forgotten views never takes it back out."""
+    confirm_score, and a merge that brings views from beyond the association's reach never takes it back out."""
     import numpy as np
 
-    from ground.association import Apple
+    from ground.apples.association import Apple, Detection
+    from ground.apples.counting import CountingSettings
     from ground.pipeline import GroundPipeline, GroundSettings
+    from pomar.camera import Camera
 
-    pipe = GroundPipeline(tmp_path / "work", GroundSettings(confirm_score=0.9, confirm_views=3))
-    pipe._scores = {0: np.array([0.95, 0.2]), 1: np.array([0.8]), 2: np.array([0.93]), 3: np.array([0.75]),
-                    4: np.array([0.91])}
-    a = Apple(7, np.zeros(3), [(0, 0), (1, 0), (2, 0), (3, 0)], 0.5)
-    assert pipe._confirm([a]) == [] and 7 not in pipe.apples  # two strong views of four
-    a.observations.append((4, 0))
-    assert pipe._confirm([a]) == [a] and pipe.apples[7] is a  # a third strong view
-    del pipe._scores[0], pipe._scores[2]  # forgotten: the count stays
-    assert pipe._confirm([a]) == [a]
+    s = GroundSettings(counting=CountingSettings(confirm_score=0.9, confirm_views=3))
+    pipe = GroundPipeline(tmp_path / "work", s)
+    pipe.count.camera = Camera.from_fov(640, 360, 60.0)
+    pipe.frames.frame = list(range(5))
+    views = [Detection(f, 0, score=sc) for f, sc in enumerate([0.95, 0.8, 0.93, 0.75, 0.91])]
+    a = Apple(7, np.zeros(3), views[:4], 0.5)
+    assert pipe.count.confirm([a], pipe.steps) == [] and 7 not in pipe.count.apples  # two strong views of four
+    a.observations.append(views[4])
+    assert pipe.count.confirm([a], pipe.steps) == [a] and pipe.count.apples[7] is a  # a third strong view
+    # the flight goes on: frames 0-2 fall out of the association's reach; the count stays
+    pipe.frames.frame = list(range(s.association.merge_window + 2 * s.association.k + 3))
+    assert pipe.count.confirm([a], pipe.steps) == [a]
 
 
 def test_a_resumed_ground_waits_for_the_frames_its_history_brings(replay_test_flight, tmp_path):

@@ -1,7 +1,7 @@
 import numpy as np
 import pycolmap
 
-from ground.matching import match_descriptors, unit_descriptors
+from ground.poses.matching import match_descriptors, unit_descriptors
 
 
 def planted(seed=0, n=300, extra=200, noise=0.05):

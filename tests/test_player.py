@@ -6,8 +6,8 @@ from __future__ import annotations
 import msgpack
 import pytest
 
-from ground.journal import HEADER, record
-from ground.player import PlayerError, load_recording
+from ground.link.journal import HEADER, record
+from ground.link.player import PlayerError, load_recording
 
 
 def test_recorded_stream_at_real_time_maps_as_the_lock_step_replay(replayed_test_flight, tmp_path):

@@ -1,12 +1,12 @@
-"""Poses given earlier, corrected as the mapper moves the keyframes about them (ground.live_poses.LivePoses.corrected)."""
+"""Poses given earlier, corrected as the mapper moves the keyframes about them (ground.poses.live.LivePoses.corrected)."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ground.live_poses import LivePoses, Pose
-from ground.mapping import KeyframeTelemetry
+from ground.poses.live import LivePoses, Pose
+from ground.poses.mapping import KeyframeTelemetry
 from pomar.align import IDENTITY
 from pomar.camera import Camera
 

@@ -63,7 +63,7 @@ def read_poses(path: Path):
 
 
 def test_registers_georeferences_and_falls_back_to_telemetry(reg_flight, tmp_path):
-    from ground.register_flight import register_flight
+    from ground.evaluation.register_flight import register_flight
 
     res = register_flight(reg_flight.path, tmp_path / "a", every=1, max_interp_gap=1)
     rows = read_poses(tmp_path / "a" / "poses.csv")
@@ -80,7 +80,7 @@ def test_registers_georeferences_and_falls_back_to_telemetry(reg_flight, tmp_pat
 
 
 def test_unregistered_frame_between_registered_ones_is_interpolated(reg_flight, tmp_path):
-    from ground.register_flight import register_flight
+    from ground.evaluation.register_flight import register_flight
 
     res = register_flight(reg_flight.path, tmp_path / "b", every=1, max_interp_gap=4)
     rows = read_poses(tmp_path / "b" / "poses.csv")
@@ -90,8 +90,8 @@ def test_unregistered_frame_between_registered_ones_is_interpolated(reg_flight, 
 
 def test_colmap_sift_registers_too(reg_flight, tmp_path):
     """The mapper reads only keypoints and verified matches: COLMAP's own SIFT still works in their place."""
-    from ground.register_flight import register_flight
-    from ground.registration import RegistrationSettings
+    from ground.evaluation.register_flight import register_flight
+    from ground.poses.registration import RegistrationSettings
 
     res = register_flight(reg_flight.path, tmp_path / "c", every=1, settings=RegistrationSettings(sift="colmap"),
                           progress=False, frames_limit=12)
@@ -102,8 +102,8 @@ def test_colmap_sift_registers_too(reg_flight, tmp_path):
 def test_finished_submodels_leave_memory_and_come_back_for_the_model_files(reg_flight, tmp_path):
     """Sub-models of 8 keyframes, one kept in memory: the older ones are written out, their poses kept, and the
     final model files hold every sub-model, read back."""
-    from ground.register_flight import register_flight
-    from ground.registration import RegistrationSettings
+    from ground.evaluation.register_flight import register_flight
+    from ground.poses.registration import RegistrationSettings
 
     s = RegistrationSettings(submodel_size=8, overlap=4, keep_submodels=1)
     all_in = register_flight(reg_flight.path, tmp_path / "all", every=1, progress=False,
@@ -136,8 +136,8 @@ def _offset_before_and_after(flight, out: Path, gap: range):
 def test_a_broken_chain_rejoins_the_same_map(gap_flight, tmp_path):
     """Nine black keyframes in a row break the chain (matching only the previous keyframes): the keyframes after
     them make a new sub-model, placed by their telemetry against the model's, and the flight stays one map."""
-    from ground.register_flight import register_flight
-    from ground.registration import RegistrationSettings
+    from ground.evaluation.register_flight import register_flight
+    from ground.poses.registration import RegistrationSettings
 
     res = register_flight(gap_flight.path, tmp_path / "r", every=1, settings=RegistrationSettings(revisit=False))
     assert res["rejoined"] == 1 and res["submodels"] == 2
@@ -153,7 +153,7 @@ def test_a_broken_chain_rejoins_the_same_map(gap_flight, tmp_path):
 def test_an_earlier_keyframe_of_the_same_place_bridges_the_gap(gap_flight, tmp_path):
     """With revisits, the first keyframe after the gap matches the keyframes before it that look at the same place:
     the chain holds, one sub-model."""
-    from ground.register_flight import register_flight
+    from ground.evaluation.register_flight import register_flight
 
     res = register_flight(gap_flight.path, tmp_path / "v", every=1)
     assert res["revisits"] >= 1 and res["rejoined"] == 0 and res["submodels"] == 1
@@ -165,8 +165,8 @@ def test_an_earlier_keyframe_of_the_same_place_bridges_the_gap(gap_flight, tmp_p
 def test_the_mapping_process_shares_the_first_model_s_sift_with_the_ground(reg_base, tmp_path):
     """Keyframes that arrive together before the first model: those the mapping process is not free for have their
     SIFT features extracted by the ground meanwhile, and the first model comes out as the inline mapper's."""
-    from ground.mapping import Mapper, MapperProcess
-    from ground.registration import RegistrationSettings
+    from ground.poses.mapping import Mapper, MapperProcess
+    from ground.poses.registration import RegistrationSettings
     from pomar.camera import Camera
     from pomar.flight import FlightDir
     from pomar.video import iter_frames
@@ -201,8 +201,8 @@ def test_a_keyframe_behind_only_the_one_in_work_goes_to_the_mapping_process_as_i
     """Before the first model, a keyframe that would wait in the mapping process only for the one in work is sent
     as it is (extracting its SIFT here would hold it back longer than the process takes to be free); those behind
     two or more have it extracted here."""
-    from ground.mapping import MapperProcess
-    from ground.registration import RegistrationSettings
+    from ground.poses.mapping import MapperProcess
+    from ground.poses.registration import RegistrationSettings
     from pomar.camera import Camera
     from pomar.flight import FlightDir
     from pomar.video import iter_frames
@@ -225,8 +225,8 @@ def test_a_keyframe_behind_only_the_one_in_work_goes_to_the_mapping_process_as_i
 def test_the_ground_stops_extracting_sift_once_the_first_model_s_tries_are_spent(tmp_path):
     """A flight that starts over something with nothing to match (noise here): the ground shares the SIFT only for
     the first model's tries, then leaves the mapping process to it, and keeps its own time."""
-    from ground.mapping import MapperProcess
-    from ground.registration import RegistrationSettings
+    from ground.poses.mapping import MapperProcess
+    from ground.poses.registration import RegistrationSettings
     from pomar.camera import Camera
 
     cam = Camera(960, 540, 800.0, 800.0, 480.0, 270.0)
@@ -251,7 +251,7 @@ def test_sift_on_a_shrunk_keyframe_gives_keyframe_pixels():
     mapper's camera): the same corners found at either size lie within a pixel of each other."""
     import cv2
 
-    from ground.registration import RegistrationSettings, SiftExtractor
+    from ground.poses.registration import RegistrationSettings, SiftExtractor
     from pomar.video import iter_frames
 
     _, bgr = next(iter(iter_frames(ROOT / "replay_data" / "demo-flight" / "video.mp4")))

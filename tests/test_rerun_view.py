@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from ground.outputs import PALETTE, row_colours
-from ground.rerun_log import PANELS, RerunLog, blueprint, clip_segment, epipolar_segments, rrd_rows
+from ground.outputs.tables import PALETTE, row_colours
+from ground.outputs.rerun_log import PANELS, RerunLog, blueprint, clip_segment, epipolar_segments, rrd_rows
 
 
 def _rgb(packed: int) -> list[int]:
@@ -28,7 +28,7 @@ def _views(container) -> list:
 
 
 def test_a_row_too_short_for_a_density_shows_a_dash_not_nan():
-    from ground.rerun_log import summary_markdown
+    from ground.outputs.rerun_log import summary_markdown
 
     text = summary_markdown({"apples": 3, "rows": [{"row": 1, "count": 3, "apples_per_m": float("nan"), "length_m": 0.2}]},
                             {})
@@ -198,7 +198,7 @@ def test_recording_of_a_replay_matches_its_map_files(replayed_test_flight):
     for a in apples:
         assert by_label[f"apple {a['id']}, row {a['row']}"] == PALETTE[(int(a["row"]) - 1) % len(PALETTE)].tolist()
     # apples a fixed size on screen, the structure-from-motion cloud a quarter of it (rerun: negative = UI points)
-    from ground.rerun_log import APPLE_UI_POINTS
+    from ground.outputs.rerun_log import APPLE_UI_POINTS
 
     assert (np.array(last["Points3D:radii"]) == -APPLE_UI_POINTS).all()
     cloud = [r for p, rws in data.items() if p.startswith("/world/points/") for r in rws]

@@ -1,4 +1,4 @@
-"""Places seen again (ground/revisit.py): the keyframe index and the robust similarity, on numbers whose answer is
+"""Places seen again (ground/poses/revisit.py): the keyframe index and the robust similarity, on numbers whose answer is
 known."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ground.revisit import Places, robust_similarity
+from ground.poses.revisit import Places, robust_similarity
 from pomar.align import Similarity
 
 

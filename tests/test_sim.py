@@ -142,7 +142,7 @@ def test_rewrite_telemetry_same_settings_is_identical_and_rtk_is_accurate(bundle
 
     import numpy as np
 
-    from ground.poses import frame_telemetry
+    from ground.poses.telemetry_poses import frame_telemetry
     from pomar.flight import FRAMES_COLUMNS, FlightDir, read_csv
     from pomar.geo import Origin
     from sim.flight import rewrite_telemetry

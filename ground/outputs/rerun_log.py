@@ -31,7 +31,7 @@ Entity tree::
     stats/rejected/<reason>     Scalars: messages the ground refused, by pomar.wire.WireError reason
 
 Rows are numbered 1..N, left to right looking along the row direction; the colour of row N is the same in the
-3-D view, the map and the plots (:data:`ground.outputs.PALETTE`, colour-blind safe).
+3-D view, the map and the plots (:data:`ground.outputs.tables.PALETTE`, colour-blind safe).
 
 Timelines: ``frame`` (sequence) and ``capture_time`` (timestamp). Sinks: an .rrd file, a gRPC server
 for a viewer elsewhere (``serve``), or a running viewer (``connect``).
@@ -47,8 +47,8 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from ground.geometry import fundamental_from_projections
-from ground.outputs import row_colours
+from ground.apples.geometry import fundamental_from_projections
+from ground.outputs.tables import row_colours
 
 # Memory stays flat over long flights only if the allocators behind the rerun SDK give back what they free. rerun's
 # Rust side allocates with mimalloc, which by default keeps freed pages a while (it reads this when its library

@@ -7,7 +7,7 @@ BLAS) gives the same matches (2,172 of COLMAP's 2,175 on a bundled-flight pair) 
 milliseconds. The criteria are COLMAP's defaults: ratio 0.8,
 distance 0.7 on unit descriptors, cross-check.
 
-    python -m ground.matching A.npy B.npy     # descriptors saved with numpy, prints the match count
+    python -m ground.poses.matching A.npy B.npy     # descriptors saved with numpy, prints the match count
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ def match_descriptors(a: np.ndarray, b: np.ndarray, max_ratio: float = 0.8, max_
 def main(argv=None) -> int:
     import argparse
 
-    p = argparse.ArgumentParser(prog="python -m ground.matching", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m ground.poses.matching", description=__doc__.split("\n")[0])
     p.add_argument("a")
     p.add_argument("b")
     args = p.parse_args(argv)

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from ground.geometry import (camera_centre, epipolar_distances, fundamental_from_projections, reprojection_errors, skew,
+from ground.apples.geometry import (camera_centre, epipolar_distances, fundamental_from_projections, reprojection_errors, skew,
                              triangulate, triangulate_nonlinear, triangulation_rows)
 
 log = logging.getLogger(__name__)
@@ -68,13 +68,28 @@ class AssociationParams:
     seed: int = 0
 
 
+@dataclass(frozen=True, order=True)
+class Detection:
+    """One detection, as an apple keeps it (norfair's ``Detection``): the association frame it was seen in, its
+    index there, and the detector's box (xyxy, px; NaN where only the centre is known) and score. Two detections are
+    the same when frame and index are."""
+
+    frame: int
+    index: int
+    box: tuple = field(default=(np.nan,) * 4, compare=False, repr=False)
+    score: float = field(default=float("nan"), compare=False)
+
+
 @dataclass
 class FrameDetections:
-    """One frame fed to the association: its index, 3x4 camera matrix, detection centres (N, 2)."""
+    """One frame fed to the association: its index (the association counts frames in the order they come), 3x4
+    camera matrix, detection centres (N, 2), and the detector's boxes (N, 4) and scores (N,) where known."""
 
     frame: int
     P: np.ndarray
     xy: np.ndarray
+    boxes: np.ndarray | None = None
+    scores: np.ndarray | None = None
 
     def __post_init__(self):
         self.P = np.asarray(self.P, float)
@@ -84,6 +99,17 @@ class FrameDetections:
         if xy.size and (xy.ndim != 2 or xy.shape[1] != 2):
             raise ValueError(f"frame {self.frame}: detections must be (N, 2) centres, got shape {xy.shape}")
         self.xy = xy.reshape(-1, 2)
+        n = len(self.xy)
+        self.boxes = np.full((n, 4), np.nan) if self.boxes is None else np.asarray(self.boxes, float).reshape(n, 4)
+        self.scores = np.full(n, np.nan) if self.scores is None else np.asarray(self.scores, float).reshape(n)
+        self._records: list[Detection] | None = None
+
+    def detection(self, i: int) -> Detection:
+        """The i-th detection's record (made once per frame, shared by every track that takes it)."""
+        if self._records is None:
+            self._records = [Detection(self.frame, k, tuple(map(float, b)), float(s))
+                             for k, (b, s) in enumerate(zip(self.boxes, self.scores))]
+        return self._records[i]
 
 
 @dataclass
@@ -92,7 +118,7 @@ class Apple:
 
     id: int
     X: np.ndarray
-    observations: list[tuple[int, int]]  # (frame, detection index), the inliers
+    observations: list[Detection]  # the inliers, in frame order
     reprojection_error: float  # mean over inliers, px
     #: Views kept to test a merge: (V, 3, 4) camera matrices and (V, 2) pixels, a sample of the inliers.
     views: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
@@ -102,7 +128,7 @@ class Apple:
     last_frame: int = field(init=False)
 
     def __post_init__(self):
-        frames = [f for f, _ in self.observations]
+        frames = [o.frame for o in self.observations]
         self.first_frame, self.last_frame = min(frames), max(frames)
 
     @property
@@ -280,8 +306,8 @@ class FruitAssociation:
             for u in inliers:
                 for w in inset.intersection(adj[u]):
                     del adj[u][w]
-            obs = [(frames[node_frame[u]].frame, int(node_det[u])) for u in inliers]
-            views, frames_ = sample_views(Ps[inliers], xs[inliers], [f for f, _ in obs])
+            obs = [frames[node_frame[u]].detection(int(node_det[u])) for u in inliers]
+            views, frames_ = sample_views(Ps[inliers], xs[inliers], [o.frame for o in obs])
             apples.append(Apple(len(apples), X, obs, err, views=views, view_frames=frames_))
         n_found = len(apples)
         apples = merge_duplicates(apples, p)
@@ -457,11 +483,11 @@ class _Track:
     __slots__ = ("obs", "Ps", "xs", "M", "_X", "_views", "root", "last", "mature", "origin")
 
     def __init__(self, root: int, origin: np.ndarray):
-        self.obs: list[tuple[int, int]] = []
+        self.obs: list[Detection] = []
         self.Ps: list[np.ndarray] = []
         self.xs: list[np.ndarray] = []
         # normal matrix of the linear triangulation, accumulated, about the root's camera centre (the
-        # algebraic error depends on the coordinates: see ground.geometry.triangulate)
+        # algebraic error depends on the coordinates: see ground.apples.geometry.triangulate)
         self.M = np.zeros((4, 4))
         self.origin = np.asarray(origin, float)[:3]
         self._X: np.ndarray | None = None
@@ -470,16 +496,16 @@ class _Track:
         self.last = -1
         self.mature = False
 
-    def add(self, frame: int, det: int, P: np.ndarray, x: np.ndarray, rows: np.ndarray | None = None):
+    def add(self, det: Detection, P: np.ndarray, x: np.ndarray, rows: np.ndarray | None = None):
         """Append an observation; rows = its two triangulation rows about the track's origin, unit length,
         if already computed."""
-        self.obs.append((frame, det))
+        self.obs.append(det)
         self.Ps.append(P)
         self.xs.append(x)
         if rows is None:
             rows = triangulation_rows(P, x, self.origin)
         self.M = self.M + rows.T @ rows
-        self.last = frame
+        self.last = det.frame
         self._X = None
         self._views = None
 
@@ -500,7 +526,7 @@ class _Track:
 
     def repose(self, P: dict[int, np.ndarray]) -> None:
         """Take the corrected camera matrices of its frames (frame -> P), and its normal matrix again from them."""
-        self.Ps = [P.get(f, Pk) for (f, _), Pk in zip(self.obs, self.Ps)]
+        self.Ps = [P.get(o.frame, Pk) for o, Pk in zip(self.obs, self.Ps)]
         self.M = np.zeros((4, 4))
         for Pk, x in zip(self.Ps, self.xs):
             rows = triangulation_rows(Pk, x, self.origin)
@@ -549,7 +575,7 @@ class WindowedAssociation:
         if p.nonlinear:
             X, inl, err = polish(Ps, xs, X, inl, p.tau_geom, p.min_inliers)
         obs = [o for o, keep in zip(t.obs, inl) if keep]
-        views, frames = sample_views(Ps[inl], xs[inl], [f for f, _ in obs])
+        views, frames = sample_views(Ps[inl], xs[inl], [o.frame for o in obs])
         return Apple(-1, X, obs, err, views=views, view_frames=frames)
 
     def _close(self, frame: int, final: bool = False) -> list[Apple]:
@@ -612,7 +638,7 @@ class WindowedAssociation:
         moved or grew, and (id merged away, id it merged into) pairs."""
         p = self.params
         for t in self.tracks:
-            if any(f in P for f, _ in t.obs):
+            if any(o.frame in P for o in t.obs):
                 t.repose(P)
         for f in P:
             self._geom.pop(f, None)
@@ -741,14 +767,14 @@ class WindowedAssociation:
                 ok = C[r, c] < 1e6
                 pair = {(int(a), int(b)): n for n, (a, b) in enumerate(zip(pt, pd))}
                 for ti, di in zip(ut[r[ok]], c[ok]):
-                    self.tracks[ti].add(j, int(di), P, xy[di], rows[pair[int(ti), int(di)]])
+                    self.tracks[ti].add(fd.detection(int(di)), P, xy[di], rows[pair[int(ti), int(di)]])
                     claimed[di] = True
                 # a mature track left without a detection may share one (apples occluding each other cross)
                 for row, ti in enumerate(ut):
                     t = self.tracks[ti]
                     if t.last != j and C[row].min() < 1e6:
                         di = int(np.argmin(C[row]))
-                        t.add(j, di, P, xy[di])
+                        t.add(fd.detection(di), P, xy[di])
             # young tracks: one branch per verified candidate not taken by a mature track; the track
             # itself stays as it is too, since a path may skip a frame (edges reach k frames ahead)
             new_tracks = []
@@ -757,11 +783,11 @@ class WindowedAssociation:
                 if claimed[di]:
                     continue
                 b = self.tracks[pt[n]].copy()
-                b.add(j, int(di), P, xy[di], rows[n])
+                b.add(fd.detection(int(di)), P, xy[di], rows[n])
                 new_tracks.append(b)
             self.tracks.extend(new_tracks)
             for b in new_tracks:
-                claimed[b.obs[-1][1]] = True
+                claimed[b.obs[-1].index] = True
             self._check_young(j)
         # unclaimed detections start new roots
         centre = self._frame_geometry(j, P)[1] if (~claimed).any() else None
@@ -769,7 +795,7 @@ class WindowedAssociation:
             t = _Track(self._next_root, centre)
             self._next_root += 1
             self.stats["roots"] += 1
-            t.add(j, int(di), P, xy[di])
+            t.add(fd.detection(int(di)), P, xy[di])
             self.tracks.append(t)
         return emitted
 

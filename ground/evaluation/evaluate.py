@@ -23,11 +23,10 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
-from ground.association import AssociationParams, FrameDetections, FruitAssociation, WindowedAssociation
-from ground.baselines import SortTracker, count_per_frame_sum
-from ground.rows import direction_rows, kmeans_rows
+from ground.apples.association import AssociationParams, FrameDetections, FruitAssociation, WindowedAssociation
+from ground.evaluation.baselines import SortTracker, count_per_frame_sum
+from ground.evaluation.scoring import MATCH_M, MIN_VISIBLE, TRUTH_MIN_VIEWS, score_map
 from pomar.flight import FlightDir, FlightFormatError, read_csv
 from pomar.rotations import quat_wxyz_to_rotation
 
@@ -40,7 +39,7 @@ class Perturbation:
     miss: float = 0.0
     fp_per_frame: float = 0.0
     dup: float = 0.0
-    min_visible: float = 0.5
+    min_visible: float = MIN_VISIBLE
     seed: int = 0
 
 
@@ -94,7 +93,7 @@ def projection_matrices(flight: FlightDir, poses: str) -> np.ndarray:
     if poses == "truth":
         R, t = flight.truth_poses()
     elif poses == "telemetry":
-        from ground.poses import telemetry_poses
+        from ground.poses.telemetry_poses import telemetry_poses
 
         R, t, _ = telemetry_poses(flight)
     else:
@@ -109,140 +108,9 @@ def projection_matrices(flight: FlightDir, poses: str) -> np.ndarray:
     return np.einsum("ij,njk->nik", K, np.concatenate([R, t[:, :, None]], axis=2))
 
 
-def match(pred: np.ndarray, truth: np.ndarray, max_dist: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One-to-one matching within max_dist (Hungarian on distance): (pred idx, truth idx, distances)."""
-    if len(pred) == 0 or len(truth) == 0:
-        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(truth)
-    pairs = tree.query_ball_point(pred, max_dist)
-    rows, cols, dist = [], [], []
-    for i, js in enumerate(pairs):
-        for j in js:
-            rows.append(i)
-            cols.append(j)
-            dist.append(np.linalg.norm(pred[i] - truth[j]))
-    if not rows:
-        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
-    # Hungarian on the predictions and truths that have a partner within reach
-    ur, uc = np.unique(rows), np.unique(cols)
-    dense = np.full((len(ur), len(uc)), 1e6)
-    dense[np.searchsorted(ur, rows), np.searchsorted(uc, cols)] = dist
-    a, b = linear_sum_assignment(dense)
-    ok = dense[a, b] < 1e6
-    r, c = ur[a[ok]], uc[b[ok]]
-    d = np.linalg.norm(pred[r] - truth[c], axis=1)
-    ok = d <= max_dist
-    return r[ok], c[ok], d[ok]
-
-
-def score_map(flight: FlightDir, pred: np.ndarray, min_visible: float = 0.5, truth_min_views: int = 3,
-              match_m: float = 0.10) -> dict:
-    """Score an apple map (N, 3), in the flight's truth ENU frame, against its truth: precision, recall
-    (against apples visible in the flight, and against all apples of the rows seen), F1, counts,
-    position errors, and per-row counts (row direction and K-means) next to the truth's."""
-    a = flight.truth_apples()
-    truth_xyz = np.stack([a["x"], a["y"], a["z"]], 1)
-    d = flight.truth_detections()
-    good = d["visible_fraction"] >= min_visible
-    ids, nviews = np.unique(d["apple_id"][good], return_counts=True)
-    visible_ids = ids[nviews >= truth_min_views]
-    is_visible = np.isin(a["apple_id"], visible_ids)
-    rows_seen = np.unique(a["row"][np.isin(a["apple_id"], np.unique(d["apple_id"]))])
-    in_rows = np.isin(a["row"], rows_seen)
-
-    pred = np.asarray(pred, float).reshape(-1, 3)
-    pi, ti, dist = match(pred, truth_xyz, match_m)
-    tp = len(pi)
-    tp_visible = int(is_visible[ti].sum())
-    count, truth_count = len(pred), int(is_visible.sum())
-    precision = tp / count if count else 0.0
-    recall = tp_visible / truth_count if truth_count else 0.0
-    f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
-
-    # rows: the truth row of each predicted apple is the nearest truth row line
-    row_x = {r: np.median(truth_xyz[a["row"] == r, :2], axis=0) for r in np.unique(a["row"])}
-    rows_pred, direction = direction_rows(pred[:, :2]) if len(pred) else (np.zeros(0, int), 0.0)
-    n_rows_seen = len(np.unique(rows_pred)) if len(pred) else 0
-    rows_km = kmeans_rows(pred[:, :2], n_rows_seen) if len(pred) else np.zeros(0, int)
-    normal = np.array([-np.sin(direction), np.cos(direction)])
-    per_row = []
-    truth_rows_x = np.array([row_x[r] @ normal for r in row_x])
-    truth_rows_id = np.array(list(row_x))
-    for lab in range(n_rows_seen):
-        sel = rows_pred == lab
-        across = np.median(pred[sel, :2] @ normal)
-        r = int(truth_rows_id[np.argmin(np.abs(truth_rows_x - across))])
-        km_sel = rows_km == lab
-        tv = int((is_visible & (a["row"] == r)).sum())
-        per_row.append({"row": r, "count": int(sel.sum()), "count_kmeans": int(km_sel.sum()),
-                        "truth_visible": tv, "truth_all": int((a["row"] == r).sum()),
-                        "count_error_pct": 100.0 * (int(sel.sum()) - tv) / tv if tv else float("nan")})
-    trees = per_tree(pred, truth_xyz[is_visible], a["row"][is_visible], truth_rows_id, truth_rows_x, direction)
-
-    return {
-        "precision": precision, "recall": recall, "f1": f1,
-        "recall_all_apples_in_rows_seen": tp / int(in_rows.sum()) if in_rows.any() else 0.0,
-        "count": count, "truth_count": truth_count,
-        "count_error_pct": 100.0 * (count - truth_count) / truth_count if truth_count else float("nan"),
-        "median_error_m": float(np.median(dist)) if tp else float("nan"),
-        "p95_error_m": float(np.percentile(dist, 95)) if tp else float("nan"),
-        "duplicates": duplicates(pred, truth_xyz),
-        "rows": per_row,
-        "worst_row_error_pct": max((abs(r["count_error_pct"]) for r in per_row
-                                    if r["truth_visible"] >= MIN_ROW_APPLES), default=float("nan")),
-        "trees": trees,
-    }
-
-
-#: Rows with fewer visible apples (the edge of the view) are left out of the per-row and per-tree scores.
-MIN_ROW_APPLES = 30
-
-
-def per_tree(pred: np.ndarray, truth: np.ndarray, truth_row: np.ndarray, rows_id: np.ndarray, rows_across: np.ndarray,
-             direction: float, bin_m: float = 1.0) -> dict:
-    """Per-tree counts against the truth: each row with at least MIN_ROW_APPLES visible apples is cut into
-    ``bin_m`` bins along the row over its visible apples' span; predicted apples go to the nearest truth row.
-    Pearson r of predicted against visible apples per bin, over all such rows' bins, and the bins' mean
-    absolute error."""
-    u = np.array([np.cos(direction), np.sin(direction)])
-    n = np.array([-u[1], u[0]])
-    pred_row = rows_id[np.argmin(np.abs(pred[:, :2] @ n - rows_across[None, :].T), axis=0)] if len(pred) else \
-        np.zeros(0, int)
-    p_all, t_all = [], []
-    for r in rows_id:
-        t_sel = truth_row == r
-        if t_sel.sum() < MIN_ROW_APPLES:
-            continue
-        ta = truth[t_sel, :2] @ u
-        lo = np.floor(ta.min())
-        nb = int(np.ceil(ta.max() - lo + 1e-9 + 1e-6 / bin_m))
-        edges = lo + np.arange(nb + 1) * bin_m
-        t_all.append(np.histogram(ta, edges)[0])
-        p_all.append(np.histogram(pred[pred_row == r, :2] @ u, edges)[0])
-    if not t_all:
-        return {"bins": 0, "r": float("nan"), "mae": float("nan")}
-    p, t = np.concatenate(p_all).astype(float), np.concatenate(t_all).astype(float)
-    r = float(np.corrcoef(p, t)[0, 1]) if len(p) > 2 and p.std() > 0 and t.std() > 0 else float("nan")
-    return {"bins": int(len(t)), "r": r, "mae": float(np.abs(p - t).mean()), "truth_mean": float(t.mean())}
-
-
-def duplicates(pred: np.ndarray, truth: np.ndarray, within_m: float = 0.15) -> int:
-    """Apples counted twice: predicted apples beyond the first whose nearest truth apple (within ``within_m``) is the
-    same one."""
-    if not len(pred) or not len(truth):
-        return 0
-    from scipy.spatial import cKDTree
-
-    d, j = cKDTree(truth).query(pred)
-    _, n = np.unique(j[d <= within_m], return_counts=True)
-    return int((n - 1).sum())
-
-
 def evaluate(flight_dir, mode: str = "windowed", params: AssociationParams | None = None,
              pert: Perturbation | None = None, detections: str = "truth", poses: str = "truth",
-             match_m: float = 0.10, baselines: bool = True, truth_min_views: int = 3,
+             match_m: float = MATCH_M, baselines: bool = True, truth_min_views: int = TRUTH_MIN_VIEWS,
              remove_pose_offset: bool = False) -> dict:
     flight = FlightDir(flight_dir)
     if not flight.has_truth:

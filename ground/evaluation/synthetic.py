@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ground.association import FrameDetections
+from ground.apples.association import FrameDetections
 from pomar.camera import Camera
 from pomar.rotations import R_GIMBAL_FROM_CAMERA_NOMINAL, camera_from_gimbal_attitude, ned_euler_to_rotation, world_to_camera
 

@@ -1,7 +1,7 @@
 """Incremental registration of keyframes with pycolmap, one keyframe at a time, at a bounded cost.
 
 For each keyframe: SIFT features, matching against the previous ``match_window`` keyframes and against the earlier
-keyframes that look at the same place (another pass of a whole-plot flight: :mod:`ground.revisit`), then the
+keyframes that look at the same place (another pass of a whole-plot flight: :mod:`ground.poses.revisit`), then the
 incremental mapper registers it into the current sub-model (2D-3D pose), triangulates its new points
 and refines locally; a global refinement runs every ``global_ba_every`` keyframes. Once a sub-model holds
 ``submodel_size`` keyframes, and its last ``overlap`` ones are not in a turn (or it holds half as many again), a
@@ -31,8 +31,8 @@ import cv2
 import numpy as np
 import pycolmap
 
-from ground.matching import match_descriptors, unit_descriptors
-from ground.revisit import Places, robust_similarity
+from ground.poses.matching import match_descriptors, unit_descriptors
+from ground.poses.revisit import Places, robust_similarity
 from pomar.align import IDENTITY, Similarity, compose, inverse
 from pomar.camera import Camera
 
@@ -365,7 +365,7 @@ class IncrementalRegistrar:
         shared = [n for n in new.names if n in old.names]
         if len(shared) < 3:
             raise RuntimeError(f"sub-models share only {len(shared)} cameras")
-        from ground.georeference import fit_similarity
+        from ground.poses.georeference import fit_similarity
 
         m_new = np.array([new.rec.find_image_with_name(n).cam_from_world().matrix() for n in shared])
         m_old = np.array([old.rec.find_image_with_name(n).cam_from_world().matrix() for n in shared])
@@ -555,7 +555,7 @@ class IncrementalRegistrar:
 
     def _place_by_priors(self, new: Submodel) -> Similarity | None:
         """new -> first frame, through ENU: each side fitted to its keyframes' telemetry (positions and axes)."""
-        from ground.georeference import fit_similarity, georeference_poses
+        from ground.poses.georeference import fit_similarity, georeference_poses
 
         def to_enu(sms: list[Submodel]) -> Similarity | None:
             names, R, t = [], [], []
@@ -585,7 +585,7 @@ class IncrementalRegistrar:
     def poses(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """World-to-camera (R, t) of every registered keyframe, in the first sub-model's frame (the latest
         sub-model wins where they overlap)."""
-        from ground.georeference import georeference_poses
+        from ground.poses.georeference import georeference_poses
 
         out = {}
         for sm in self.submodels:

@@ -1,4 +1,4 @@
-"""Mapping keyframes: pycolmap registration (:class:`ground.registration.IncrementalRegistrar`) and the
+"""Mapping keyframes: pycolmap registration (:class:`ground.poses.registration.IncrementalRegistrar`) and the
 georeferencing fit, on the caller's thread (:class:`Mapper`: lock-step replays, deterministic) or in a
 process of its own (:class:`MapperProcess`: live, so that mapping never holds up per-frame tracking;
 pycolmap's feature extraction and mapper hold Python's GIL, so a thread would).
@@ -30,10 +30,10 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from ground.georeference import fit_similarity, georeference_poses
-from ground.poses import camera_rotations
-from ground.registration import IncrementalRegistrar, RegistrationSettings, Submodel
-from ground.tracking import Reference
+from ground.poses.georeference import fit_similarity, georeference_poses
+from ground.poses.telemetry_poses import camera_rotations
+from ground.poses.registration import IncrementalRegistrar, RegistrationSettings, Submodel
+from ground.poses.tracking import Reference
 from pomar.align import Similarity, compose
 from pomar.camera import Camera
 from pomar.telemetry.base import UNSTATED_H_ACC_M
@@ -102,7 +102,7 @@ class Mapper:
 
     def add(self, frame: int, image_bgr: np.ndarray, tel, features=None) -> bool:
         """Map this keyframe now; returns whether it registered. ``features``: its SIFT features, if extracted
-        elsewhere (:class:`ground.registration.SiftExtractor`)."""
+        elsewhere (:class:`ground.poses.registration.SiftExtractor`)."""
         return self._map(frame, image_bgr, tel, features)
 
     def close(self) -> None:
@@ -459,7 +459,7 @@ class MapperProcess:
         if first_tries and self.settings.sift == "colmap" and self.sent - self.answered < self.INIT_QUEUE:
             if self.sent - self.answered >= 2:  # another waits there besides the one in work: extract here meanwhile
                 if self._sift is None:
-                    from ground.registration import SiftExtractor
+                    from ground.poses.registration import SiftExtractor
 
                     self._sift = SiftExtractor(self.settings)
                 kp, raw, _ = self._sift(image_bgr)

@@ -21,9 +21,10 @@ import numpy as np
 import pycolmap
 from scipy.spatial.transform import Rotation, Slerp
 
-from ground.georeference import fit_similarity, georeference_poses
-from ground.poses import camera_rotations, frame_telemetry, telemetry_origin, telemetry_poses
-from ground.registration import IncrementalRegistrar, RegistrationSettings
+from ground.evaluation.scoring import score_poses
+from ground.poses.georeference import fit_similarity, georeference_poses
+from ground.poses.telemetry_poses import camera_rotations, frame_telemetry, telemetry_origin, telemetry_poses
+from ground.poses.registration import IncrementalRegistrar, RegistrationSettings
 from pomar import flight as ff
 from pomar.camera import Camera
 from pomar.flight import FlightDir
@@ -160,58 +161,8 @@ def register_flight(flight_dir, out_dir, every: int = 2, scale: float = 1.0, set
         "seconds_per_keyframe_by_decile": [float(np.mean(x)) for x in np.array_split(np.array(reg.seconds), 10)] if len(reg.seconds) >= 10 else [],
     }
     if fl.has_truth:
-        result.update(score_poses(fl, R, t, source, kf))
+        result.update(score_poses(fl, R, t, source, kf, SOURCES))
     (out / "report.json").write_text(json.dumps(result, indent=2) + "\n")
     return result
 
 
-def score_poses(fl: FlightDir, R: np.ndarray, t: np.ndarray, source: np.ndarray, kf: np.ndarray) -> dict:
-    """Errors in ENU against truth/frames.csv (after georeferencing, no fresh alignment)."""
-    R_true, t_true = fl.truth_poses()
-    C, C_true = -np.einsum("nji,nj->ni", R, t), -np.einsum("nji,nj->ni", R_true, t_true)
-    pos = np.linalg.norm(C - C_true, axis=1)
-    rot = np.degrees(np.linalg.norm(Rotation.from_matrix(np.einsum("nij,nkj->nik", R, R_true)).as_rotvec(), axis=1))
-    e = apple_reprojection_errors(fl, R, t, R_true, t_true)
-    reg = source == "registered"
-    out = {
-        "position_error_median_m": float(np.median(pos[reg])) if reg.any() else float("nan"),
-        "position_error_p95_m": float(np.percentile(pos[reg], 95)) if reg.any() else float("nan"),
-        "rotation_error_median_deg": float(np.median(rot[reg])) if reg.any() else float("nan"),
-        "apple_reprojection_error_median_px": float(np.median(e)) if len(e) else float("nan"),
-        "by_source": {src: {"frames": int((source == src).sum()),
-                            "position_error_median_m": float(np.median(pos[source == src])) if (source == src).any() else None,
-                            "rotation_error_median_deg": float(np.median(rot[source == src])) if (source == src).any() else None}
-                      for src in SOURCES},
-    }
-    # the same after removing the mean position offset: what is left once the GPS bias is set aside
-    off = (C - C_true)[reg].mean(0) if reg.any() else np.zeros(3)
-    out["mean_offset_enu_m"] = off.tolist()
-    out["position_error_median_without_mean_offset_m"] = float(np.median(np.linalg.norm(C[reg] - off - C_true[reg], axis=1))) if reg.any() else float("nan")
-    # the model's own accuracy: the registered poses taken onto the true ones by the best similarity
-    # (positions and orientations, as georeferencing fits it), then the true apples reprojected
-    if reg.sum() >= 3:
-        fit = fit_similarity(C[reg], C_true[reg], 0.01, R[reg], R_true[reg], np.radians(0.05))
-        R_s, t_s = georeference_poses(R[reg], t[reg], fit.similarity)
-        R_a, t_a = R.copy(), t.copy()
-        R_a[reg], t_a[reg] = R_s, t_s
-        e = apple_reprojection_errors(fl, R_a, t_a, R_true, t_true, frames=np.flatnonzero(reg))
-        out["apple_reprojection_error_after_similarity_median_px"] = float(np.median(e)) if len(e) else float("nan")
-    return out
-
-
-def apple_reprojection_errors(fl: FlightDir, R, t, R_true, t_true, frames=None) -> np.ndarray:
-    """Pixel distances between the true apples (at least half visible) projected through (R, t) and
-    through the true poses, over ``frames`` (default all)."""
-    cam = fl.camera()
-    a, d = fl.truth_apples(), fl.truth_detections()
-    X = np.stack([a["x"], a["y"], a["z"]], 1)
-    errs = []
-    for f in np.unique(d["frame"]) if frames is None else frames:
-        sel = (d["frame"] == f) & (d["visible_fraction"] >= 0.5)
-        if not sel.any():
-            continue
-        idx = np.searchsorted(a["apple_id"], d["apple_id"][sel])
-        uv, _ = cam.project(X[idx], R[f], t[f])
-        uv_t, _ = cam.project(X[idx], R_true[f], t_true[f])
-        errs.append(np.linalg.norm(uv - uv_t, axis=1))
-    return np.concatenate(errs) if errs else np.zeros(0)

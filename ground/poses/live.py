@@ -1,7 +1,7 @@
 """Camera poses for a live flight: the one pose interface the pipeline hands its frames to.
 
-Behind it, two modules: :mod:`ground.tracking` gives every frame that carries an image a pose from its own
-pixels against the map (KLT + PnP, milliseconds), and :mod:`ground.mapping` registers the *mapping
+Behind it, two modules: :mod:`ground.poses.tracking` gives every frame that carries an image a pose from its own
+pixels against the map (KLT + PnP, milliseconds), and :mod:`ground.poses.mapping` registers the *mapping
 keyframes* the tracker proposes (pycolmap, in its own process when live) and georeferences the model. Fed each
 frame's telemetry and each image in frame order, it says when a frame's pose can be decided and gives it
 with its source and uncertainty:
@@ -31,11 +31,11 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from ground.georeference import drift_offsets, georeference_poses
-from ground.mapping import KeyframeTelemetry, Mapper, MapperProcess, MappingWorker
-from ground.poses import camera_rotations
-from ground.registration import RegistrationSettings
-from ground.tracking import Tracker, TrackingSettings
+from ground.poses.georeference import drift_offsets, georeference_poses
+from ground.poses.mapping import KeyframeTelemetry, Mapper, MapperProcess, MappingWorker
+from ground.poses.telemetry_poses import camera_rotations
+from ground.poses.registration import RegistrationSettings
+from ground.poses.tracking import Tracker, TrackingSettings
 from pomar.align import IDENTITY, Similarity, compose, inverse
 from pomar.camera import Camera
 from pomar.geo import Origin
@@ -307,7 +307,7 @@ class LivePoses:
     def drift_correction(self, frames, sigma_frames: float) -> np.ndarray:
         """ENU offsets (n, 3) to add at these frames to what :meth:`to_enu` gives: where the GPS of the registered
         keyframes around them (Gaussian, ``sigma_frames``) disagrees with the map after its one similarity
-        (:func:`ground.georeference.drift_offsets`). Zero without a model, with ``sigma_frames`` 0, or while the
+        (:func:`ground.poses.georeference.drift_offsets`). Zero without a model, with ``sigma_frames`` 0, or while the
         corrections spread less than DRIFT_MIN_GPS_SIGMAS x the GPS accuracy along the flight (``drift_m``)."""
         zeros = np.zeros((len(np.atleast_1d(frames)), 3))
         S = self.fit

@@ -26,6 +26,85 @@ from pathlib import Path
 
 import numpy as np
 
+def _drift_sigma_frames(pipe) -> float:
+    return pipe.s.drift_sigma_s * (pipe.fps or 0.0)
+
+
+def apples_enu(pipe, A: list) -> np.ndarray:
+    """(N, 3) ENU positions of these apples (ground.apples.association.Apple, in the association frame of a
+    ground.pipeline.GroundPipeline): the map's similarity, then the drift correction averaged over the frames each
+    apple was seen in (an apple seen again on a later pass takes both stretches' corrections)."""
+    X = np.array([a.X for a in A]).reshape(-1, 3)
+    if pipe.poses is None or not len(X):
+        return X
+    seen = [[pipe.frames.frame[o.frame] for o in a.observations] for a in A]
+    frames = np.unique(np.concatenate(seen))
+    off = dict(zip(frames.tolist(), pipe.poses.drift_correction(frames, _drift_sigma_frames(pipe))))
+    return pipe.poses.to_enu(X) + np.array([np.mean([off[f] for f in fs], 0) for fs in seen])
+
+
+def _geodetic(pipe, enu: np.ndarray) -> np.ndarray:
+    """(N, 3) lat, lon, alt of ENU points; NaN before the map is georeferenced."""
+    if pipe.poses is None or pipe.poses.origin is None or not len(enu):
+        return np.full((len(enu), 3), np.nan)
+    return np.asarray(pipe.poses.origin.to_geodetic(enu)).reshape(-1, 3)
+
+
+def apple_table(pipe) -> tuple[dict[str, np.ndarray], float]:
+    """The counted apples of a ground.pipeline.GroundPipeline as columns (APPLE_COLUMNS: ENU, WGS84, row 1..N left
+    to right looking along the row direction, radius in metres ...), and the rows' direction (rad)."""
+    from ground.apples.rows import direction_rows
+
+    ids = pipe.count.counted_ids()
+    A = [pipe.count.apples[i] for i in ids]
+    enu = apples_enu(pipe, A)
+    geo = _geodetic(pipe, enu)
+    rows, direction = direction_rows(enu[:, :2]) if len(A) >= 2 else (np.zeros(len(A), int), 0.0)
+    return {"id": np.array(ids, int), "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
+            "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
+            "row": np.asarray(rows, int) + 1,
+            "radius_m": np.array([pipe.count.radius.get(i, np.nan) for i in ids], float) * pipe.metres_per_unit(),
+            "observations": np.array([a.n_observations for a in A], int),
+            "reprojection_error_px": np.array([a.reprojection_error for a in A], float),
+            "first_frame": np.array([pipe.frames.frame[a.first_frame] for a in A], int),
+            "last_frame": np.array([pipe.frames.frame[a.last_frame] for a in A], int)}, direction
+
+
+def candidate_table(pipe) -> dict[str, np.ndarray]:
+    """Every apple the count was chosen from (the counting's checks, with each apple's position, ENU and WGS84, its
+    radius in metres and its first and last frame): candidates.csv's columns."""
+    c = pipe.count.checks(all_expected=True)
+    A = [pipe.count.apples[i] for i in c["id"]]
+    enu = apples_enu(pipe, A)
+    geo = _geodetic(pipe, enu)
+    radius = c.pop("radius") * pipe.metres_per_unit()
+    return {**c, "radius_m": radius, "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
+            "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
+            "first_frame": np.array([pipe.frames.frame[a.first_frame] for a in A], int),
+            "last_frame": np.array([pipe.frames.frame[a.last_frame] for a in A], int)}
+
+
+def pose_table(pipe) -> dict[str, np.ndarray]:
+    """Every mapped frame's camera: frame, capture time, source, centre (ENU and WGS84), ENU-to-camera quaternion."""
+    from scipy.spatial.transform import Rotation
+
+    frames = sorted(pipe.frames.poses)
+    P = [pipe.frames.poses[f] for f in frames]
+    if not P or pipe.poses is None:
+        return {k: np.zeros(0) for k in ("frame", "t_unix", "source", "x", "y", "z", "lat", "lon", "alt",
+                                         "qw", "qx", "qy", "qz", "sigma_m")}
+    S = pipe.poses.assoc_to_enu()
+    C = S.apply(np.array([p.centre for p in P])) + pipe.poses.drift_correction(frames, _drift_sigma_frames(pipe))
+    R = np.array([p.R for p in P]) @ S.R.T  # ENU-to-camera
+    q = Rotation.from_matrix(R).as_quat()  # xyzw
+    geo = np.asarray(pipe.poses.origin.to_geodetic(C)).reshape(-1, 3) if pipe.poses.origin else np.full(C.shape, np.nan)
+    return {"frame": np.array(frames), "t_unix": np.array([pipe.frame_times.get(f, np.nan) for f in frames]),
+            "source": np.array([p.source for p in P], dtype=object), "x": C[:, 0], "y": C[:, 1], "z": C[:, 2],
+            "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
+            "qw": q[:, 3], "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2],
+            "sigma_m": np.array([p.sigma_m for p in P])}
+
+
 APPLE_COLUMNS = ["id", "x", "y", "z", "lat", "lon", "alt", "row", "radius_m", "observations", "reprojection_error_px",
                  "first_frame", "last_frame"]
 ROW_COLUMNS = ["row", "count", "length_m", "apples_per_m", "start_x", "start_y", "end_x", "end_y",

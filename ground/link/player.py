@@ -21,7 +21,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ground.journal import JournalError, read_journal_report
+from ground.link.journal import JournalError, read_journal_report
 from pomar import wire
 
 log = logging.getLogger(__name__)

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ground.journal import Journal, read_journal_report
-from ground.outputs import (candidates_csv, harvest_correlation, poses_csv, read_harvest, write_atomic, write_json,
-                            write_map)
+from ground.link.journal import Journal, read_journal_report
+from ground.outputs.tables import (apple_table, candidate_table, candidates_csv, harvest_correlation, pose_table,
+                                   poses_csv, read_harvest, write_atomic, write_json, write_map)
 from ground.pipeline import GroundPipeline, GroundSettings
 from pomar import wire
 
@@ -87,7 +87,7 @@ class GroundNode:
         self.pipe = GroundPipeline(self.out / "work", self.settings)
         self._rr_args = (self.out / "flight.rrd" if rrd is True else (rrd or None), serve, viewer)
         if any(self._rr_args):
-            import ground.rerun_log  # noqa: F401  (now: rerun imports slowly, and the first frames would wait for it)
+            import ground.outputs.rerun_log  # noqa: F401  (now: rerun imports slowly, and the first frames would wait for it)
         self.rr = None
         self.harvest = read_harvest(harvest) if harvest else None
         self.refresh_s = refresh_s
@@ -113,7 +113,7 @@ class GroundNode:
 
     def _rerun(self):
         if self.rr is None and self.pipe.flight_id is not None and any(self._rr_args):
-            from ground.rerun_log import RerunLog
+            from ground.outputs.rerun_log import RerunLog
 
             rrd, serve, viewer = self._rr_args
             self.rr = RerunLog(self.pipe.flight_id, rrd, serve, viewer)
@@ -160,7 +160,7 @@ class GroundNode:
         eta = f", ETA {(n - mapped) / fps:.0f} s" if n and fps == fps and fps > 0 else ""
         rejected = sum(self.stream.rejected.values()) if self.stream else 0
         log.info("frames %d received, %d%s mapped (%.1f fps%s), keyframes %d, apples %d, wall %.0f s%s",
-                 c["frames"], mapped, f"/{n}" if n else "", fps, eta, c["keyframes"], len(self.pipe.apples),
+                 c["frames"], mapped, f"/{n}" if n else "", fps, eta, c["keyframes"], len(self.pipe.count.apples),
                  now - self.t_start, f", {rejected} messages rejected" if rejected else "")
 
     def _log_events(self, events):
@@ -232,22 +232,22 @@ class GroundNode:
         self._last_refresh = time.monotonic()
         if self._trim is not None:  # hand freed heap back to the system: the map's arrays are rebuilt at each refresh
             self._trim(0)
-        table = self.pipe.table()
+        table, direction = apple_table(self.pipe)
         poses = self.pipe.poses
-        rows = write_map(self.out, table, getattr(self.pipe, "row_direction", 0.0),
-                         poses.origin if poses is not None else None, self.settings.tree_spacing_m)
-        cams = self.pipe.pose_table()
+        rows = write_map(self.out, table, direction, poses.origin if poses is not None else None,
+                         self.settings.tree_spacing_m)
+        cams = pose_table(self.pipe)
         write_atomic(self.out / "poses.csv", poses_csv(cams))
         if final:
-            write_atomic(self.out / "candidates.csv", candidates_csv(self.pipe.candidates()))
+            write_atomic(self.out / "candidates.csv", candidates_csv(candidate_table(self.pipe)))
         report = self.report(table, rows, final)
         rr = self._rerun()
         if rr is not None and self.pipe.released >= 0:
-            from ground.rerun_log import summary_markdown
+            from ground.outputs.rerun_log import summary_markdown
 
             drone = [cams["lat"][-1], cams["lon"][-1]] if len(cams["frame"]) else None
             rr.apples(self.pipe.released, self.pipe.frame_times.get(self.pipe.released, float("nan")), table,
-                      self.pipe.apples, rows, drone_latlon=drone, force=True,
+                      self.pipe.count.apples, rows, drone_latlon=drone, force=True,
                       points=poses.sparse_points() if poses is not None else None,
                       summary=summary_markdown(report, self._live),
                       trajectory_latlon=np.stack([cams["lat"], cams["lon"]], 1)[::5] if len(cams["frame"]) else None)
@@ -261,10 +261,7 @@ class GroundNode:
         r = {
             "flight_id": p.flight_id, "drone_id": p.drone_id, "final": final,
             "apples": int(len(table["id"])), "rows": rows,
-            "counting": {"confirmed": len(p.apples), "min_radius_ratio": self.settings.min_radius_ratio,
-                         "left_out_small": p.size_rejected, "min_view_ratio": self.settings.min_view_ratio,
-                         "left_out_few_views": p.views_rejected,
-                         "min_parallax_deg": self.settings.min_parallax_deg, "left_out_narrow": p.parallax_rejected},
+            "counting": p.count.report(),
             "frames": dict(p.counters), "gaps": p.gaps[:100],
             # what share of the mapped frames got each kind of pose
             "pose_shares": {k: p.counters[k] / max(1, sum(p.counters[j] for j in POSE_SOURCES)) for k in POSE_SOURCES},
@@ -304,7 +301,7 @@ class GroundNode:
             # poses given earlier, corrected as the mapper moved the keyframes about them; the apples triangulated again
             "corrections": dict(p.corrections),
             "association": {"params": vars(self.settings.association).copy(), "stats": dict(p.assoc.stats),
-                            "strong_views_needed": p.views_needed(),
+                            "strong_views_needed": p.count.views_needed(p.steps),
                             # the association frame's unit in metres: its first georeference's scale error
                             "metres_per_unit": p.metres_per_unit()},
             "timings": {"wall_seconds": time.monotonic() - self.t_start,

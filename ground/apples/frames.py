@@ -1,0 +1,47 @@
+"""The frames the association was fed, in the order they went: its frame numbers 0, 1, 2 ... (whatever indices the
+stream skipped: a real-time onboard node drops frames, and the association counts the frames it got), each one's
+frame index, pose and camera matrix, corrected as the mapper moves the keyframes about them."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class AssociationFrames:
+    def __init__(self):
+        self.frame: list[int] = []  # association frame -> frame index
+        self.seq: dict[int, int] = {}  # frame index -> association frame
+        self.P: list[np.ndarray] = []  # association frame -> camera matrix (association frame of reference)
+        self.poses: dict = {}  # frame index -> its pose (ground.poses.live.Pose), corrected since
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    @property
+    def newest(self) -> int:
+        """The newest association frame (-1 before the first)."""
+        return len(self.frame) - 1
+
+    def add(self, frame: int, pose, P: np.ndarray) -> int:
+        """A frame fed to the association; returns its association frame number."""
+        seq = len(self.frame)
+        self.frame.append(frame)
+        self.seq[frame] = seq
+        self.P.append(P)
+        self.poses[frame] = pose
+        return seq
+
+    def correct(self, frame: int, pose, P: np.ndarray) -> int:
+        """A fed frame's corrected pose; returns its association frame number."""
+        seq = self.seq[frame]
+        self.poses[frame] = pose
+        self.P[seq] = P
+        return seq
+
+    def pose_at(self, seq: int):
+        """The pose of an association frame (None where it has none)."""
+        return self.poses.get(self.frame[seq]) if 0 <= seq < len(self.frame) else None
+
+    def projections(self) -> np.ndarray:
+        """Every association frame's camera matrix, (N, 3, 4)."""
+        return np.asarray(self.P).reshape(-1, 3, 4)

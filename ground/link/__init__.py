@@ -1,0 +1,1 @@
+"""The link: the ground node's zenoh stream in (node), the journal it keeps of it, and the player that sends a recorded one again."""

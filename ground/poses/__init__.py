@@ -1,0 +1,1 @@
+"""Poses: every frame's camera, tracked against the map (tracking), keyframes mapped by incremental pycolmap (mapping, registration, matching, revisit), georeferenced by the telemetry (georeference, telemetry_poses); live.LivePoses wires them."""
