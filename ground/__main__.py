@@ -24,9 +24,11 @@ def _cmd_evaluate(args) -> int:
     from ground.apples.association import AssociationParams
     from ground.evaluation.evaluate import Perturbation, evaluate, format_table
 
-    params = AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom,
-                               ransac_iterations=args.ransac_iterations, min_inliers=args.min_inliers,
-                               max_paths=args.max_paths, merge_search_m=args.merge_search_m, seed=args.seed)
+    from dataclasses import replace
+
+    from pomar.settings import from_options
+
+    params = replace(from_options(AssociationParams(), args, EVALUATE_ASSOCIATION_FIELDS), seed=args.seed)
     pert = Perturbation(args.noise_px, args.miss, args.fp, args.dup, args.min_visible, args.seed)
     results = [evaluate(args.flight_dir, mode, params, pert, args.detections, args.poses, args.match_m,
                         baselines=(i == 0), truth_min_views=args.truth_min_views,
@@ -55,27 +57,20 @@ def _cmd_register(args) -> int:
 
 
 def _settings(args):
-    from ground.apples.association import AssociationParams
-    from ground.apples.counting import CountingSettings
-    from ground.pipeline import GroundSettings
-    from ground.poses.tracking import TrackingSettings
+    from dataclasses import replace
 
-    return GroundSettings(association=AssociationParams(k=args.k, tau_epipolar=args.tau_epipolar, tau_geom=args.tau_geom,
-                                                        min_inliers=args.min_inliers, cross_pass=not args.no_cross_pass,
-                                                        max_merge_shift_m=args.max_merge_shift_m,
-                                                        merge_window=args.merge_window),
-                          registration=_registration_settings(args),
-                          max_wait_s=args.max_wait_s, mapping=args.mapping, init_spacing_s=args.init_spacing_s,
-                          correction_every_s=args.correction_every_s, drift_sigma_s=args.drift_sigma_s,
-                          tracking=TrackingSettings(min_tracked_share=args.min_tracked_share,
-                                                    min_share_to_go_on=args.min_share_to_go_on,
-                                                    max_points=args.track_points),
-                          min_score=args.min_score,
-                          counting=CountingSettings(confirm_score=args.confirm_score, confirm_views=args.confirm_views,
-                                                    min_radius_ratio=args.min_radius_ratio,
-                                                    min_view_ratio=args.min_view_ratio,
-                                                    min_parallax_deg=args.min_parallax_deg),
-                          tree_spacing_m=args.tree_spacing_m)
+    from ground.pipeline import profile
+    from pomar.settings import from_options
+
+    g = profile("live")
+    try:
+        return replace(from_options(g, args, GROUND_FIELDS),
+                       association=from_options(g.association, args, ASSOCIATION_FIELDS),
+                       registration=from_options(g.registration, args, REGISTRATION_FIELDS),
+                       tracking=from_options(g.tracking, args, TRACKING_FIELDS),
+                       counting=from_options(g.counting, args, COUNTING_FIELDS))
+    except ValueError as exc:  # a bad combination of options: say so, without a traceback
+        raise SystemExit(f"ground: {exc}") from None
 
 
 def _cmd_run(args) -> int:
@@ -193,37 +188,34 @@ def _cmd_replay(args) -> int:
     return 0
 
 
-def _registration_options(p, init_frames: int | None = None):
-    """Registration's options; ``init_frames``: this command's default (the ground's live default differs from
-    a batch registration's)."""
-    from ground.poses.registration import RegistrationSettings
+#: The settings' fields that are options of `ground run` (and of `ground replay`, which hands them to it); each
+#: option's name, default and help come from its field (pomar.settings).
+ASSOCIATION_FIELDS = ["k", "tau_epipolar", "tau_geom", "min_inliers", "cross_pass", "merge_window", "max_merge_shift_m"]
+REGISTRATION_FIELDS = ["max_num_features", "match_window", "sift", "init_frames", "sift_width", "upright", "revisit"]
+TRACKING_FIELDS = ["min_share_to_go_on", "min_tracked_share", "max_points"]
+COUNTING_FIELDS = ["confirm_score", "confirm_views", "min_radius_ratio", "min_view_ratio", "min_parallax_deg"]
+EVALUATE_ASSOCIATION_FIELDS = ["k", "tau_epipolar", "tau_geom", "ransac_iterations", "min_inliers", "max_paths",
+                               "merge_search_m"]
+GROUND_FIELDS = ["max_wait_s", "max_interp_gap", "mapping", "correction_every_s", "init_spacing_s", "min_score",
+                 "tree_spacing_m", "drift_sigma_s"]
 
-    p.add_argument("--max-features", type=int, default=RegistrationSettings.max_num_features,
-                   help="registration: SIFT features per keyframe")
-    p.add_argument("--match-window", type=int, default=RegistrationSettings.match_window,
-                   help="registration: match each keyframe against this many previous ones")
-    p.add_argument("--sift", choices=["opencv", "colmap"], default=RegistrationSettings.sift,
-                   help="registration: SIFT implementation (the mapper reads only keypoints and verified matches)")
-    p.add_argument("--init-frames", type=int, default=init_frames or RegistrationSettings.init_frames,
-                   help="registration: keyframes the first model is made from (live, frames wait for it; default %(default)s)")
-    p.add_argument("--sift-width", type=int, default=RegistrationSettings.sift_width,
-                   help="registration: SIFT on keyframes shrunk to at most this width (0: their own size; default "
-                        "%(default)s): a cheaper mapper for a laptop that cannot keep up, at a cost in accuracy "
-                        "(README: Benchmarks)")
-    p.add_argument("--upright", action="store_true",
-                   help="registration: SIFT without orientation (faster; for a camera that does not rotate in the image plane)")
-    p.add_argument("--no-revisit", action="store_true",
-                   help="registration: match keyframes only against the previous ones, not against earlier keyframes "
-                        "of the same place (other passes); a baseline for whole-plot flights")
+
+def _registration_options(p, settings=None):
+    """Registration's options, with ``settings``' values (a RegistrationSettings) as defaults."""
+    from ground.poses.registration import RegistrationSettings
+    from pomar.settings import add_options
+
+    add_options(p, settings or RegistrationSettings(), REGISTRATION_FIELDS, prefix="registration: ")
 
 
 def _registration_settings(args, **extra):
+    from dataclasses import replace
+
     from ground.poses.registration import RegistrationSettings
+    from pomar.settings import from_options
 
     try:
-        return RegistrationSettings(max_num_features=args.max_features, match_window=args.match_window, sift=args.sift,
-                                    upright=args.upright, init_frames=args.init_frames, revisit=not args.no_revisit,
-                                    sift_width=args.sift_width, **extra)
+        return replace(from_options(RegistrationSettings(), args, REGISTRATION_FIELDS), **extra)
     except ValueError as exc:  # a bad combination of options: say so, without a traceback
         raise SystemExit(f"ground: {exc}") from None
 
@@ -238,76 +230,30 @@ def _ground_argv(args) -> list[str]:
         if not a.option_strings or a.dest == "mapping":
             continue
         value = getattr(args, a.dest)
-        if a.nargs == 0:  # a switch
-            out += [a.option_strings[0]] if value else []
+        if a.nargs == 0:  # a switch: --x or --no-x
+            out += [a.option_strings[0] if value else a.option_strings[1]]
         else:
             out += [a.option_strings[0], str(value)]
     return out
 
 
 def _ground_options(p):
-    from ground.pipeline import GroundSettings
+    """`ground run`'s settings as options, the live profile's values their defaults."""
+    from ground.pipeline import profile
+    from pomar.settings import add_options
 
-    g = GroundSettings()
-    a = g.association
-    p.add_argument("--k", type=int, default=a.k, help="association: frames ahead linked")
-    p.add_argument("--tau-epipolar", type=float, default=a.tau_epipolar, help="association: epipolar gate, px")
-    p.add_argument("--tau-geom", type=float, default=a.tau_geom, help="association: RANSAC inlier threshold, px")
-    p.add_argument("--min-inliers", type=int, default=a.min_inliers, help="association: views an apple needs")
-    p.add_argument("--no-cross-pass", action="store_true",
-                   help="association: merge an apple only with apples of the last merge window (one pass), not with "
-                        "the whole map (the behaviour before cross-pass identity; a baseline)")
-    p.add_argument("--merge-window", type=int, default=a.merge_window,
-                   help="association: frames an emitted apple stays a candidate for the window's merge test; older "
-                        "apples (another pass) take the stricter cross-pass test")
-    p.add_argument("--max-merge-shift-m", type=float, default=a.max_merge_shift_m,
-                   help="association: an apple from another pass merges only if their joint position stays within "
-                        "this of the better-seen one (m); 0 = off")
-    _registration_options(p, g.registration.init_frames)
-    p.add_argument("--max-wait-s", type=float, default=5.0,
-                   help="live, frames wait for the keyframe after them unless no keyframe came for this long (s); with "
-                        "--mapping inline, until the stream ends")
-    p.add_argument("--mapping", choices=("process", "inline"), default="process",
-                   help="process: mapping keyframes are registered in a process of their own, and every frame is "
-                        "tracked against the map meanwhile (live); inline: each is registered before the frames after it go "
-                        "on (deterministic; a lock-step replay uses it)")
-    p.add_argument("--correction-every-s", type=float, default=g.correction_every_s,
-                   help="live (--mapping process): correct the poses given out, and the apples seen in them, at most "
-                        "this often as the mapper refines its keyframes (s); lock-step corrects after every keyframe")
-    p.add_argument("--init-spacing-s", type=float, default=g.init_spacing_s,
-                   help="before the first model, the mapper takes images at least this far apart (capture time, s)")
-    p.add_argument("--min-share-to-go-on", type=float, default=g.tracking.min_share_to_go_on,
-                   help="live: below this share of the last keyframe's points, and with the mapper busy, the frames "
-                        "wait for the mapper (the map must not fall too far behind)")
-    p.add_argument("--min-tracked-share", type=float, default=g.tracking.min_tracked_share,
-                   help="a frame becomes a mapping keyframe when it holds less than this share of the points of the "
-                        "last one")
-    p.add_argument("--track-points", type=int, default=g.tracking.max_points,
-                   help="tracking: at most this many points of each keyframe are followed into the frames (KLT's "
-                        "cost grows with them)")
-    p.add_argument("--min-score", type=float, default=0.0, help="ignore detections scored below this")
-    p.add_argument("--confirm-score", type=float, default=g.counting.confirm_score,
-                   help="an apple counts once --confirm-views of its views scored this much")
-    p.add_argument("--confirm-views", type=int, default=g.counting.confirm_views, help="see --confirm-score")
-    p.add_argument("--min-radius-ratio", type=float, default=g.counting.min_radius_ratio,
-                   help="size check: an apple counts only if its radius (boxes x depth) is at least this fraction of "
-                        "the map's median (a partly hidden apple looks small); 0 = off")
-    p.add_argument("--min-view-ratio", type=float, default=g.counting.min_view_ratio,
-                   help="expected views: an apple counts only if detected in at least this share of the mapped frames "
-                        "it projects into (one glimpsed through leaves is not); 0 = off")
-    p.add_argument("--min-parallax-deg", type=float, default=g.counting.min_parallax_deg,
-                   help="parallax: an apple counts only if the rays from its first and last views meet at this angle "
-                        "or more, degrees (narrower leaves its depth a guess); 0 = off")
-    p.add_argument("--tree-spacing-m", type=float, default=g.tree_spacing_m,
-                   help="trees along a row are this far apart (m): trees.csv counts apples per tree segment")
-    p.add_argument("--drift-sigma-s", type=float, default=g.drift_sigma_s,
-                   help="the map's drift corrected from the GPS: apples and cameras moved by the GPS's "
-                        "disagreement with the map, fitted over this much flight around them (Gaussian sigma, s), where "
-                        "the map drifted well beyond the GPS's accuracy; 0 = one similarity for the whole map")
+    g = profile("live")
+    add_options(p, g.association, ASSOCIATION_FIELDS, prefix="association: ")
+    _registration_options(p, g.registration)
+    add_options(p, g.tracking, TRACKING_FIELDS, prefix="tracking: ")
+    add_options(p, g.counting, COUNTING_FIELDS, prefix="counting: ")
+    add_options(p, g, GROUND_FIELDS)
 
 
 def main(argv=None) -> int:
+    from ground.apples.association import AssociationParams
     from ground.evaluation import scoring
+    from pomar.settings import add_options
     from ground.evaluation.evaluate import __doc__ as evaluate_doc
     from pomar.flight import id_argument
 
@@ -327,13 +273,7 @@ def main(argv=None) -> int:
     e.add_argument("--min-visible", type=float, default=scoring.MIN_VISIBLE,
                    help="the truth's apples counted: at least this visible (fraction)")
     e.add_argument("--mode", nargs="+", default=["windowed"], choices=["offline", "windowed"])
-    e.add_argument("--k", type=int, default=5)
-    e.add_argument("--tau-epipolar", type=float, default=4.0)
-    e.add_argument("--tau-geom", type=float, default=3.0)
-    e.add_argument("--ransac-iterations", type=int, default=50)
-    e.add_argument("--min-inliers", type=int, default=3)
-    e.add_argument("--max-paths", type=int, default=500, help="offline DFS bound per node")
-    e.add_argument("--merge-search-m", type=float, default=1.0, help="merge duplicate apples (one apple seen twice) within this distance when their views agree; 0 = the paper as is")
+    add_options(e, AssociationParams(), EVALUATE_ASSOCIATION_FIELDS, prefix="association: ")
     e.add_argument("--match-m", type=float, default=scoring.MATCH_M, help="a predicted apple matches a true one within this (m)")
     e.add_argument("--remove-pose-offset", action="store_true",
                    help="score the map's shape: subtract the poses' mean camera offset from truth (the GPS bias)")

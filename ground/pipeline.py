@@ -52,10 +52,12 @@ class GroundSettings:
     #: Live, frames wait for the keyframe after them; when no keyframe has come for this long, they go on
     #: with interpolated or telemetry poses. Lock-step they wait for it until the stream ends.
     max_wait_s: float = 5.0
+    #: A frame without a pose of its own is interpolated between the nearest posed frames only when they are at most
+    #: this many frames apart (else it takes its telemetry pose).
     max_interp_gap: int = 10
     #: "inline": each mapping keyframe is registered before the frames after it go on (lock-step replays:
     #: deterministic); "process": mapping runs in its own process and never holds up tracking (live).
-    mapping: str = "inline"
+    mapping: str = field(default="inline", metadata={"choices": ["inline", "process"]})
     tracking: TrackingSettings = field(default_factory=TrackingSettings)
     #: Before the first model, the mapper takes images at least this far apart in capture time: its baseline is
     #: then the same at any frame rate (at 30 fps, 6 consecutive images span too little flight for a model).
@@ -73,6 +75,17 @@ class GroundSettings:
     #: apple by its views' mean; 0 = one similarity for the whole map. Wider than the GPS error's wander (tens of
     #: seconds), so that it stays out of the map's shape; and only where the map drifted (LivePoses.drift_correction).
     drift_sigma_s: float = 60.0
+
+
+#: Where lock-step and live need other settings, one profile each: lock-step (a replay that waits for every frame)
+#: maps each keyframe before the frames after it go on, so that a stream gives one map; live maps in a process of
+#: its own, which never holds up tracking.
+PROFILES = {"lockstep": {"mapping": "inline"}, "live": {"mapping": "process"}}
+
+
+def profile(name: str) -> GroundSettings:
+    """The ground's settings for a profile of PROFILES."""
+    return GroundSettings(**PROFILES[name])
 
 
 @dataclass

@@ -166,12 +166,14 @@ def _cmd_live(args) -> int:
                            args.keyframe_width, args.jpeg_quality, args.clock_offset_s, play_fps=args.play_fps,
                            max_frames=args.max_frames, duration_s=args.duration, detector_scale=args.detector_scale)
         print(json.dumps(summary, indent=2))
+        if summary["error"]:
+            print(f"error: {summary['error']}", file=sys.stderr)
     finally:
         telemetry.close()
         from pomar.transport import linger_and_close
 
         linger_and_close(session, pub, args.linger)
-    return 0
+    return 1 if summary["error"] else 0
 
 
 def _detector_options(r):

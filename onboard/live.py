@@ -17,11 +17,12 @@ import time
 
 import numpy as np
 
-from onboard.node import KeyframePolicy, encode_jpeg, sent_keyframe_width
+from onboard.loop import Capture, publish_frames, sent_keyframe_width
+from onboard.node import KeyframePolicy
 from onboard.sources import LatestFrame, VideoSource
 from pomar import wire
 from pomar.camera import Camera
-from pomar.apple_scale import policy_for, scale_summary, telemetry_radius_px
+from pomar.apple_scale import policy_for, telemetry_radius_px
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +59,41 @@ def sample_when_bracketed(telemetry, t: float, deadline: float) -> dict:
         time.sleep(0.02)
 
 
+class LiveFrames:
+    """A camera or stream as a frame source (onboard.loop): the newest frame, its capture time this computer's clock
+    when it was read plus ``clock_offset_s`` (camera minus autopilot clock), its telemetry sampled from the live link
+    once every stream has a sample after the capture (at most ``telemetry_max_wait_s``); the apple size each frame
+    is detected at is the one the previous frame's telemetry foresaw (the height changes slowly)."""
+
+    def __init__(self, camera_url, telemetry, camera_fx: float, clock_offset_s: float = 0.0,
+                 telemetry_max_wait_s: float = 1.0, play_fps: float | None = None):
+        self._frames = StampedFrames(VideoSource(camera_url), fps=play_fps)
+        self.telemetry_link, self.fx = telemetry, camera_fx
+        self.clock_offset_s, self.max_wait_s, self.play_fps = clock_offset_s, telemetry_max_wait_s, play_fps
+        self._expected = float("nan")
+
+    read = property(lambda self: self._frames.read)
+    dropped = property(lambda self: self._frames.dropped)
+    error = property(lambda self: self._frames.error)
+
+    def __iter__(self):
+        for i, img in self._frames:
+            t_read = self._frames.read_time.get(i, time.time())
+            yield Capture(i, img, t_read, t_read + self.clock_offset_s)
+
+    def period_s(self, t0: float) -> float:
+        """The camera's frame period: the rate asked for, else the rate frames have come at so far."""
+        return 1.0 / self.play_fps if self.play_fps else (time.monotonic() - t0) / max(self._frames.read - 1, 1)
+
+    def expected_radius(self, i: int) -> float:
+        return self._expected
+
+    def telemetry(self, c: Capture) -> dict:
+        s = sample_when_bracketed(self.telemetry_link, c.t_capture, c.t_read + self.max_wait_s)
+        self._expected = float(telemetry_radius_px(self.fx, s)[0])
+        return s
+
+
 def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str, publisher, detector,
              keyframes: KeyframePolicy, keyframe_width: int = 960, jpeg_quality: int = 85, clock_offset_s: float = 0.0,
              telemetry_max_wait_s: float = 1.0, play_fps: float | None = None, max_frames: int | None = None,
@@ -66,68 +102,7 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
     cam = Camera.from_dict(camera)
     publisher.publish(wire.CameraMessage(flight_id, drone_id, camera, play_fps or 0.0, time.time(),
                                          sent_keyframe_width(keyframe_width, cam.width)))
-    camera_fx = cam.fx
-    frames = StampedFrames(VideoSource(camera_url), fps=play_fps)
-    t0 = last_status = time.monotonic()
-    processed = kf = detections = 0
-    det_s = 0.0
+    frames = LiveFrames(camera_url, telemetry, cam.fx, clock_offset_s, telemetry_max_wait_s, play_fps)
     scaling = policy_for(detector, detector_scale)
-    pacer = scaling.pacer()  # frames enlarged only while the node keeps the camera's rate
-    expected = float("nan")  # the last frame's foreseen apple radius (px): this frame's scale (height changes slowly)
-    scales = []
-    flagged = 0
-    latencies = []
-
-    def status(state, message=""):
-        elapsed = max(time.monotonic() - t0, 1e-9)
-        publisher.publish(wire.StatusMessage(flight_id, drone_id, time.time(), frames.read, processed, frames.dropped,
-                                             processed / elapsed, det_s / max(processed, 1), state, message))
-
-    try:
-        for i, img in frames:
-            t_read = frames.read_time.get(i, time.time())
-            t_capture = t_read + clock_offset_s
-            # the camera's frame period: the rate asked for, else the rate frames have come at so far
-            period_s = 1.0 / play_fps if play_fps else (time.monotonic() - t0) / max(frames.read - 1, 1)
-            scale = scaling.scale(expected)
-            if pacer is not None:
-                scale = pacer.cap(scale, img.shape[1], img.shape[0], period_s)
-            td = time.perf_counter()
-            boxes, scores = detector.detect(i, img, scale)
-            frame_det_s = time.perf_counter() - td
-            det_s += frame_det_s
-            scales.append(scale)
-            s = sample_when_bracketed(telemetry, t_capture, t_read + telemetry_max_wait_s)
-            expected = float(telemetry_radius_px(camera_fx, s)[0])
-            tel = wire.Telemetry(float(s["lat"][0]), float(s["lon"][0]), float(s["alt"][0]),
-                                 tuple(map(float, s["q_attitude"][0])), tuple(map(float, s["q_gimbal"][0])),
-                                 int(s["gps_fix"][0]), float(s["h_acc"][0]), int(s["flags"][0]), float(s["height"][0]),
-                                 float(s["height_acc"][0]))
-            flagged += tel.flags != 0
-            due = keyframes.due(t_capture, tel.lat, tel.lon, tel.alt)
-            publisher.publish(wire.FrameMessage(flight_id, drone_id, i, t_capture, tel, img.shape[1], img.shape[0],
-                                                boxes, scores, scale=scale, keyframe=due))
-            if due:
-                publisher.publish(wire.KeyframeMessage(flight_id, drone_id, i, encode_jpeg(img, keyframe_width, jpeg_quality)))
-                kf += 1
-            latencies.append(time.time() - t_read)
-            if pacer is not None:
-                pacer.observe(frame_det_s, img.shape[1], img.shape[0], scale)
-            processed += 1
-            detections += len(boxes)
-            if time.monotonic() - last_status >= status_period_s:
-                status("running")
-                last_status = time.monotonic()
-            if (max_frames and processed >= max_frames) or (duration_s and time.monotonic() - t0 >= duration_s):
-                break
-    except KeyboardInterrupt:
-        log.info("interrupted")
-    status("error" if frames.error else "finished", str(frames.error or ""))
-    elapsed = time.monotonic() - t0
-    return {"flight": flight_id, "frames_read": frames.read, "frames_processed": processed,
-            "frames_dropped": frames.dropped, "keyframes": kf, "detections": detections,
-            "telemetry_flagged_frames": int(flagged), "seconds": elapsed, "frames_per_s": processed / max(elapsed, 1e-9),
-            "detector_latency_s": det_s / max(processed, 1), "detector_scale": scale_summary(scales),
-            "detector_scale_capped": pacer.capped if pacer is not None else 0,
-            "read_to_publish_median_s": float(np.median(latencies)) if latencies else None,
-            "error": str(frames.error) if frames.error else None}
+    return publish_frames(frames, flight_id, drone_id, publisher, detector, scaling, scaling.pacer(), keyframes,
+                          keyframe_width, jpeg_quality, status_period_s, max_frames, duration_s)

@@ -17,10 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+from onboard.loop import Capture, publish_frames, sent_keyframe_width
 from onboard.sources import LatestFrame, SourceError, VideoSource
 from pomar.telemetry import Flags, TelemetryError, read_log
 from pomar import wire
-from pomar.apple_scale import policy_for, scale_summary, telemetry_radius_px
+from pomar.apple_scale import policy_for, telemetry_radius_px
 from pomar.flight import FlightDir
 
 log = logging.getLogger(__name__)
@@ -96,24 +97,6 @@ class NodeSettings:
     detector_scale: str = "auto"  # frames resized so apples reach the model at its size (pomar.apple_scale); off; or a number
 
 
-def sent_keyframe_width(width: int, image_width: int) -> int:
-    """The width keyframes are sent at: ``width`` (0 = native), never more than the image's own (an enlarged JPEG
-    costs link bytes and adds nothing)."""
-    return min(width, image_width) if width else image_width
-
-
-def encode_jpeg(img: np.ndarray, width: int, quality: int) -> bytes:
-    import cv2
-
-    w = sent_keyframe_width(width, img.shape[1])
-    if w < img.shape[1]:
-        img = cv2.resize(img, (w, int(round(img.shape[0] * w / img.shape[1]))), interpolation=cv2.INTER_AREA)
-    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
-    if not ok:
-        raise RuntimeError("JPEG encoding failed")
-    return buf.tobytes()
-
-
 class OnboardNode:
     def __init__(self, flight_dir, publisher, detector, settings: NodeSettings | None = None):
         self.flight = FlightDir(flight_dir)
@@ -121,16 +104,6 @@ class OnboardNode:
         self.detector = detector
         self.s = settings or NodeSettings()
         self.inputs = None  # check_inputs()'s result
-        self.stats = {"frames_read": 0, "frames_processed": 0, "frames_dropped": 0, "keyframes": 0,
-                      "detections": 0, "detector_seconds": 0.0, "read_to_publish_seconds": [], "scales": []}
-
-    def _status(self, meta, state: str, t0: float, message: str = "") -> None:
-        st = self.stats
-        elapsed = max(time.monotonic() - t0, 1e-9)
-        lat = st["detector_seconds"] / max(st["frames_processed"], 1)
-        self.pub.publish(wire.StatusMessage(meta.flight_id, meta.drone_id, time.time(), st["frames_read"],
-                                            st["frames_processed"], st["frames_dropped"],
-                                            st["frames_processed"] / elapsed, lat, state, message))
 
     def check_inputs(self):
         """Read and cross-check the flight's files before anything is published: flight.json, camera.json against
@@ -176,74 +149,57 @@ class OnboardNode:
         scaling = policy_for(self.detector, self.s.detector_scale)  # the detector may come after check_inputs()
         self.pub.publish(wire.CameraMessage(meta.flight_id, meta.drone_id, cam.to_dict(), meta.fps, meta.video_start_utc,
                                             sent_keyframe_width(self.s.keyframe_width, cam.width)))
-        source = VideoSource(self.flight.video, self.s.every, expected_frames=meta.frame_count)
-        frames = source if self.s.lockstep else LatestFrame(source, fps=meta.fps)
-        t0 = last_status = time.monotonic()
-        processed = 0
-        policy = KeyframePolicy(self.s.keyframe_every, self.s.keyframe_every_s, self.s.keyframe_every_m)
+        frames = RecordedFrames(self.flight.video, t_frames, tel, self.s.every, meta.frame_count, meta.fps,
+                                self.s.lockstep)
         pacer = None if self.s.lockstep else scaling.pacer()  # live: enlarge frames only while there is time
-        period_s = self.s.every / meta.fps if meta.fps else 0.0
-        error = None
-        try:
-            for i, img in frames:
-                t_read = time.perf_counter()
-                scale = scaling.scale(float(tel["expected_radius_px"][i]))
-                if pacer is not None:
-                    scale = pacer.cap(scale, img.shape[1], img.shape[0], period_s)
-                td = time.perf_counter()
-                boxes, scores = self.detector.detect(i, img, scale)
-                det_s = time.perf_counter() - td
-                self.stats["detector_seconds"] += det_s
-                self.stats["scales"].append(scale)
-                telemetry = wire.Telemetry(float(tel["lat"][i]), float(tel["lon"][i]), float(tel["alt"][i]),
-                                           tuple(map(float, tel["q_attitude"][i])), tuple(map(float, tel["q_gimbal"][i])),
-                                           int(tel["gps_fix"][i]), float(tel["h_acc"][i]), int(tel["flags"][i]),
-                                           float(tel["height"][i]), float(tel["height_acc"][i]))
-                due = policy.due(float(t_frames[i]), telemetry.lat, telemetry.lon, telemetry.alt)
-                self.pub.publish(wire.FrameMessage(meta.flight_id, meta.drone_id, i, float(t_frames[i]), telemetry,
-                                                   img.shape[1], img.shape[0], boxes, scores, scale=scale,
-                                                   keyframe=due))
-                if due:
-                    jpeg = encode_jpeg(img, self.s.keyframe_width, self.s.jpeg_quality)
-                    self.pub.publish(wire.KeyframeMessage(meta.flight_id, meta.drone_id, i, jpeg))
-                    self.stats["keyframes"] += 1
-                self.stats["read_to_publish_seconds"].append(time.perf_counter() - t_read)
-                if pacer is not None:
-                    pacer.observe(det_s, img.shape[1], img.shape[0], scale)
-                processed += 1
-                self.stats["frames_processed"] = processed
-                self.stats["detections"] += len(boxes)
-                if self.s.lockstep:
-                    self.stats["frames_read"] = processed
-                else:
-                    self.stats["frames_read"], self.stats["frames_dropped"] = frames.read, frames.dropped
-                if time.monotonic() - last_status >= self.s.status_period_s:
-                    self._status(meta, "running", t0)
-                    last_status = time.monotonic()
-        except SourceError as exc:
-            error = exc
-            log.error("%s", exc)
-        self._status(meta, "error" if error else "finished", t0, str(error) if error else "")
-        elapsed = time.monotonic() - t0
-        lat = np.array(self.stats["read_to_publish_seconds"]) if self.stats["read_to_publish_seconds"] else np.zeros(1)
-        summary = {
-            "flight": meta.flight_id, "frames_processed": processed, "frames_dropped": self.stats["frames_dropped"],
-            "keyframes": self.stats["keyframes"], "detections": self.stats["detections"],
-            "seconds": elapsed, "frames_per_s": processed / max(elapsed, 1e-9),
-            "detector_latency_s": self.stats["detector_seconds"] / max(processed, 1),
-            "detector_scale": scale_summary(self.stats["scales"]),
-            "detector_scale_capped": pacer.capped if pacer is not None else 0,  # frames the pace kept smaller
-            "read_to_publish_median_s": float(np.median(lat)),
-            "bytes_per_message": {k: self.pub.bytes[k] / max(self.pub.sent[k], 1) for k in wire.KINDS},
-            "telemetry_flagged_frames": int((tel["flags"] != 0).sum()), "error": str(error) if error else None,
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
-        }
+        policy = KeyframePolicy(self.s.keyframe_every, self.s.keyframe_every_s, self.s.keyframe_every_m)
+        summary = publish_frames(frames, meta.flight_id, meta.drone_id, self.pub, self.detector, scaling, pacer, policy,
+                                 self.s.keyframe_width, self.s.jpeg_quality, self.s.status_period_s)
+        summary["bytes_per_message"] = {k: self.pub.bytes[k] / max(self.pub.sent[k], 1) for k in wire.KINDS}
+        summary["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
         # what the link must carry at the video's frame rate with these settings
-        kf_share = self.stats["keyframes"] / max(processed, 1)
+        kf_share = summary["keyframes"] / max(summary["frames_processed"], 1)
         per_frame = summary["bytes_per_message"]["frames"] + summary["bytes_per_message"]["keyframes"] * kf_share
         summary["link_bytes_per_s_at_video_fps"] = per_frame * meta.fps / self.s.every
-        if error:
-            exc = SourceError(f"{error} (after {processed} frames)")
+        if summary["error"]:
+            exc = SourceError(f"{summary['error']} (after {summary['frames_processed']} frames)")
             exc.summary = summary
             raise exc
         return summary
+
+
+class RecordedFrames:
+    """A flight's video as a frame source (onboard.loop): every frame (every Nth) in lock-step, or played at the
+    video's rate taking the newest (``lockstep`` False); each frame's capture time and telemetry from the log, read
+    once before the flight (``t_frames``, ``tel``: TelemetryLog.at's dict with ``expected_radius_px``)."""
+
+    def __init__(self, video, t_frames: np.ndarray, tel: dict, every: int, frame_count: int, fps: float,
+                 lockstep: bool = True):
+        self.t_frames, self.tel, self.every, self.fps = t_frames, tel, every, fps
+        source = VideoSource(video, every, expected_frames=frame_count)
+        self._frames = source if lockstep else LatestFrame(source, fps=fps)
+        self.lockstep = lockstep
+        self._taken = 0
+        self.error = None  # a failure is raised by the iteration itself (SourceError)
+
+    @property
+    def read(self) -> int:
+        return self._taken if self.lockstep else self._frames.read
+
+    @property
+    def dropped(self) -> int:
+        return 0 if self.lockstep else self._frames.dropped
+
+    def __iter__(self):
+        for i, img in self._frames:
+            self._taken += 1
+            yield Capture(i, img, time.time(), float(self.t_frames[i]))
+
+    def period_s(self, t0: float) -> float:
+        return self.every / self.fps if self.fps else 0.0
+
+    def expected_radius(self, i: int) -> float:
+        return float(self.tel["expected_radius_px"][i])
+
+    def telemetry(self, c: Capture) -> dict:
+        return {k: v[c.index:c.index + 1] for k, v in self.tel.items()}

@@ -52,3 +52,36 @@ def test_sigterm_stops_the_ground_as_ctrl_c_does(tmp_path):
     assert proc.returncode == 0, err[-2000:]
     assert "interrupted" in err
     assert json.loads((tmp_path / "report.json").read_text())["final"]
+
+
+def test_every_ground_setting_option_comes_from_its_field():
+    """Settings declared once: each option of `ground run` that sets the ground's settings takes its default from
+    the live profile's field and its help from the field's doc (none without one)."""
+    from ground.__main__ import (ASSOCIATION_FIELDS, COUNTING_FIELDS, GROUND_FIELDS, REGISTRATION_FIELDS,
+                                 TRACKING_FIELDS)
+    from ground.pipeline import profile
+    from pomar.settings import field_docs
+
+    p = argparse.ArgumentParser()
+    _ground_options(p)
+    g = profile("live")
+    helps = {a.dest: a.help for a in p._actions}
+    for obj, names in ((g.association, ASSOCIATION_FIELDS), (g.registration, REGISTRATION_FIELDS),
+                       (g.tracking, TRACKING_FIELDS), (g.counting, COUNTING_FIELDS), (g, GROUND_FIELDS)):
+        docs = field_docs(type(obj))
+        for n in names:
+            assert p.get_default(n) == getattr(obj, n), n
+            assert docs.get(n) and docs[n].split()[0].rstrip(",.:;") in helps[n], (n, helps[n])
+    assert p.get_default("mapping") == "process" and profile("lockstep").mapping == "inline"
+
+
+def test_ground_run_help_lists_every_setting_as_readme_says():
+    """README: `python -m ground run --help` lists each setting with its default."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "ground", "run", "--help"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    for opt in ("--confirm-score", "--max-interp-gap", "--track-points", "--no-revisit", "--mapping"):
+        assert opt in r.stdout, opt
+    assert "default 0.9" in " ".join(r.stdout.split())

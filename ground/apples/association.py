@@ -38,8 +38,8 @@ class AssociationParams:
     k: int = 5  # frames ahead linked in the graph (tolerates k-1 missed detections)
     tau_epipolar: float = 4.0  # px, point-to-epipolar-line gate
     tau_geom: float = 3.0  # px, RANSAC inlier reprojection threshold
-    ransac_iterations: int = 50
-    min_inliers: int = 3
+    ransac_iterations: int = 50  # RANSAC hypotheses tried per track
+    min_inliers: int = 3  # views an apple needs (inliers of its RANSAC triangulation)
     max_paths: int = 500  # offline DFS bound per node
     max_branches: int = 8  # windowed: young hypotheses kept per root detection
     #: One apple seen twice (hidden for more than k frames, then seen again) gives two estimates.

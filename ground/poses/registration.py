@@ -43,50 +43,62 @@ pycolmap.logging.minloglevel = 1
 
 @dataclass
 class RegistrationSettings:
+    #: Each keyframe is matched against this many previous ones.
     match_window: int = 5
+    #: Keyframes in one sub-model (a local pycolmap reconstruction) before the next one takes over.
     submodel_size: int = 60
+    #: Keyframes two consecutive sub-models share, on which the next is chained to the one before.
     overlap: int = 10
-    # a full sub-model hands over to the next only where its last ``overlap`` keyframes look within this of the newest
-    # one's way, or at 1.5 x its size: the next one is chained on the cameras they share, which in a turn (few views,
-    # changing fast) place it poorly
+    #: A full sub-model hands over to the next only where its last ``overlap`` keyframes look within this of the
+    #: newest one's way (degrees), or at 1.5 x its size: the next one is chained on the cameras they share, which in a
+    #: turn (few views, changing fast) place it poorly.
     chain_max_turn_deg: float = 15.0
+    #: A bundle adjustment of the whole sub-model every this many keyframes (local ones in between).
     global_ba_every: int = 10
+    #: Keyframes the first model is made from (live, frames wait for it).
     init_frames: int = 6
+    #: SIFT's first octave (-1 also looks at the image doubled: more, smaller features, slower).
     first_octave: int = 0
-    # SIFT runs on keyframes shrunk to at most this width (0: their own size); keypoints are scaled back, so the
-    # mapper sees keyframe pixels. Extraction and matching cost about the pixel count and the feature count
+    #: SIFT runs on keyframes shrunk to at most this width (0: their own size); keypoints are scaled back, so the
+    #: mapper sees keyframe pixels. Extraction and matching cost about the pixel count and the feature count.
     sift_width: int = 0
-    max_num_features: int = 4096
-    # "colmap" (pycolmap's SIFT) or "opencv": OpenCV's takes half the time (0.17 against 0.33 s per
-    # 1280x720 keyframe) and the final batch poses are as good, but in the live ground node, where each
-    # frame's pose is decided soon after its keyframe registers, it let the model's scale drift (4.5 px
-    # median reprojection error of the true apples against 1 px with pycolmap's, on the bundled flight)
-    sift: str = "colmap"
+    #: SIFT features per keyframe, at most.
+    max_num_features: int = field(default=4096, metadata={"flag": "--max-features"})
+    #: SIFT implementation, "colmap" (pycolmap's) or "opencv". OpenCV's takes half the time (0.17 against 0.33 s per
+    #: 1280x720 keyframe) and the final batch poses are as good, but in the live ground node, where each frame's pose
+    #: is decided soon after its keyframe registers, it let the model's scale drift (4.5 px median reprojection error
+    #: of the true apples against 1 px with pycolmap's, on the bundled flight).
+    sift: str = field(default="colmap", metadata={"choices": ["opencv", "colmap"]})
+    #: The least triangulation angle (degrees) of the first model's points.
     init_min_tri_angle: float = 2.0
+    #: Rounds of retriangulation and bundle adjustment after each local refinement.
     local_refinements: int = 1
+    #: ... and after each global one.
     global_refinements: int = 1
-    # SIFT without orientation (COLMAP's upright option): consecutive keyframes of a gimbal-stabilised
-    # camera barely rotate in the image plane, and skipping orientation saves a quarter of extraction; on
-    # the bundled flight it cost some accuracy (true apples 0.99 against 0.83 px after a similarity)
+    #: SIFT without orientation (COLMAP's upright option). Consecutive keyframes of a gimbal-stabilised camera barely
+    #: rotate in the image plane, and skipping orientation saves a quarter of extraction; on the bundled flight it
+    #: cost some accuracy (true apples 0.99 against 0.83 px after a similarity).
     upright: bool = False
-    # Ceres solves a bundle adjustment on one thread below this many residuals. On more threads its sums come in
-    # another order each run and a flight's keyframes drift apart between runs; on one, a lock-step replay repeats
-    # bit for bit, and the ground is no slower (benchmarks/live_ground.py)
+    #: Ceres solves a bundle adjustment on one thread below this many residuals. On more threads its sums come in
+    #: another order each run and a flight's keyframes drift apart between runs; on one, a lock-step replay repeats
+    #: bit for bit, and the ground is no slower (benchmarks/live_ground.py).
     ba_threads_min_residuals: int = 10**9
-    # finished sub-models kept in memory (the newest is chained to the one before it); older ones are written to
-    # the work directory and read back only for the final model files
+    #: Finished sub-models kept in memory (the newest is chained to the one before it); older ones are written to
+    #: the work directory and read back only for the final model files.
     keep_submodels: int = 2
-    # matching against earlier keyframes of the same place (other passes): look points within revisit_radius of the
-    # viewing depth; a sub-model is re-anchored on them once revisit_min_points 3-D points are shared, from
-    # revisit_min_pairs keyframe pairs
+    #: Keyframes are also matched against earlier keyframes of the same place (other passes), and a sub-model is
+    #: re-anchored on the points they share (--no-revisit: only the previous ones, a baseline for whole-plot flights).
     revisit: bool = True
+    #: Earlier keyframes count as the same place where their look points lie within this share of the viewing depth.
     revisit_radius: float = 0.4
+    #: A sub-model is re-anchored on an earlier pass once this many 3-D points are shared ...
     revisit_min_points: int = 150
-    revisit_min_pairs: int = 3  # keyframe pairs the shared points come from (one pair sees too small a patch)
-    # keyframes back before one may count as another pass's (nearer ones the matching window links already); while
-    # keyframes fail to register, any beyond the matching window counts
+    #: ... from at least this many keyframe pairs (one pair sees too small a patch).
+    revisit_min_pairs: int = 3
+    #: Keyframes back before one may count as another pass's (nearer ones the matching window links already); while
+    #: keyframes fail to register, any beyond the matching window counts.
     revisit_min_gap: int = 8
-    # keyframes in a row that fail to register before a new sub-model is made from them (placed by telemetry)
+    #: Keyframes in a row that fail to register before a new sub-model is made from them (placed by telemetry).
     break_after: int = 3
 
     @property

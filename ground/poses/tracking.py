@@ -16,7 +16,7 @@ next mapping keyframe: when the share of the newest reference's points it still 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -42,7 +42,7 @@ class TrackingSettings:
     win_px: int = 21
     levels: int = 3
     #: At most this many points of each reference are followed (an even sample): KLT's cost grows with them.
-    max_points: int = 1500
+    max_points: int = field(default=1500, metadata={"flag": "--track-points"})
     #: The points of the last this many keyframes handed over are followed: more of the image holds points, which
     #: steadies the pose (a narrow lens over points at much the same depth trades rotation for translation).
     references: int = 3
