@@ -42,7 +42,7 @@ demo: $(STAMP)
 test: $(TEST_STAMP)
 	$(PY) -m pytest
 
-# the quick tier while working: the tests not marked `system` (those start processes, render or replay flights)
+# the quick tier while working: the tests not marked `system` (tests/conftest.py: those that render or replay a flight)
 check: $(TEST_STAMP)
 	$(PY) -m pytest -q -m "not system"
 

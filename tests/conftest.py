@@ -50,3 +50,18 @@ def replayed_test_flight(replay_test_flight, tmp_path_factory):
     out = tmp_path_factory.mktemp("replayed") / "out"
     rep = replay(replay_test_flight.path, out, detector="onnx", keyframe_every=1, keyframe_width=0, quiet=True)
     return replay_test_flight, out, rep
+
+
+#: Test files that replay flights or run the nodes end to end: the `system` tier (make test runs them,
+#: make check leaves them out).
+SYSTEM_FILES = {"test_readme_commands.py", "test_whole_plot.py", "test_hostile_link.py", "test_transport_security.py",
+                "test_replay_errors.py", "test_live.py", "test_player.py", "test_ground_node.py", "test_onboard_node.py",
+                "test_export.py", "test_registration.py"}
+#: Fixtures that render or replay a flight: a test using one is a `system` test wherever it is.
+SYSTEM_FIXTURES = {"small_flight", "replay_test_flight", "replayed_test_flight"}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if item.path.name in SYSTEM_FILES or SYSTEM_FIXTURES & set(getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.system)
