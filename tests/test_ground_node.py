@@ -450,6 +450,38 @@ def test_mapping_in_its_own_process_maps_every_frame(replay_test_flight, tmp_pat
     assert len(subs[0].reconstruction().images) >= 3
 
 
+def test_a_mapping_process_that_dies_leaves_the_flight_going(replay_test_flight, tmp_path):
+    """Live, the mapping process is killed (SIGKILL) part way: the ground does not wait for it for ever (it froze for
+    12 minutes), every frame still gets a pose, the flight ends with a map, and the mapper's death is kept for the
+    report (exit code, keyframes mapped)."""
+    import os
+    import signal
+
+    from ground.outputs.rerun_log import summary_markdown
+    from ground.pipeline import GroundPipeline, GroundSettings
+
+    msgs = _onboard_messages(replay_test_flight, keyframe_every=1)
+    pipe = GroundPipeline(tmp_path / "work", GroundSettings(mapping="process"))
+    events, killed = [], None
+    t0 = time.monotonic()
+    for m in msgs:
+        events += pipe.feed(m)
+        mapper = pipe.poses.mapper if pipe.poses is not None else None
+        if killed is None and mapper is not None and mapper.has_model and mapper.answered >= 4:
+            killed = mapper._proc.pid
+            os.kill(killed, signal.SIGKILL)
+        time.sleep(0.1)
+    events += pipe.finish()
+    assert killed is not None, "the mapper never had a model to lose"
+    assert time.monotonic() - t0 < 120
+    assert [e.frame for e in events] == list(range(20)) and all(e.pose is not None for e in events)
+    died = pipe.poses.mapper.died
+    assert died and died["exit_code"] == -signal.SIGKILL and died["keyframes_mapped"] >= 4, died
+    assert pipe.count.apples, "no apple mapped"
+    text = summary_markdown({"apples": 0, "registration": {"mapper_died": died}}, {})
+    assert "mapping process died" in text
+
+
 _MAPPING_OWNER = """
 import sys, time
 import numpy as np

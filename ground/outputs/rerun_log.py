@@ -200,6 +200,11 @@ def summary_markdown(report: dict, live: dict) -> str:
                  f"poses: {fr.get('registered', 0)} registered, {fr.get('tracked', 0)} tracked "
                  f"({trk.get('failed', 0)} failed to track), {fr.get('interpolated', 0)} interpolated, "
                  f"{fr.get('telemetry', 0)} from telemetry alone, {fr.get('frames_without_pose', 0)} without")
+    died = reg.get("mapper_died")
+    if died:
+        lines.append(f"\n**The mapping process died** (exit code {died.get('exit_code')}) after "
+                     f"{died.get('keyframes_mapped', 0)} keyframes: the frames since are tracked against the map it "
+                     f"left, or placed by telemetry; nothing more is mapped")
     link = report.get("link", {})
     onboard = report.get("onboard_status") or {}
     lines.append("")

@@ -65,6 +65,8 @@ class Mapper:
     #: max_point_error_px (all of its points when fewer than 100 are).
     min_track = 2
     max_point_error_px = 1.5
+    #: Mapping in this process never dies apart from the ground (see MapperProcess.died).
+    died: dict | None = None
 
     def __init__(self, kf_camera: Camera, camera: Camera, workdir, settings: RegistrationSettings | None = None,
                  sigma_att_deg: float = 0.5):
@@ -438,6 +440,8 @@ class MapperProcess:
         self._sift = None  # SIFT here, made when the first keyframe has to wait for the process
         self.early_extracted = 0  # keyframes whose features were extracted here
         self._closed = False
+        #: When the mapping process died by itself: its exit code, the keyframes it had mapped, those sent and lost.
+        self.died: dict | None = None
 
     def add(self, frame: int, image_bgr: np.ndarray, tel) -> None:
         """Hand over a keyframe: sent now if the process is free, else held, replacing any held before it (the
@@ -450,7 +454,7 @@ class MapperProcess:
         come faster than the process extracts them. One that would wait only for the keyframe in work goes at once:
         extracting it here would hold it back longer than the process takes to be free. Past those tries (a flight
         that starts over ground with nothing to match) this process does not spend its time on SIFT."""
-        if self._closed:
+        if self._closed or not self._running():
             return
         ok, jpeg = cv2.imencode(".jpg", image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
         self._poll()
@@ -483,9 +487,23 @@ class MapperProcess:
             self.sent += 1
 
     def busy(self) -> bool:
-        """Whether a keyframe handed over is still being mapped, or waiting to be."""
+        """Whether a keyframe handed over is still being mapped, or waiting to be (never, once the process died: it
+        answers nothing more)."""
         self._poll()
-        return self.answered < self.sent or self._held is not None
+        return (self.answered < self.sent or self._held is not None) and self._running()
+
+    def _running(self) -> bool:
+        """Whether the process runs; the first time it is found dead (killed, out of memory, a crash in pycolmap), that
+        is logged and kept in ``died``: the ground goes on, tracking against the map it left."""
+        if self._proc is None or self._proc.is_alive():
+            return self._proc is not None
+        if self.died is None and not self._closed:
+            self._poll()
+            self.died = {"exit_code": self._proc.exitcode, "keyframes_mapped": self.answered,
+                         "keyframes_lost": self.sent - self.answered + (self._held is not None)}
+            log.error("the mapping process died (exit code %s) after mapping %d keyframes: the frames go on, tracked "
+                      "against the map it left; nothing more is mapped", self._proc.exitcode, self.answered)
+        return False
 
     def wait(self, timeout_s: float = 120.0) -> None:
         """Until every keyframe handed over is mapped (or the process died, or timeout_s passed)."""
@@ -537,7 +555,7 @@ class MapperProcess:
     @property
     def alive(self) -> bool:
         """Whether the mapping process still runs (it answers nothing more once it died)."""
-        return self._proc is not None and self._proc.is_alive()
+        return self._running()
 
     def reference(self) -> Reference | None:
         self._poll()
