@@ -39,8 +39,9 @@ $(TEST_STAMP): pyproject.toml $(LOCK)
 demo: $(STAMP)
 	$(PY) -m ground replay $(FLIGHT) --out $(OUT)
 
+# on two workers (pytest-xdist): the suite waits on process starts and the link as much as it computes
 test: $(TEST_STAMP)
-	$(PY) -m pytest
+	$(PY) -m pytest -n 2
 
 # the quick tier while working: the tests not marked `system` (tests/conftest.py: those that render or replay a flight)
 check: $(TEST_STAMP)
@@ -54,7 +55,7 @@ test-latest:
 	$(LATEST)/bin/python -m pip install --quiet --upgrade --upgrade-strategy eager -e ".[$(TEST_EXTRAS)]"
 	grep -E '^[A-Za-z0-9]' $(LOCK) > $(LATEST)/lock-pins.txt
 	@echo "newer than the lock:"; $(LATEST)/bin/python -m pip freeze --exclude-editable | grep -vixF -f $(LATEST)/lock-pins.txt || true
-	$(LATEST)/bin/python -m pytest
+	$(LATEST)/bin/python -m pytest -n 2
 
 # today's resolve of pyproject's ranges for Linux x86_64, CPython 3.11 (what CI runs), with uv's resolver
 lock:
