@@ -370,17 +370,26 @@ class GroundPipeline:
             self.poses.forget_before(f - 4 * self.s.association.k - 2 * self.s.max_interp_gap)
         return events
 
-    def finish(self, on_events=None) -> list[FrameEvent]:
+    #: Seconds a ground told to stop (Ctrl-C, SIGTERM) gives its mapping process to hand back its sub-models.
+    STOP_MAPPER_S = 2.0
+
+    def finish(self, on_events=None, hurry: bool = False) -> list[FrameEvent]:
         """End of the flight: register what is left, release every frame, close every track. ``on_events`` as in
-        :meth:`step`."""
+        :meth:`step`. ``hurry``: told to stop; the images not yet tracked are dropped and the mapper gets
+        STOP_MAPPER_S, so that the frames are released at once, with the poses there are."""
         events = []
-        if self.poses is not None:
+        if hurry:
+            self.keyframes.clear()
+            if self.poses is not None:
+                self.poses.drop_waiting()
+        elif self.poses is not None:
             events += self.step(on_events=on_events)
             self.poses.settle()
         if self.camera is not None:
             events += self.step(final=True, on_events=on_events)
         if self.poses is not None:
-            self.poses.close()  # maps what is waiting: the model files are written from it
+            # maps what is waiting: the model files are written from it
+            self.poses.close(timeout_s=self.STOP_MAPPER_S if hurry else 600.0)
         elif self._mapping_worker is not None:  # no image ever came
             self._mapping_worker.stop()
         self.assoc.metres_per_unit = self.metres_per_unit()

@@ -590,3 +590,56 @@ def test_a_resumed_ground_waits_for_the_frames_its_history_brings(replay_test_fl
         assert pipe.counters["late_frames"] == want_late, (hold, pipe.counters)
         if hold:
             assert [e.frame for e in events] == list(range(20)) and all(e.pose is not None for e in events)
+
+
+@pytest.mark.system
+def test_sigterm_during_a_mapper_stall_stops_the_ground_within_5_s(replay_test_flight, tmp_path):
+    """The mapping process stalls (SIGSTOP: it answers nothing more) while frames keep coming; `kill PID` on the ground
+    ends it within 5 s, with its map files, report and recording written, and its mapping process gone."""
+    from ground.replay import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    out = tmp_path / "ground"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    onboard = subprocess.Popen([sys.executable, "-m", "onboard", "run", str(replay_test_flight.path), "--listen",
+                                endpoint, "--detector", "truth-replay", "--realtime", "--wait-for-ground", "30",
+                                "--keyframe-every", "1", "--keyframe-width", "0", "--linger", "120"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    errf = open(tmp_path / "ground.err", "w")  # a file, not a pipe nobody reads while the ground runs
+    ground = subprocess.Popen([sys.executable, "-m", "ground", "run", "--flight-id", "sim-replay-test", "--connect",
+                               endpoint, "--out", str(out), "--fresh", "--idle-timeout", "120"],
+                              stdout=subprocess.DEVNULL, stderr=errf, env=env)
+    mapping = []
+    try:
+        journal = out / "journal.bin"
+        _wait_for(lambda: journal.is_file() and len(read_journal(journal)) >= 6, 60, "the ground journals messages")
+        mapping = _children(ground.pid)
+        assert mapping, "no mapping process"
+        for pid in mapping:
+            os.kill(pid, signal.SIGSTOP)
+        time.sleep(2.0)  # frames and keyframes keep coming; the mapper answers nothing
+        t0 = time.monotonic()
+        ground.send_signal(signal.SIGTERM)
+        ground.wait(60)
+        took = time.monotonic() - t0
+    finally:
+        errf.close()
+        err = (tmp_path / "ground.err").read_text()
+        for pid in mapping:
+            try:
+                os.kill(pid, signal.SIGCONT)
+            except ProcessLookupError:
+                pass
+        for p in (ground, onboard):
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+    assert took < 5.0, (took, err[-2000:])
+    assert ground.returncode == 0, err[-2000:]
+    assert json.loads((out / "report.json").read_text())["final"]
+    for name in ("apples.csv", "poses.csv", "rows.csv", "flight.rrd"):
+        assert (out / name).is_file(), name
+    assert _gone(mapping, 10), "the stalled mapping process lives on"

@@ -336,9 +336,11 @@ class GroundNode:
             r["harvest_correlation"] = harvest_correlation(rows, self.harvest)
         return r
 
-    def finish(self) -> dict:
+    def finish(self, hurry: bool = False) -> dict:
+        """The flight's end: the pipeline's (``hurry``: told to stop, within seconds), then the map files, the report,
+        the model files and the recording."""
         try:
-            self.pipe.finish(on_events=self._log_events)
+            self.pipe.finish(on_events=self._log_events, hurry=hurry)
         except Exception as exc:
             log.exception("finishing the flight failed: %s", exc)
             self.errors.append(f"finish: {exc}")
@@ -427,6 +429,7 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
     last_frame = 0.0  # when the last frame message came
     asked = 0.0  # when the publishers' history was last asked for again
     report = None
+    stopped = False
     try:
         while True:
             msg = sub.recv(timeout=0.2)
@@ -476,10 +479,11 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
             node.log_progress()
     except KeyboardInterrupt:
         log.warning("interrupted: writing what there is")
+        stopped = True
     finally:
         sub.close()
         session.close()
         journal.close()
         sampling.set()
-        report = node.finish()
+        report = node.finish(hurry=stopped)
     return report

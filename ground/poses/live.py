@@ -272,8 +272,15 @@ class LivePoses:
                 self._map(frame, image_bgr)
                 self.mapper.wait()
 
-    def close(self) -> None:
-        self.mapper.close()
+    def close(self, timeout_s: float = 600.0) -> None:
+        """Stop the mapper (within ``timeout_s``)."""
+        self.mapper.close(timeout_s=timeout_s)
+
+    def drop_waiting(self) -> None:
+        """A ground told to stop: the images waiting to be tracked are dropped (their frames take interpolated or
+        telemetry poses), so that what is left takes no time."""
+        while self._untracked:
+            self.kf_processed = self._untracked.popleft()[0]
 
     # -- the association frame
     def _freeze(self):

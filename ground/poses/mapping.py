@@ -107,7 +107,8 @@ class Mapper:
         elsewhere (:class:`ground.poses.registration.SiftExtractor`)."""
         return self._map(frame, image_bgr, tel, features)
 
-    def close(self) -> None:
+    def close(self, timeout_s: float | None = None) -> None:
+        """Write what the registrar holds (here, in this process: nothing to wait for)."""
         self.registrar.close()
 
     # -- mapping
@@ -583,19 +584,24 @@ class MapperProcess:
         return self._points
 
     def close(self, timeout_s: float = 600.0) -> None:
-        """Map what is waiting, take in the results and the sub-models (written to disk), stop the process."""
+        """Map what is waiting, take in the results and the sub-models (written to disk), stop the process; all within
+        ``timeout_s`` (a ground told to stop gives it seconds): past it the process is killed, and what it had not sent
+        back is lost (the map's model files; the frames' poses and the apples are the ground's)."""
         if self._proc is None:
             return
-        while self._held is not None and self._proc.is_alive():  # the last proposal is mapped too
-            self._poll(timeout=1.0)
+        t_end = time.monotonic() + timeout_s
+        while self._held is not None and self._proc.is_alive() and time.monotonic() < t_end:  # the last one too
+            self._poll(timeout=min(1.0, max(t_end - time.monotonic(), 0.0)))
             self._send()
         self._outbox.put(None)
-        t_end = time.monotonic() + timeout_s
         while not self._closed and time.monotonic() < t_end:
-            if not self._poll(timeout=1.0) and not self._proc.is_alive():
+            if not self._poll(timeout=min(1.0, max(t_end - time.monotonic(), 0.01))) and not self._proc.is_alive():
                 log.error("the mapping process ended without its results (exit code %s)", self._proc.exitcode)
                 break
-        self._proc.join(timeout=10)
+        if not self._closed and self._proc.is_alive():
+            log.warning("the mapping process did not finish within %.0f s: stopped; the model files are not written",
+                        timeout_s)
+        self._proc.join(timeout=min(10.0, max(t_end - time.monotonic(), 0.5)))
         if self._proc.is_alive():
             self._proc.kill()
             self._proc.join()
