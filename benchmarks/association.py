@@ -27,6 +27,7 @@ import numpy as np
 
 from ground.apples.association import AssociationParams, FrameDetections, WindowedAssociation
 from ground.evaluation.evaluate import Perturbation, evaluate, format_table
+from pomar.countable import MIN_VIEWS
 from ground.evaluation.synthetic import apples_along, camera_path, make_sequence
 from pomar.camera import Camera
 
@@ -143,7 +144,7 @@ def main() -> None:
         Path(args.json).write_text(json.dumps(out, indent=2, default=float) + "\n")
 
 
-def oracle(flight, pert, min_views=3):
+def oracle(flight, pert, min_views=MIN_VIEWS):
     """Perfect association: the perturbed truth detections grouped by the apple they came from (false
     positives dropped), each apple with at least min_views views triangulated by least squares over
     its reprojection error, scored like the association."""
@@ -164,7 +165,7 @@ def oracle(flight, pert, min_views=3):
         sel = ids == a
         if sel.sum() >= min_views:
             pred.append(triangulate_nonlinear(Ps[frame[sel]], pts[sel]))
-    return score_map(fl, np.array(pred).reshape(-1, 3), pert.min_visible, 3)
+    return score_map(fl, np.array(pred).reshape(-1, 3), pert.min_visible, MIN_VIEWS)
 
 
 def evaluate_prefix(flight, n_frames, params, pert):
@@ -187,7 +188,7 @@ def evaluate_prefix(flight, n_frames, params, pert):
     d = fl.truth_detections()
     g = (d["visible_fraction"] >= pert.min_visible) & (d["frame"] < n_frames)
     ids, n = np.unique(d["apple_id"][g], return_counts=True)
-    vis = ids[n >= 3]  # same truth definition as ground.evaluation.evaluate (truth_min_views=3)
+    vis = ids[n >= MIN_VIEWS]  # the truth's countable apples (pomar.countable)
     T = np.stack([a["x"], a["y"], a["z"]], 1)
     pi, ti, _ = match(np.array([x.X for x in apples]).reshape(-1, 3), T, 0.10)
     prec = len(pi) / max(len(apples), 1)

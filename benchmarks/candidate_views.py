@@ -27,13 +27,14 @@ import numpy as np
 from ground.link.journal import read_journal
 from ground.pipeline import GroundPipeline, GroundSettings
 from pomar import wire
+from pomar.countable import MIN_VIEWS, MIN_VISIBLE
 from pomar.flight import FlightDir
 
 KINDS = ("visible", "hidden", "false")
 FEATURES = ("score", "views", "radius", "roundness", "best_visible", "depth_m", "parallax_deg")
 
 
-def truth_index(flight: FlightDir, min_visible: float = 0.5, min_views: int = 3):
+def truth_index(flight: FlightDir, min_visible: float = MIN_VISIBLE, min_views: int = MIN_VIEWS):
     """The truth's projected apples by frame, and the ids of the apples it counts as visible."""
     td = flight.truth_detections()
     by_frame: dict[int, np.ndarray] = {}

@@ -23,6 +23,7 @@ from export.data import add256_split, load_sim_frames, read_rgb
 from export.metrics import evaluate_detections, iou
 from onboard.detector import OnnxDetector
 from pomar.apple_scale import flight_radius_px, flight_telemetry, row_radius_px
+from pomar.countable import visible
 from pomar.flight import FlightDir
 
 
@@ -95,7 +96,7 @@ def main(argv=None) -> int:
     for f in a.flights:
         flight = FlightDir(f)
         d = flight.truth_detections()
-        truth_r = float(np.median(d["r_px"][d["visible_fraction"] >= 0.5]))
+        truth_r = float(np.median(d["r_px"][visible(d["visible_fraction"])]))
         foreseen = float(np.nanmedian(flight_radius_px(flight)))
         print(f"{f.name}: {flight.camera().width}x{flight.camera().height}, apple radius foreseen {foreseen:.2f} px, "
               f"truth median {truth_r:.2f} px" + (f"; auto scale {det.apple_radius_px / foreseen:.2f}"

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from pomar.apple_scale import SCALE_HELP, scale_argument
+from pomar.countable import MIN_VISIBLE
 
 
 def train_arguments(p: argparse.ArgumentParser):
@@ -73,7 +74,7 @@ def evaluate_arguments(p: argparse.ArgumentParser):
     p.add_argument("--sim-flight", type=Path, action="append", default=[],
                    help="held-out simulated flight(s) to score on (every --sim-every-th frame)")
     p.add_argument("--sim-every", type=int, default=5)
-    p.add_argument("--min-visible", type=float, default=0.5,
+    p.add_argument("--min-visible", type=float, default=MIN_VISIBLE,
                    help="simulated apples at least this visible are truth; less visible ones are ignored")
     p.add_argument("--score-thresh", type=float, help="operating threshold (default: the model's metadata)")
     p.add_argument("--val-flight", type=Path, help="choose the operating threshold as the best F1 on this simulated "

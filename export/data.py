@@ -20,6 +20,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pomar.countable import IGNORE_ABOVE, MIN_VISIBLE
+
 log = logging.getLogger(__name__)
 
 ADD256_ENV = "POMAR_ADD256"
@@ -87,7 +89,7 @@ def load_add256(root, split: str) -> list[Sample]:
     return [Sample(p.name, read_rgb(p), b) for p, b in add256_split(root, split)]
 
 
-def sim_frame_boxes(flight_dir: Path, min_visible: float, min_ignore: float = 0.05):
+def sim_frame_boxes(flight_dir: Path, min_visible: float = MIN_VISIBLE, min_ignore: float = IGNORE_ABOVE):
     """Per frame: (boxes of apples at least ``min_visible`` visible, boxes of the barely visible ones)."""
     path = Path(flight_dir) / "truth" / "detections.csv"
     if not path.is_file():
@@ -107,7 +109,7 @@ def sim_frame_boxes(flight_dir: Path, min_visible: float, min_ignore: float = 0.
     return {k: (arr(pos, k), arr(ign, k)) for k in set(pos) | set(ign)}
 
 
-def load_sim_frames(flight_dir, min_visible: float, every: int = 1, limit: int | None = None) -> list[Sample]:
+def load_sim_frames(flight_dir, min_visible: float = MIN_VISIBLE, every: int = 1, limit: int | None = None) -> list[Sample]:
     """Whole frames of a simulated flight with their truth boxes (and ignore boxes)."""
     from pomar.video import iter_frames
     from pomar.flight import FlightDir

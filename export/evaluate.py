@@ -20,6 +20,7 @@ import numpy as np
 
 from export.data import add256_split, load_sim_frames, read_rgb
 from export.metrics import evaluate_detections
+from pomar.countable import MIN_VISIBLE
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +43,7 @@ def score(detector, samples, score_thresh: float, progress_name: str) -> dict:
     return m
 
 
-def evaluate(model=None, add256=None, sim_flights=(), sim_every: int = 5, min_visible: float = 0.5,
+def evaluate(model=None, add256=None, sim_flights=(), sim_every: int = 5, min_visible: float = MIN_VISIBLE,
              score_thresh: float | None = None, detector_scale: str = "auto") -> dict:
     """Scores on ADD256's test split (its patches at their own size) and on simulated flights, whose frames are
     rescaled as the onboard node does (``detector_scale``: auto from each frame's telemetry, off, or a factor)."""

@@ -89,7 +89,7 @@ def train(out: Path, add256=None, sim_flights=(), backbone="resnet18", fpn_chann
     torch.manual_seed(seed)
     add = load_add256(add256, "training")
     test = load_add256(add256, "test")
-    sim = [s for f in sim_flights for s in load_sim_frames(f, min_visible=0.35)]
+    sim = [s for f in sim_flights for s in load_sim_frames(f)]
     log.info("data: %d ADD256 patches, %d simulated frames (%d crops/epoch), %d test patches",
              len(add), len(sim), sim_crops if sim else 0, len(test))
     plan = EpochPlan(len(add), len(sim), sim_crops, seed)

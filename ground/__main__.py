@@ -253,6 +253,7 @@ def _ground_options(p):
 def main(argv=None) -> int:
     from ground.apples.association import AssociationParams
     from ground.evaluation import scoring
+    from pomar import countable
     from pomar.settings import add_options
     from ground.evaluation.evaluate import __doc__ as evaluate_doc
     from pomar.flight import id_argument
@@ -270,14 +271,14 @@ def main(argv=None) -> int:
     e.add_argument("--miss", type=float, default=0.0, help="probability a detection is missed")
     e.add_argument("--fp", type=float, default=0.0, help="false positives per frame (Poisson mean)")
     e.add_argument("--dup", type=float, default=0.0, help="probability a detection is duplicated")
-    e.add_argument("--min-visible", type=float, default=scoring.MIN_VISIBLE,
+    e.add_argument("--min-visible", type=float, default=countable.MIN_VISIBLE,
                    help="the truth's apples counted: at least this visible (fraction)")
     e.add_argument("--mode", nargs="+", default=["windowed"], choices=["offline", "windowed"])
     add_options(e, AssociationParams(), EVALUATE_ASSOCIATION_FIELDS, prefix="association: ")
     e.add_argument("--match-m", type=float, default=scoring.MATCH_M, help="a predicted apple matches a true one within this (m)")
     e.add_argument("--remove-pose-offset", action="store_true",
                    help="score the map's shape: subtract the poses' mean camera offset from truth (the GPS bias)")
-    e.add_argument("--truth-min-views", type=int, default=scoring.TRUTH_MIN_VIEWS,
+    e.add_argument("--truth-min-views", type=int, default=countable.MIN_VIEWS,
                    help="an apple is visible in the flight when seen (at least --min-visible) in this many frames")
     e.add_argument("--seed", type=int, default=0)
     e.add_argument("--json")

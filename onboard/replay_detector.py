@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from pomar.countable import MIN_VISIBLE
 from pomar.flight import FlightDir
 
 
 class TruthReplayDetector:
     name = "truth-replay"
 
-    def __init__(self, flight_dir, min_visible: float = 0.5):
+    def __init__(self, flight_dir, min_visible: float = MIN_VISIBLE):
         d = FlightDir(flight_dir).truth_detections()
         keep = d["visible_fraction"] >= min_visible
         order = np.argsort(d["frame"][keep], kind="stable")

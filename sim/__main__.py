@@ -8,6 +8,8 @@ import logging
 import sys
 from pathlib import Path
 
+from pomar.countable import MIN_VISIBLE
+
 
 def _cmd_flight(args) -> int:
     from sim import config as sc
@@ -94,7 +96,7 @@ def main(argv=None) -> int:
     s.add_argument("flight_dir")
     s.add_argument("--frame", type=int, default=0)
     s.add_argument("--out", default="out/frame.png")
-    s.add_argument("--min-visible", type=float, default=0.5)
+    s.add_argument("--min-visible", type=float, default=MIN_VISIBLE)
     s.set_defaults(func=_cmd_show)
     t = sub.add_parser("telemetry", help="write a simulated flight's .tlog again with other telemetry settings "
                                          "(e.g. RTK-grade GPS); video and truth are linked, not copied")

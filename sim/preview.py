@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pomar.countable import MIN_VISIBLE, visible
 from pomar.flight import FlightDir
 from pomar.telemetry import read_log
 
@@ -32,7 +33,7 @@ def flight_info(flight_dir) -> str:
     if fd.has_truth:
         a, d, o = fd.truth_apples(), fd.truth_detections(), fd.origin()
         seen = np.unique(d["apple_id"])
-        half = np.unique(d["apple_id"][d["visible_fraction"] >= 0.5])
+        half = np.unique(d["apple_id"][visible(d["visible_fraction"])])
         lines.append(f"  truth: origin {o.lat:.6f}, {o.lon:.6f}, {o.alt:.1f} m; {len(a['apple_id'])} apples in "
                      f"{len(np.unique(a['row']))} rows; {len(seen)} seen in the video, {len(half)} at least half visible "
                      f"in some frame; {len(d['frame'])} apple observations ({len(d['frame']) / meta.frame_count:.1f} per frame)")
@@ -42,7 +43,7 @@ def flight_info(flight_dir) -> str:
     return "\n".join(lines)
 
 
-def draw_truth(flight_dir, frame: int, out_png, min_visible: float = 0.5) -> Path:
+def draw_truth(flight_dir, frame: int, out_png, min_visible: float = MIN_VISIBLE) -> Path:
     import cv2
 
     from pomar.video import read_frame

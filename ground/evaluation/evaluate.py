@@ -26,7 +26,8 @@ import numpy as np
 
 from ground.apples.association import AssociationParams, FrameDetections, FruitAssociation, WindowedAssociation
 from ground.evaluation.baselines import SortTracker, count_per_frame_sum
-from ground.evaluation.scoring import MATCH_M, MIN_VISIBLE, TRUTH_MIN_VIEWS, score_map
+from ground.evaluation.scoring import MATCH_M, score_map
+from pomar.countable import MIN_VIEWS, MIN_VISIBLE
 from pomar.flight import FlightDir, FlightFormatError, read_csv
 from pomar.rotations import quat_wxyz_to_rotation
 
@@ -110,7 +111,7 @@ def projection_matrices(flight: FlightDir, poses: str) -> np.ndarray:
 
 def evaluate(flight_dir, mode: str = "windowed", params: AssociationParams | None = None,
              pert: Perturbation | None = None, detections: str = "truth", poses: str = "truth",
-             match_m: float = MATCH_M, baselines: bool = True, truth_min_views: int = TRUTH_MIN_VIEWS,
+             match_m: float = MATCH_M, baselines: bool = True, truth_min_views: int = MIN_VIEWS,
              remove_pose_offset: bool = False) -> dict:
     flight = FlightDir(flight_dir)
     if not flight.has_truth:

@@ -1,8 +1,8 @@
 """Scoring against a simulated flight's truth: one place for every score the project gives (``ground replay``'s
 evaluation, ``ground evaluate``, ``ground register``, the benchmarks).
 
-An apple of the truth *counts* when it is at least MIN_VISIBLE visible in at least TRUTH_MIN_VIEWS frames (fewer
-cannot be triangulated by the paper's RANSAC); a predicted apple matches a true one within MATCH_M, one to one.
+An apple of the truth *counts* as pomar.countable defines it (at least MIN_VISIBLE visible in at least MIN_VIEWS
+frames); a predicted apple matches a true one within MATCH_M, one to one.
 
 - :func:`score_map`: an apple map (ENU, the truth's frame) against the truth: precision, recall, F1, counts, rows
   and trees;
@@ -21,13 +21,10 @@ from scipy.spatial.transform import Rotation
 
 from ground.apples.rows import direction_rows, kmeans_rows
 from ground.poses.georeference import fit_similarity, georeference_poses
+from pomar.countable import MIN_VIEWS, MIN_VISIBLE, countable_ids
 from pomar.flight import FlightDir, read_csv
 from pomar.rotations import quat_wxyz_to_rotation
 
-#: The truth's countable apples: at least this visible ...
-MIN_VISIBLE = 0.5
-#: ... in at least this many frames.
-TRUTH_MIN_VIEWS = 3
 #: A predicted apple matches a true one within this distance (m).
 MATCH_M = 0.10
 
@@ -62,16 +59,14 @@ def match(pred: np.ndarray, truth: np.ndarray, max_dist: float) -> tuple[np.ndar
 
 
 def score_map(flight: FlightDir, pred: np.ndarray, min_visible: float = MIN_VISIBLE,
-              truth_min_views: int = TRUTH_MIN_VIEWS, match_m: float = MATCH_M) -> dict:
+              truth_min_views: int = MIN_VIEWS, match_m: float = MATCH_M) -> dict:
     """Score an apple map (N, 3), in the flight's truth ENU frame, against its truth: precision, recall
     (against apples visible in the flight, and against all apples of the rows seen), F1, counts,
     position errors, and per-row counts (row direction and K-means) next to the truth's."""
     a = flight.truth_apples()
     truth_xyz = np.stack([a["x"], a["y"], a["z"]], 1)
     d = flight.truth_detections()
-    good = d["visible_fraction"] >= min_visible
-    ids, nviews = np.unique(d["apple_id"][good], return_counts=True)
-    visible_ids = ids[nviews >= truth_min_views]
+    visible_ids = countable_ids(d["apple_id"], d["visible_fraction"], min_visible, truth_min_views)
     is_visible = np.isin(a["apple_id"], visible_ids)
     rows_seen = np.unique(a["row"][np.isin(a["apple_id"], np.unique(d["apple_id"]))])
     in_rows = np.isin(a["row"], rows_seen)
