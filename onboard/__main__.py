@@ -12,7 +12,8 @@ import argparse
 import logging
 import sys
 
-from pomar.apple_scale import SCALE_HELP, scale_argument
+from onboard.node import NodeSettings
+from pomar.settings import add_options
 from pomar.telemetry import mount_arguments
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -62,12 +63,9 @@ def _cmd_run(args) -> int:
         if args.summary:
             Path(args.summary).write_text(json.dumps(summary, indent=2) + "\n")
 
-    settings = NodeSettings(lockstep=not args.realtime, every=args.every, keyframe_every=args.keyframe_every,
-                            keyframe_every_s=args.keyframe_every_s, keyframe_every_m=args.keyframe_every_m,
-                            keyframe_width=args.keyframe_width, jpeg_quality=args.jpeg_quality, log=args.log,
-                            camera_tilt_deg=args.camera_tilt_deg, camera_yaw_deg=args.camera_yaw_deg,
-                            clock_offset_s=args.clock_offset_s,
-                            detector_scale=args.detector_scale)
+    from pomar.settings import from_options
+
+    settings = from_options(NodeSettings(), args, RUN_FIELDS + LINK_FIELDS + SCALE_FIELDS + MOUNT_FIELDS)
     if args.video:
         if not (args.log and args.camera):
             print("error: --video needs --log and --camera", file=sys.stderr)
@@ -183,21 +181,19 @@ def _detector_options(r):
     r.add_argument("--score-thresh", type=float, help="detection score threshold (default: the model's)")
     r.add_argument("--tile-size", type=int, default=1344, help="frames larger than this are tiled")
     r.add_argument("--threads", type=int, help="onnxruntime intra-op threads")
-    r.add_argument("--detector-scale", type=scale_argument, default="auto", help=SCALE_HELP)
+    add_options(r, NodeSettings(), SCALE_FIELDS)
+
+
+#: The node's settings (onboard.node.NodeSettings) that are options; each option's name, default and help come from
+#: its field (pomar.settings). The camera's mount comes from pomar.telemetry.mount_arguments, shared with the ground.
+RUN_FIELDS = ["realtime", "every", "log", "clock_offset_s"]
+LINK_FIELDS = ["keyframe_every", "keyframe_every_s", "keyframe_every_m", "keyframe_width", "jpeg_quality"]
+SCALE_FIELDS = ["detector_scale"]
+MOUNT_FIELDS = ["camera_tilt_deg", "camera_yaw_deg"]
 
 
 def _link_options(r):
-    from onboard.node import KeyframePolicy
-
-    r.add_argument("--keyframe-every", type=int,
-                   help="send every Nth processed frame as a JPEG keyframe (0 = none)")
-    r.add_argument("--keyframe-every-s", type=float,
-                   help=f"or: a keyframe every this many seconds of capture time (the default, "
-                        f"{KeyframePolicy.DEFAULT_EVERY_S:g} s when nothing is set: about 0.7 MB/s at 1280x720, "
-                        f"10 or 30 fps)")
-    r.add_argument("--keyframe-every-m", type=float, help="or: a keyframe every this many metres flown")
-    r.add_argument("--keyframe-width", type=int, default=960, help="keyframe width in pixels (0 = native)")
-    r.add_argument("--jpeg-quality", type=int, default=85)
+    add_options(r, NodeSettings(), LINK_FIELDS)
     r.add_argument("--listen", action="append", help=f"zenoh endpoint to listen on (default {DEFAULT_ENDPOINT})")
     r.add_argument("--connect", action="append", help="zenoh endpoint to connect to")
     r.add_argument("--zenoh-config", help="a zenoh JSON5 config file for real links")
@@ -225,13 +221,8 @@ def main(argv=None) -> int:
                    help="onnx (the shipped model, default) or truth-replay (a diagnostic stand-in that replays "
                         "truth/detections.csv)")
     _detector_options(r)
-    r.add_argument("--realtime", action="store_true", help="play at the video's frame rate, newest frame first, count drops")
-    r.add_argument("--every", type=int, default=1, help="process every Nth frame (lock-step)")
-    r.add_argument("--log", help="the flight's telemetry from another log of any supported format (.tlog, ArduPilot "
-                                 "DataFlash .bin, PX4 .ulg, DJI .SRT) instead of the flight directory's telemetry.tlog")
+    add_options(r, NodeSettings(), RUN_FIELDS)
     mount_arguments(r)
-    r.add_argument("--clock-offset-s", type=float, default=0.0,
-                   help="camera clock minus the log's clock, for logs without camera events")
     _link_options(r)
     r.add_argument("--wait-for-ground", type=float, default=None,
                    help="wait up to this many seconds for a ground to subscribe before the first frame (0 = do not "

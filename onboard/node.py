@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import resource
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +21,7 @@ from onboard.loop import Capture, publish_frames, sent_keyframe_width
 from onboard.sources import LatestFrame, SourceError, VideoSource
 from pomar.telemetry import Flags, TelemetryError, read_log
 from pomar import wire
-from pomar.apple_scale import policy_for, telemetry_radius_px
+from pomar.apple_scale import policy_for, scale_argument, telemetry_radius_px
 from pomar.flight import FlightDir
 
 log = logging.getLogger(__name__)
@@ -78,23 +78,37 @@ class KeyframePolicy:
 
 @dataclass
 class NodeSettings:
-    lockstep: bool = True  # every frame (every Nth), none dropped; False = real time, newest frame first
+    #: Play at the video's frame rate, newest frame first, counting the frames dropped (off: lock-step, every frame).
+    realtime: bool = False
+    #: Process every Nth frame (lock-step).
     every: int = 1
-    # which frames also go as JPEG keyframes (KeyframePolicy): every Nth processed frame (0 = none), or every S
-    # seconds of capture time, or every D metres flown; none set: every KeyframePolicy.DEFAULT_EVERY_S
-    keyframe_every: int | None = None
-    keyframe_every_s: float | None = None
-    keyframe_every_m: float | None = None
-    keyframe_width: int = 0  # resize keyframes to this width (0 = native)
+    #: Send every Nth processed frame as a JPEG keyframe (0 = none); or one of the next two; none of the three set:
+    #: a keyframe every KeyframePolicy.DEFAULT_EVERY_S (0.2 s) of capture time, about 0.7 MB/s at 1280x720.
+    keyframe_every: int | None = field(default=None, metadata={"type": int})
+    #: Or: a keyframe every this many seconds of capture time.
+    keyframe_every_s: float | None = field(default=None, metadata={"type": float})
+    #: Or: a keyframe every this many metres flown.
+    keyframe_every_m: float | None = field(default=None, metadata={"type": float})
+    #: Keyframe width in pixels, never more than the frame's (0 = native).
+    keyframe_width: int = 960
+    #: JPEG quality of the keyframes (0-100).
     jpeg_quality: int = 85
+    #: Seconds between the node's status messages.
     status_period_s: float = 1.0
-    clock_offset_s: float = 0.0  # camera clock minus autopilot clock, when there are no capture records
-    log: str | None = None  # a telemetry log of any supported format, instead of the flight directory's .tlog
-    camera_tilt_deg: float | None = None  # for logs without gimbal attitudes: the camera's fixed pitch below horizon
-    # with camera_tilt_deg: the camera's heading from the vehicle's nose, or from the track where the log has no
-    # vehicle attitude (most DJI .SRTs); 90 = looking right, as when flying along a row and looking across it
+    #: Camera clock minus the log's clock, for logs without camera events.
+    clock_offset_s: float = 0.0
+    #: The flight's telemetry from another log of any supported format (.tlog, ArduPilot DataFlash .bin, PX4 .ulg, DJI
+    #: .SRT) instead of the flight directory's telemetry.tlog.
+    log: str | None = None
+    #: For logs without gimbal attitudes: the camera's fixed pitch below the horizon (pomar.telemetry.mount_arguments).
+    camera_tilt_deg: float | None = None
+    #: With camera_tilt_deg: the camera's heading from the vehicle's nose, or from the track where the log has no
+    #: vehicle attitude (most DJI .SRTs); 90 = looking right, as when flying along a row and looking across it.
     camera_yaw_deg: float = 0.0
-    detector_scale: str = "auto"  # frames resized so apples reach the model at its size (pomar.apple_scale); off; or a number
+    #: How frames are resized before detection: auto (apples at the model's size, foreseen from the height above
+    #: take-off, the tilt and the focal length; live, enlarged only as far as the node keeps the video's rate), off, or
+    #: one factor for every frame (pomar.apple_scale).
+    detector_scale: str = field(default="auto", metadata={"type": scale_argument})
 
 
 class OnboardNode:
@@ -150,8 +164,8 @@ class OnboardNode:
         self.pub.publish(wire.CameraMessage(meta.flight_id, meta.drone_id, cam.to_dict(), meta.fps, meta.video_start_utc,
                                             sent_keyframe_width(self.s.keyframe_width, cam.width)))
         frames = RecordedFrames(self.flight.video, t_frames, tel, self.s.every, meta.frame_count, meta.fps,
-                                self.s.lockstep)
-        pacer = None if self.s.lockstep else scaling.pacer()  # live: enlarge frames only while there is time
+                                not self.s.realtime)
+        pacer = scaling.pacer() if self.s.realtime else None  # live: enlarge frames only while there is time
         policy = KeyframePolicy(self.s.keyframe_every, self.s.keyframe_every_s, self.s.keyframe_every_m)
         summary = publish_frames(frames, meta.flight_id, meta.drone_id, self.pub, self.detector, scaling, pacer, policy,
                                  self.s.keyframe_width, self.s.jpeg_quality, self.s.status_period_s)

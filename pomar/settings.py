@@ -61,7 +61,7 @@ def add_options(parser, settings, names: list[str], prefix: str = "") -> None:
         default = getattr(settings, name)
         doc = one_line(docs.get(name, ""))
         kw = {"dest": f.metadata.get("dest", name), "default": default,
-              "help": prefix + (doc + "; " if doc else "") + "default %(default)s"}
+              "help": prefix + doc + ("" if default is None else ("; " if doc else "") + "default %(default)s")}
         if "choices" in f.metadata:
             kw["choices"] = f.metadata["choices"]
         if isinstance(default, bool):

@@ -85,3 +85,24 @@ def test_ground_run_help_lists_every_setting_as_readme_says():
     for opt in ("--confirm-score", "--max-interp-gap", "--track-points", "--no-revisit", "--mapping"):
         assert opt in r.stdout, opt
     assert "default 0.9" in " ".join(r.stdout.split())
+
+
+def test_every_onboard_setting_option_comes_from_its_field():
+    """The same for `onboard run`: NodeSettings' fields are its options (the keyframe width was 960 on the command
+    line and 0 in the dataclass); the parsed options give the NodeSettings the node runs with."""
+    import onboard.__main__ as om
+    from onboard.node import NodeSettings
+    from pomar.settings import field_docs, from_options
+
+    p = argparse.ArgumentParser()
+    om.add_options(p, NodeSettings(), om.RUN_FIELDS)
+    om._link_options(p)
+    om.add_options(p, NodeSettings(), om.SCALE_FIELDS)
+    om.mount_arguments(p)
+    docs = field_docs(NodeSettings)
+    for n in om.RUN_FIELDS + om.LINK_FIELDS + om.SCALE_FIELDS:
+        assert p.get_default(n) == getattr(NodeSettings(), n) and docs.get(n), n
+    fields = om.RUN_FIELDS + om.LINK_FIELDS + om.SCALE_FIELDS + om.MOUNT_FIELDS
+    s = from_options(NodeSettings(), p.parse_args(["--realtime", "--keyframe-width", "0", "--camera-tilt-deg", "60"]),
+                     fields)
+    assert s.realtime and s.keyframe_width == 0 and s.camera_tilt_deg == 60.0 and s.detector_scale == "auto"
