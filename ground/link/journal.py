@@ -45,30 +45,62 @@ def record(payload: bytes) -> bytes:
 
 
 class Journal:
+    """Appends records. A journal that cannot be written (a full disk, a read-only folder) stops the journal, never
+    the flight: it warns once, keeps why in ``failed`` (the flight can then no longer be resumed from it), and writes
+    nothing more, so that the records before stay as they were (a record cut short at the end is a damaged record to
+    the reader, which keeps the others)."""
+
     def __init__(self, path: Path, fsync_every: int = 50):
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        new = not self.path.exists() or self.path.stat().st_size == 0
-        if not new:
-            with open(self.path, "rb") as f:
-                _check_header(self.path, f.read(len(HEADER)))
-        self._f = open(self.path, "ab")
-        if new:
-            self._f.write(HEADER)
+        self._f = None
+        self.failed: str | None = None
         self._n = 0
         self.fsync_every = fsync_every
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            new = not self.path.exists() or self.path.stat().st_size == 0
+            if not new:
+                with open(self.path, "rb") as f:
+                    _check_header(self.path, f.read(len(HEADER)))
+            self._f = open(self.path, "ab")
+            if new:
+                self._f.write(HEADER)
+                self._f.flush()
+        except OSError as exc:
+            self._fail(exc)
+
+    def _fail(self, exc: OSError) -> None:
+        self.failed = f"{self.path}: {exc.strerror or exc}"
+        log.warning("the journal cannot be written (%s): the flight goes on, but can no longer be resumed from it",
+                    self.failed)
+        if self._f is not None:
+            try:
+                self._f.close()
+            except OSError:
+                pass
+            self._f = None
 
     def append(self, payload: bytes) -> None:
-        self._f.write(record(payload))
-        self._n += 1
-        self._f.flush()
-        if self._n % self.fsync_every == 0:
-            os.fsync(self._f.fileno())
+        if self._f is None:
+            return
+        try:
+            self._f.write(record(payload))
+            self._n += 1
+            self._f.flush()
+            if self._n % self.fsync_every == 0:
+                os.fsync(self._f.fileno())
+        except OSError as exc:
+            self._fail(exc)
 
     def close(self) -> None:
-        self._f.flush()
-        os.fsync(self._f.fileno())
-        self._f.close()
+        if self._f is None:
+            return
+        try:
+            self._f.flush()
+            os.fsync(self._f.fileno())
+            self._f.close()
+        except OSError as exc:
+            self._fail(exc)
 
 
 def _check_header(path: Path, head: bytes) -> None:

@@ -110,6 +110,7 @@ class GroundNode:
         self._trim = _libc_malloc_trim()
         self.history_requeries = 0  # times the publishers' history was asked for again (frames missing at the end)
         self.journal_damage: dict | None = None
+        self.journal: Journal | None = None  # the journal being written (run_ground)
 
     def _rerun(self):
         if self.rr is None and self.pipe.flight_id is not None and any(self._rr_args):
@@ -213,7 +214,9 @@ class GroundNode:
                 "rejected_total": sum(sf.rejected.values()) if sf else 0,
                 "duplicates": sf.duplicates if sf else 0, "last_rejections": sf.errors[-10:] if sf else [],
                 "ignored_end_claims": self.ignored_end_claims, "history_requeries": self.history_requeries,
-                "journal": self.journal_damage}
+                "journal": self.journal_damage,
+                # the journal could not be written (a full disk): the flight could no longer be resumed from it
+                "journal_write_failed": self.journal.failed if self.journal is not None else None}
 
     FPS_WINDOW_S = 5.0
 
@@ -405,7 +408,7 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
                 continue
             if msg is not None:
                 node.handle(msg)
-    journal = Journal(journal_path)
+    journal = node.journal = Journal(journal_path)
     sampling = threading.Event()
     threading.Thread(target=node.sample_memory, args=(sampling,), daemon=True, name="memory").start()
     session = transport.open_session(listen=listen, connect=connect, config_file=zenoh_config)

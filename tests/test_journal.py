@@ -1,0 +1,39 @@
+"""The journal on a disk that fills up or a folder it cannot write to: the journal stops, the flight does not."""
+
+from __future__ import annotations
+
+import logging
+import os
+
+import pytest
+
+from ground.link.journal import Journal, read_journal
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (Linux) to fill a disk")
+def test_a_full_disk_stops_the_journal_once_and_keeps_the_records_before(tmp_path, caplog):
+    path = tmp_path / "journal.bin"
+    j = Journal(path)
+    j.append(b"one")
+    j.append(b"two")
+    j._f.flush()
+    j._f.close()
+    j._f = open("/dev/full", "ab")  # the disk is full from here on: every write fails with ENOSPC
+    with caplog.at_level(logging.WARNING, logger="ground.link.journal"):
+        for k in range(5):
+            j.append(b"lost %d" % k)  # no exception: the ground goes on mapping
+        j.close()
+    assert j.failed and "No space left" in j.failed
+    assert sum("cannot be written" in r.getMessage() for r in caplog.records) == 1  # warned once
+    assert read_journal(path) == [b"one", b"two"]  # what was written before is intact
+
+
+def test_a_journal_in_a_folder_that_cannot_be_made_is_a_warning(tmp_path, caplog):
+    blocker = tmp_path / "out"
+    blocker.write_text("a file where the output folder should be")
+    with caplog.at_level(logging.WARNING, logger="ground.link.journal"):
+        j = Journal(blocker / "journal.bin")
+        j.append(b"one")
+        j.close()
+    assert j.failed and str(blocker) in j.failed
+    assert any("can no longer be resumed" in r.getMessage() for r in caplog.records)
