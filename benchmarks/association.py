@@ -27,7 +27,7 @@ import numpy as np
 
 from ground.apples.association import AssociationParams, FrameDetections, WindowedAssociation
 from ground.evaluation.evaluate import Perturbation, evaluate, format_table
-from pomar.countable import MIN_VIEWS
+from pomar.countable import MIN_VIEWS, countable_ids
 from ground.evaluation.synthetic import apples_along, camera_path, make_sequence
 from pomar.camera import Camera
 
@@ -186,9 +186,8 @@ def evaluate_prefix(flight, n_frames, params, pert):
     seconds = time.perf_counter() - t0
     a = fl.truth_apples()
     d = fl.truth_detections()
-    g = (d["visible_fraction"] >= pert.min_visible) & (d["frame"] < n_frames)
-    ids, n = np.unique(d["apple_id"][g], return_counts=True)
-    vis = ids[n >= MIN_VIEWS]  # the truth's countable apples (pomar.countable)
+    early = d["frame"] < n_frames
+    vis = countable_ids(d["apple_id"][early], d["visible_fraction"][early], pert.min_visible)
     T = np.stack([a["x"], a["y"], a["z"]], 1)
     pi, ti, _ = match(np.array([x.X for x in apples]).reshape(-1, 3), T, 0.10)
     prec = len(pi) / max(len(apples), 1)

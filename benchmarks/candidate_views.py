@@ -27,7 +27,7 @@ import numpy as np
 from ground.link.journal import read_journal
 from ground.pipeline import GroundPipeline, GroundSettings
 from pomar import wire
-from pomar.countable import MIN_VIEWS, MIN_VISIBLE
+from pomar.countable import MIN_VIEWS, MIN_VISIBLE, countable_ids
 from pomar.flight import FlightDir
 
 KINDS = ("visible", "hidden", "false")
@@ -42,8 +42,7 @@ def truth_index(flight: FlightDir, min_visible: float = MIN_VISIBLE, min_views: 
     frames, starts = np.unique(td["frame"][order], return_index=True)
     for f, part in zip(frames, np.split(order, starts[1:])):
         by_frame[int(f)] = part
-    ids, n = np.unique(td["apple_id"][td["visible_fraction"] >= min_visible], return_counts=True)
-    return td, by_frame, set(ids[n >= min_views].tolist())
+    return td, by_frame, set(countable_ids(td["apple_id"], td["visible_fraction"], min_visible, min_views).tolist())
 
 
 def candidates(flight: FlightDir, journal: Path) -> tuple[list[dict], dict[str, int]]:

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from onboard.loop import Capture, publish_frames, sent_keyframe_width
+from onboard.loop import Capture, publish_frames, sent_keyframe_width, telemetry_record
 from onboard.node import KeyframePolicy
 from onboard.sources import LatestFrame, VideoSource
 from pomar import wire
@@ -88,10 +88,10 @@ class LiveFrames:
     def expected_radius(self, i: int) -> float:
         return self._expected
 
-    def telemetry(self, c: Capture) -> dict:
+    def telemetry(self, c: Capture) -> wire.Telemetry:
         s = sample_when_bracketed(self.telemetry_link, c.t_capture, c.t_read + self.max_wait_s)
         self._expected = float(telemetry_radius_px(self.fx, s)[0])
-        return s
+        return telemetry_record(s)
 
 
 def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str, publisher, detector,

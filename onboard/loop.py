@@ -5,7 +5,7 @@ apples to the model's size -> the frame's telemetry -> a frame message, and a ke
 
 ``frames`` is a frame source (:class:`onboard.node.RecordedFrames`: a flight's video in lock-step or played in real
 time; :class:`onboard.live.LiveFrames`: a camera or stream with a live telemetry link). It yields :class:`Capture`
-and gives each frame's telemetry and foreseen apple size; ``read``, ``dropped`` and ``error`` say how the reading
+and gives each frame's telemetry (as the wire carries it) and foreseen apple size; ``read``, ``dropped`` and ``error`` say how the reading
 went.
 """
 
@@ -90,7 +90,7 @@ def publish_frames(frames, flight_id: str, drone_id: str, publisher, detector, s
             det_s += frame_det_s
             scales.append(scale)
             # after the detection: a live link's samples after the capture have had time to come
-            tel = telemetry_record(frames.telemetry(c))
+            tel = frames.telemetry(c)
             flagged += tel.flags != 0
             due = keyframes.due(c.t_capture, tel.lat, tel.lon, tel.alt)
             publisher.publish(wire.FrameMessage(flight_id, drone_id, c.index, c.t_capture, tel, img.shape[1],

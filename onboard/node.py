@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from onboard.loop import Capture, publish_frames, sent_keyframe_width
+from onboard.loop import Capture, publish_frames, sent_keyframe_width, telemetry_record
 from onboard.sources import LatestFrame, SourceError, VideoSource
 from pomar.telemetry import Flags, TelemetryError, read_log
 from pomar import wire
@@ -215,5 +215,5 @@ class RecordedFrames:
     def expected_radius(self, i: int) -> float:
         return float(self.tel["expected_radius_px"][i])
 
-    def telemetry(self, c: Capture) -> dict:
-        return {k: v[c.index:c.index + 1] for k, v in self.tel.items()}
+    def telemetry(self, c: Capture) -> wire.Telemetry:
+        return telemetry_record(self.tel, c.index)

@@ -75,9 +75,9 @@ class Counting:
         """Put the apples (new, or updated by a merge) with enough strong views into the map; returns them."""
         out = []
         need = self.views_needed(steps) if apples else 0
+        threshold = np.float32(self.s.confirm_score)  # scores are float32 on the wire: compared as such
         for a in apples:
-            # scores are float32 on the wire: compared as such
-            strong = sum(int(np.float32(o.score) >= np.float32(self.s.confirm_score)) for o in self.in_reach(a))
+            strong = sum(int(np.float32(o.score) >= threshold) for o in self.in_reach(a))
             # a merge may bring views from beyond the association's reach: never count down
             strong = self.strong[a.id] = max(strong, self.strong.get(a.id, 0))
             if strong >= need:

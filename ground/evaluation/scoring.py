@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from ground.apples.rows import direction_rows, kmeans_rows
 from ground.poses.georeference import fit_similarity, georeference_poses
-from pomar.countable import MIN_VIEWS, MIN_VISIBLE, countable_ids
+from pomar.countable import MIN_VIEWS, MIN_VISIBLE, countable_ids, visible
 from pomar.flight import FlightDir, read_csv
 from pomar.rotations import quat_wxyz_to_rotation
 
@@ -330,7 +330,7 @@ def apple_reprojection_errors(fl: FlightDir, R, t, R_true, t_true, frames=None) 
     X = np.stack([a["x"], a["y"], a["z"]], 1)
     errs = []
     for f in np.unique(d["frame"]) if frames is None else frames:
-        sel = (d["frame"] == f) & (d["visible_fraction"] >= MIN_VISIBLE)
+        sel = (d["frame"] == f) & visible(d["visible_fraction"])
         if not sel.any():
             continue
         idx = np.searchsorted(a["apple_id"], d["apple_id"][sel])

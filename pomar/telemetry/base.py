@@ -307,7 +307,12 @@ class TelemetryLog:
         if still.all():
             yaw[:] = 0.0
         elif still.any():
-            yaw[still] = yaw[~still][np.abs(t[still, None] - t[None, ~still]).argmin(1)]
+            # the nearest moving time (O(n log n): a long hover at 30 fps is tens of thousands of frames)
+            order = np.argsort(t[~still], kind="stable")
+            tm, ym, ts = t[~still][order], yaw[~still][order], t[still]
+            j = np.clip(np.searchsorted(tm, ts), 1, len(tm) - 1) if len(tm) > 1 else np.zeros(len(ts), int)
+            lo = np.maximum(j - 1, 0)
+            yaw[still] = ym[np.where(np.abs(ts - tm[lo]) <= np.abs(tm[j] - ts), lo, j)]
         res = np.full((len(t), 4), np.nan)
         ok = np.isfinite(yaw)
         if ok.any():
