@@ -1,6 +1,7 @@
 """python -m export SUBCOMMAND: train the apple detector, export it to ONNX, score it (needs the `export` extra).
 
   train     train the torchvision Faster R-CNN from scratch (ADD256 + simulated crops), checkpointed
+  pack      a simulated flight's frames and truth boxes in one .npz, for training where the video cannot go
   onnx      export a checkpoint to ONNX (dynamic height and width, native resolution) with its metadata
   quantize  8-bit static quantization of an exported float32 model (faster on CPUs), calibrated on training data
   evaluate  AP@0.5 and P/R/F1 on the ADD256 test split and a held-out simulated flight, via onnxruntime
@@ -20,7 +21,7 @@ def train_arguments(p: argparse.ArgumentParser):
     p.add_argument("--add256", help="ADD256 folder (default: $POMAR_ADD256, then the workplace's shared copy)")
     p.add_argument("--sim-flight", action="append", default=[], type=Path,
                    help="simulated flight folder(s) to crop training patches from (repeatable)")
-    p.add_argument("--backbone", default="resnet18", choices=["resnet18", "resnet50"])
+    p.add_argument("--backbone", default="resnet18", choices=["resnet18", "resnet50", "mobilenet_v3_large"])
     p.add_argument("--fpn-channels", type=int, default=128)
     p.add_argument("--epochs", type=int, default=8)
     p.add_argument("--batch", type=int, default=4)
@@ -36,13 +37,27 @@ def train_arguments(p: argparse.ArgumentParser):
     p.add_argument("--add256-scale", type=float, nargs=2, default=(0.45, 1.3), metavar=("LO", "HI"),
                    help="random scale range of ADD256 patches (default 0.45 1.3: down to the simulated flights' "
                         "apple sizes; 0.8 1.25 to train for ADD256-like imagery alone)")
+    p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"],
+                   help="where to train (auto: the GPU if torch sees one, else the CPU)")
+    p.add_argument("--amp", action="store_true", help="mixed precision: the forward pass in bfloat16")
+    p.add_argument("--workers", type=int, help="augmentation processes (default: 0 on the CPU, up to 4 beside a GPU)")
+    p.add_argument("--fit-minutes", type=float, metavar="M",
+                   help="set the epochs so that the whole schedule takes about M minutes, from the first iterations' rate")
+
+
+def pack_arguments(p: argparse.ArgumentParser):
+    p.add_argument("flight", type=Path, help="a simulated flight folder (video and truth/detections.csv)")
+    p.add_argument("--out", type=Path, required=True, help=".npz to write")
+    p.add_argument("--every", type=int, default=1, help="keep every N-th frame")
+    p.add_argument("--limit", type=int, help="at most this many frames")
+    p.add_argument("--quality", type=int, default=95, help="JPEG quality of the packed frames")
 
 
 
 
 
 def onnx_arguments(p: argparse.ArgumentParser):
-    p.add_argument("checkpoint", type=Path, help="a checkpoint of python -m export train (best.pt / last.pt)")
+    p.add_argument("checkpoint", type=Path, help="a checkpoint of python -m export train (best.pt / last.pt, or a folder of fp16 parts)")
     p.add_argument("--out", type=Path, default=Path("out/export/apple-detector.onnx"), help="ONNX file to write "
                    "(its metadata goes next to it, same name with .json)")
     p.add_argument("--opset", type=int, default=17)
@@ -96,7 +111,9 @@ def main(argv=None) -> int:
     o = sub.add_parser("onnx", help="export a checkpoint to ONNX")
     q = sub.add_parser("quantize", help="8-bit static quantization of an exported model")
     e = sub.add_parser("evaluate", help="score an ONNX model through the onboard detector")
+    k = sub.add_parser("pack", help="pack a simulated flight's frames and boxes into one .npz")
     train_arguments(t)
+    pack_arguments(k)
     onnx_arguments(o)
     quantize_arguments(q)
     evaluate_arguments(e)
@@ -110,6 +127,8 @@ def main(argv=None) -> int:
         from export.train import run
     elif args.cmd == "onnx":
         from export.onnx_export import run
+    elif args.cmd == "pack":
+        from export.data import run_pack as run
     elif args.cmd == "quantize":
         from export.quantize import run
     else:

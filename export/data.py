@@ -14,6 +14,7 @@ import csv
 import json
 import logging
 import os
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -109,8 +110,35 @@ def sim_frame_boxes(flight_dir: Path, min_visible: float = MIN_VISIBLE, min_igno
     return {k: (arr(pos, k), arr(ign, k)) for k in set(pos) | set(ign)}
 
 
+def save_pack(samples: list[Sample], path, quality: int = 95) -> Path:
+    """Samples in one ``.npz`` (JPEG frames, boxes, ignore boxes): training data that travels without the video."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays = {}
+    for i, s in enumerate(samples):
+        ok, jpg = cv2.imencode(".jpg", cv2.cvtColor(s.image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
+        arrays[f"jpg{i}"] = jpg.reshape(-1)
+        arrays[f"boxes{i}"] = np.asarray(s.boxes, np.float32).reshape(-1, 4)
+        arrays[f"ignore{i}"] = np.asarray(s.ignore if s.ignore is not None else np.zeros((0, 4)), np.float32).reshape(-1, 4)
+    arrays["names"] = np.array([s.name for s in samples])
+    np.savez(path, **arrays)
+    return path
+
+
+def load_pack(path) -> list[Sample]:
+    try:
+        z = np.load(path)
+        names = [str(n) for n in z["names"]]
+        return [Sample(n, cv2.cvtColor(cv2.imdecode(z[f"jpg{i}"], cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB), z[f"boxes{i}"],
+                       z[f"ignore{i}"]) for i, n in enumerate(names)]
+    except (OSError, KeyError, ValueError, cv2.error) as e:
+        raise DataError(f"{path}: not a pack of export pack ({e})") from e
+
+
 def load_sim_frames(flight_dir, min_visible: float = MIN_VISIBLE, every: int = 1, limit: int | None = None) -> list[Sample]:
-    """Whole frames of a simulated flight with their truth boxes (and ignore boxes)."""
+    """Whole frames of a simulated flight (or of a pack of ``save_pack``) with their truth and ignore boxes."""
+    if str(flight_dir).endswith(".npz"):
+        return load_pack(flight_dir)[::every][:limit]
     from pomar.video import iter_frames
     from pomar.flight import FlightDir
 
@@ -202,3 +230,15 @@ class Augment:
         if r.random() < 0.3:
             out += r.normal(0, r.uniform(1, 5), out.shape)
         return out.clip(0, 255).astype(np.uint8)
+
+
+def run_pack(args) -> int:
+    try:
+        samples = load_sim_frames(args.flight, every=args.every, limit=args.limit)
+    except DataError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    path = save_pack(samples, args.out, args.quality)
+    print(f"{path}: {len(samples)} frames, {sum(len(s.boxes) for s in samples)} apples, "
+          f"{path.stat().st_size / 1e6:.1f} MB")
+    return 0

@@ -1,7 +1,12 @@
 """Train the apple detector from scratch on ADD256 (+ crops of simulated flights), with checkpoints and resume.
 
-    python -m export train --out out/export/r18 [--add256 DIR] [--sim-flight DIR ...] [--epochs N] [--resume]
-                           [--init CKPT]   # a second cycle from trained weights
+    python -m export train --out out/export/r18 [--add256 DIR] [--sim-flight DIR|PACK.npz ...] [--epochs N] [--resume]
+                           [--init CKPT]   # a second cycle from trained weights (a .pt or a folder of fp16 parts)
+                           [--device auto|cpu|cuda] [--amp] [--fit-minutes M]
+
+The same command trains on a GPU where one is present (``--device auto``) and on the CPU otherwise; ``--amp``
+runs the forward pass in bfloat16 (mixed precision; no loss scaling needed). Augmentation runs in
+``--workers`` loader processes, so a GPU is not left waiting on one CPU core.
 
 Each epoch is the ADD256 training split (1,025 patches) plus ``--sim-crops`` random crops of the
 simulated flights' frames, augmented (scale, crops, flips, 90° rotations, colour). The learning rate
@@ -17,13 +22,15 @@ import json
 import logging
 import math
 import os
+import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
-from export.data import Augment, load_add256, load_sim_frames
+from export.data import Augment, DataError, load_add256, load_sim_frames
 from export.metrics import evaluate_detections
 from export.model import load_checkpoint, make
 
@@ -62,15 +69,63 @@ def lr_at(it: int, total: int, base: float, warmup: int = 300, final: float = 0.
     return base * (final + (1 - final) * 0.5 * (1 + math.cos(math.pi * min(t, 1.0))))
 
 
+class TrainingError(RuntimeError):
+    """A training run that cannot start as asked (e.g. ``--device cuda`` without CUDA); the message says why."""
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise TrainingError("--device cuda: this machine's torch sees no CUDA device (use --device cpu or auto)")
+    return torch.device(name)
+
+
+class EpochItems(torch.utils.data.Dataset):
+    """One epoch's augmented training items, each from its own seed (seed, epoch, position): the same on a resume,
+    whatever the number of loader processes."""
+
+    def __init__(self, items, add, sim, seed: int, epoch: int, add256_scale):
+        self.items, self.add, self.sim, self.seed, self.epoch, self.add256_scale = items, add, sim, seed, epoch, add256_scale
+
+    def __len__(self):
+        return len(self.items)
+
+    def __getitem__(self, k):
+        kind, i = self.items[k]
+        aug = Augment(rng=np.random.default_rng([self.seed, self.epoch, k]))
+        if kind == "add256":
+            img, b = aug(self.add[i].image, self.add[i].boxes, scale=self.add256_scale)
+        else:
+            img, b = aug(self.sim[i].image, self.sim[i].boxes, scale=(0.8, 1.25))
+        return to_tensor(img), target(b)
+
+
+def collate(batch):
+    return tuple(zip(*batch))
+
+
 @torch.no_grad()
-def score_add256_test(model, test, score_thresh: float = 0.5) -> dict:
+def predict(model, samples, device=torch.device("cpu"), amp: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(boxes, scores) of ``model`` on each sample's whole image."""
+    was_training = model.training
     model.eval()
     preds = []
-    for s in test:
-        out = model([to_tensor(s.image)])[0]
-        preds.append((out["boxes"].numpy(), out["scores"].numpy()))
-    model.train()
-    return evaluate_detections(preds, [(s.boxes, None) for s in test], score_thresh)
+    for s in samples:
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
+            out = model([to_tensor(s.image).to(device)])[0]
+        preds.append((out["boxes"].float().cpu().numpy(), out["scores"].float().cpu().numpy()))
+    model.train(was_training)
+    return preds
+
+
+def score_samples(model, samples, score_thresh: float = 0.5, device=torch.device("cpu"), amp: bool = False) -> dict:
+    """AP@0.5 and P/R/F1 at ``score_thresh`` on samples (their ignore boxes neither count nor cost)."""
+    return evaluate_detections(predict(model, samples, device, amp), [(s.boxes, s.ignore) for s in samples], score_thresh)
+
+
+def score_add256_test(model, test, score_thresh: float = 0.5, device=torch.device("cpu"), amp: bool = False) -> dict:
+    return score_samples(model, test, score_thresh, device, amp)
 
 
 def save_atomic(obj, path: Path):
@@ -79,19 +134,32 @@ def save_atomic(obj, path: Path):
     os.replace(tmp, path)
 
 
+#: ``--fit-minutes``: iterations timed before the epochs are set, and the share of the time given to iterations
+#: (the rest: the per-epoch test scoring and checkpoints).
+FIT_AFTER, FIT_SHARE = 60, 0.85
+
+
 def train(out: Path, add256=None, sim_flights=(), backbone="resnet18", fpn_channels=128, epochs=8, batch=4,
           lr=0.01, sim_crops=400, seed=0, threads=None, checkpoint_every=100, resume=False, log_every=10,
-          max_minutes=None, init=None, add256_scale=(0.45, 1.3)):
+          max_minutes=None, init=None, add256_scale=(0.45, 1.3), device="auto", amp=False, workers=None,
+          fit_minutes=None):
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    if threads:
-        torch.set_num_threads(threads)
+    dev = pick_device(device)
+    if workers is None:
+        workers = min(4, max((os.cpu_count() or 1) - 1, 0)) if dev.type == "cuda" else 0
+    if threads or dev.type == "cuda":
+        torch.set_num_threads(threads or 2)
+    if workers:
+        # Loader processes each use one core (torch sees to its own threads there). OpenCV's is set here, before
+        # the fork: cv2.setNumThreads inside a forked worker hangs.
+        cv2.setNumThreads(1)
     torch.manual_seed(seed)
     add = load_add256(add256, "training")
     test = load_add256(add256, "test")
     sim = [s for f in sim_flights for s in load_sim_frames(f)]
-    log.info("data: %d ADD256 patches, %d simulated frames (%d crops/epoch), %d test patches",
-             len(add), len(sim), sim_crops if sim else 0, len(test))
+    log.info("data: %d ADD256 patches, %d simulated frames (%d crops/epoch), %d test patches; %s%s, %d loader processes",
+             len(add), len(sim), sim_crops if sim else 0, len(test), dev, " bfloat16 autocast" if amp else "", workers)
     plan = EpochPlan(len(add), len(sim), sim_crops, seed)
     per_epoch = math.ceil(len(plan) / batch)
     total = epochs * per_epoch
@@ -114,6 +182,11 @@ def train(out: Path, add256=None, sim_flights=(), backbone="resnet18", fpn_chann
         model = make(config)
         opt = torch.optim.SGD(model.parameters(), lr=lr, momentum=0.9, weight_decay=1e-4)
         it, history, best = 0, [], -1.0
+    model.to(dev)
+    for state in opt.state.values():  # a resumed optimiser's momenta go where the weights are
+        for k, v in state.items():
+            if torch.is_tensor(v):
+                state[k] = v.to(dev)
     run_info = dict(backbone=backbone, fpn_channels=fpn_channels, epochs=epochs, batch=batch, lr=lr,
                     sim_crops=sim_crops, seed=seed, sim_flights=[str(f) for f in sim_flights],
                     add256_train=len(add), sim_frames=len(sim), iterations=total,
@@ -126,58 +199,74 @@ def train(out: Path, add256=None, sim_flights=(), backbone="resnet18", fpn_chann
     model.train()
     t0, it0 = time.time(), it
     smooth = None
-    while it < total:
+    stop = False
+    while it < total and not stop:
         epoch, pos = divmod(it, per_epoch)
-        items = plan.items(epoch)
-        aug = Augment(rng=np.random.default_rng([seed, epoch, pos]))
-        batch_items = items[pos * batch:(pos + 1) * batch]
-        imgs, tgts = [], []
-        for kind, i in batch_items:
-            if kind == "add256":
-                img, b = aug(add[i].image, add[i].boxes, scale=add256_scale)
-            else:
-                img, b = aug(sim[i].image, sim[i].boxes, scale=(0.8, 1.25))
-            imgs.append(to_tensor(img))
-            tgts.append(target(b))
-        for g in opt.param_groups:
-            g["lr"] = lr_at(it, total, lr)
-        losses = model(imgs, tgts)
-        loss = sum(losses.values())
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"loss is {loss.item()} at iteration {it}; lower --lr")
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-        opt.step()
-        it += 1
-        vals = {k: v.item() for k, v in losses.items()}
-        smooth = vals if smooth is None else {k: 0.95 * smooth[k] + 0.05 * vals[k] for k in vals}
-        if it % log_every == 0 or it == total:
-            rate = (time.time() - t0) / max(it - it0, 1)
-            log.info("epoch %d/%d it %d/%d loss %.3f (%s) lr %.4f %.2f s/it ETA %.0f min", epoch + 1, epochs, it, total,
-                     sum(smooth.values()), " ".join(f"{k[5:]} {v:.3f}" for k, v in smooth.items()),
-                     opt.param_groups[0]["lr"], rate, rate * (total - it) / 60)
-        if it % checkpoint_every == 0:
-            checkpoint(last)
-        if it % per_epoch == 0 or it == total:
-            m = score_add256_test(model, test)
-            m.update(epoch=math.ceil(it / per_epoch), iteration=it, minutes=round((time.time() - t0) / 60, 1))
-            history.append(m)
-            log.info("ADD256 test after epoch %d: AP50 %.3f P %.3f R %.3f", m["epoch"], m["ap50"], m["precision"], m["recall"])
-            if m["ap50"] > best:
-                best = m["ap50"]
-                checkpoint(out / "best.pt")
-            checkpoint(last)
-            (out / "history.json").write_text(json.dumps(history, indent=1))
-        if max_minutes and (time.time() - t0) / 60 > max_minutes:
-            checkpoint(last)
-            log.warning("stopping after %.0f minutes (--max-minutes); resume with --resume", max_minutes)
-            break
+        items = EpochItems(plan.items(epoch), add, sim, seed, epoch, add256_scale)
+        rest = torch.utils.data.Subset(items, range(pos * batch, len(items)))
+        loader = torch.utils.data.DataLoader(rest, batch_size=batch, num_workers=workers, collate_fn=collate,
+                                             pin_memory=dev.type == "cuda")
+        for imgs, tgts in loader:
+            imgs = [x.to(dev, non_blocking=True) for x in imgs]
+            tgts = [{k: v.to(dev, non_blocking=True) for k, v in t.items()} for t in tgts]
+            for g in opt.param_groups:
+                g["lr"] = lr_at(it, total, lr)
+            with torch.autocast(dev.type, dtype=torch.bfloat16, enabled=amp):
+                losses = model(imgs, tgts)
+            loss = sum(v.float() for v in losses.values())
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"loss is {loss.item()} at iteration {it}; lower --lr")
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+            opt.step()
+            it += 1
+            if it == it0 + FIT_AFTER // 2:
+                t_fit = time.time()
+            if fit_minutes and it == it0 + FIT_AFTER and not resume:
+                # the epochs that fill the time asked for, from the rate of the second half of the first FIT_AFTER
+                # iterations (past the start-up; the schedule is still warming up)
+                rate = (time.time() - t_fit) / (FIT_AFTER - FIT_AFTER // 2)
+                epochs = max(1, int((FIT_SHARE * fit_minutes * 60 - (time.time() - t0)) / rate / per_epoch))
+                total = run_info["iterations"] = epochs * per_epoch
+                run_info["epochs"] = epochs
+                log.info("--fit-minutes %.1f: %.3f s/it, so %d epochs (%d iterations)", fit_minutes, rate, epochs, total)
+            vals = {k: v.item() for k, v in losses.items()}
+            smooth = vals if smooth is None else {k: 0.95 * smooth[k] + 0.05 * vals[k] for k in vals}
+            if it % log_every == 0 or it == total:
+                rate = (time.time() - t0) / max(it - it0, 1)
+                log.info("epoch %d/%d it %d/%d loss %.3f (%s) lr %.4f %.3f s/it ETA %.1f min", epoch + 1, epochs, it, total,
+                         sum(smooth.values()), " ".join(f"{k[5:]} {v:.3f}" for k, v in smooth.items()),
+                         opt.param_groups[0]["lr"], rate, rate * (total - it) / 60)
+            if it % checkpoint_every == 0:
+                checkpoint(last)
+            end_of_epoch = it % per_epoch == 0 or it == total
+            if end_of_epoch:
+                m = score_add256_test(model, test, device=dev, amp=amp)
+                m.update(epoch=math.ceil(it / per_epoch), iteration=it, minutes=round((time.time() - t0) / 60, 1))
+                history.append(m)
+                log.info("ADD256 test after epoch %d: AP50 %.3f P %.3f R %.3f", m["epoch"], m["ap50"], m["precision"], m["recall"])
+                if m["ap50"] > best:
+                    best = m["ap50"]
+                    checkpoint(out / "best.pt")
+                checkpoint(last)
+                (out / "history.json").write_text(json.dumps(history, indent=1))
+            if max_minutes and (time.time() - t0) / 60 > max_minutes:
+                checkpoint(last)
+                log.warning("stopping after %.0f minutes (--max-minutes); resume with --resume", max_minutes)
+                stop = True
+            if stop or end_of_epoch or it >= total:
+                break
     return history
 
 
 def run(args) -> int:
-    train(args.out, args.add256, args.sim_flight, args.backbone, args.fpn_channels, args.epochs, args.batch, args.lr,
-          args.sim_crops, args.seed, args.threads, args.checkpoint_every, args.resume, max_minutes=args.max_minutes,
-          init=args.init, add256_scale=tuple(args.add256_scale))
+    try:
+        train(args.out, args.add256, args.sim_flight, args.backbone, args.fpn_channels, args.epochs, args.batch, args.lr,
+              args.sim_crops, args.seed, args.threads, args.checkpoint_every, args.resume, max_minutes=args.max_minutes,
+              init=args.init, add256_scale=tuple(args.add256_scale), device=args.device, amp=args.amp,
+              workers=args.workers, fit_minutes=args.fit_minutes)
+    except (TrainingError, DataError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     return 0

@@ -15,7 +15,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pomar.rotations import camera_from_gimbal_attitude, quat_wxyz_to_rotation
 
 #: Mean radius of an apple (m): 6-9 cm fruit, as the simulator's orchards and ADD256's.
 APPLE_RADIUS_M = 0.0375
@@ -32,6 +31,8 @@ def off_nadir_deg(q_ned_from_gimbal) -> np.ndarray:
     out = np.full(len(q), np.nan)
     ok = np.isfinite(q).all(1) & (np.linalg.norm(q, axis=1) > 0)
     if ok.any():
+        from pomar.rotations import quat_wxyz_to_rotation  # scipy: not needed by the CLI's option parsing
+
         axis = quat_wxyz_to_rotation(q[ok]).apply([1.0, 0.0, 0.0])  # NED
         out[ok] = np.degrees(np.arccos(np.clip(axis[:, 2], -1.0, 1.0)))
     return out
@@ -62,6 +63,8 @@ def row_radius_px(camera, height_m: float, q_ned_from_gimbal) -> np.ndarray:
         return np.full(camera.height, np.nan)
     # OpenCV rows (centres at 0, 1, ...) against the COLMAP-convention principal point
     rays = np.stack([np.zeros_like(v), (v + 0.5 - camera.cy) / camera.fy, np.ones_like(v)], 1)  # camera frame, z = 1
+    from pomar.rotations import camera_from_gimbal_attitude, quat_wxyz_to_rotation
+
     r_enu_from_camera = camera_from_gimbal_attitude(quat_wxyz_to_rotation(q), camera.r_gimbal_from_camera)
     down = -(rays @ r_enu_from_camera[2])  # ENU's z is up
     # a point at depth z along the optical axis spans fx * r / z pixels; the ray meets the canopy at z = above / down

@@ -165,3 +165,96 @@ def test_detection_sets_compare_whatever_their_order():
     moved = b[perm].copy()
     moved[7, 2] += 3.0
     assert detection_set_difference(b, s, moved, s[perm])[0] >= 3.0 - 1e-4
+
+
+def _add256_like(folder, frames, n_train: int = 3, n_test: int = 2, size: int = 160):
+    """An ADD256-shaped folder (images/, training.json, test.json with circles) cut from simulated frames."""
+    import cv2
+
+    (folder / "images").mkdir(parents=True)
+    splits = {"training": {}, "test": {}}
+    for i, s in enumerate(frames[:n_train + n_test]):
+        name = f"patch-{i}.png"
+        cv2.imwrite(str(folder / "images" / name), cv2.cvtColor(s.image[:size, :size], cv2.COLOR_RGB2BGR))
+        b = s.boxes[(s.boxes[:, 2] < size) & (s.boxes[:, 3] < size) & (s.boxes[:, 0] >= 0) & (s.boxes[:, 1] >= 0)]
+        circles = [{"cx": float(x1 + x2) / 2, "cy": float(y1 + y2) / 2, "r": float(x2 - x1) / 2} for x1, y1, x2, y2 in b]
+        splits["training" if i < n_train else "test"][name] = circles
+    for split, ann in splits.items():
+        (folder / f"{split}.json").write_text(json.dumps(ann))
+    return folder
+
+
+def test_training_runs_with_mixed_precision_on_the_cpu_from_a_pack_and_continues_from_kept_parts(tmp_path):
+    """``export train --device cpu --amp`` with loader processes, on an ADD256-shaped folder and a packed
+    flight, as the GPU run uses it; its checkpoint kept as fp16 parts starts a second cycle (``--init``)."""
+    import subprocess
+    import sys
+
+    from export.data import load_sim_frames, save_pack
+    from export.parts import save_parts
+    from tests.conftest import BUNDLED
+
+    frames = load_sim_frames(BUNDLED, every=40)
+    add = _add256_like(tmp_path / "add256", frames)
+    pack = save_pack(frames[:2], tmp_path / "sim.npz")
+
+    def train(out, *extra):
+        cmd = [sys.executable, "-m", "export", "train", "--out", str(out), "--add256", str(add), "--sim-flight", str(pack),
+               "--backbone", "mobilenet_v3_large", "--fpn-channels", "32", "--epochs", "1", "--batch", "2",
+               "--sim-crops", "2", "--device", "cpu", "--amp", "--workers", "1", *extra]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+
+    r = train(tmp_path / "run")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "bfloat16 autocast" in r.stderr and "1 loader processes" in r.stderr
+    history = json.loads((tmp_path / "run" / "history.json").read_text())
+    assert history[-1]["iteration"] == 3 and history[-1]["images"] == 2
+    ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
+    assert all(torch.isfinite(v).all() for v in ckpt["model"].values() if v.is_floating_point())
+    save_parts(ckpt, tmp_path / "kept", part_bytes=4_000_000)
+    assert len(list((tmp_path / "kept").glob("part-*.bin"))) >= 2
+    r = train(tmp_path / "cycle2", "--init", str(tmp_path / "kept"))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "initialised from" in r.stderr and "trained 3 iterations" in r.stderr
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_training_on_cuda_without_cuda_is_a_one_line_error(tmp_path):
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "export", "train", "--out", str(tmp_path / "run"), "--device", "cuda"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines()[-1].startswith("error: --device cuda") and "Traceback" not in r.stderr
+    assert not (tmp_path / "run" / "last.pt").exists()
+
+
+def test_a_checkpoint_kept_as_fp16_parts_exports_to_onnx_with_the_same_boxes(tmp_path):
+    from export.model import load_checkpoint
+    from export.onnx_export import detection_set_difference, export_onnx
+    from export.parts import load_parts, save_parts
+    from onboard.detector import OnnxDetector
+
+    model, frames = _tiny_model_with_bn_stats()
+    parts = save_parts({"config": model._pomar_config, "model": model.state_dict(), "iteration": 7, "history": []},
+                       tmp_path / "kept", part_bytes=2_000_000)
+    assert max(p.stat().st_size for p in parts) <= 2_000_000
+    back, ckpt = load_checkpoint(tmp_path / "kept")
+    assert ckpt["iteration"] == 7
+    for k, v in model.state_dict().items():  # the weights are the originals rounded to fp16, nothing else
+        want = v.half().float() if v.is_floating_point() else v
+        assert torch.equal(back.state_dict()[k], want), k
+    back.eval()
+    rgb = frames[0].image[100:400, 200:620]
+    x = torch.from_numpy(rgb.transpose(2, 0, 1).copy()).float() / 255
+    path = tmp_path / "kept.onnx"
+    export_onnx(back, path, check=x, score_thresh=0.0)
+    boxes, scores = OnnxDetector(path, score_thresh=0.0).detect(0, rgb[..., ::-1].copy())
+    with torch.no_grad():
+        ref = back([x])[0]
+    assert len(boxes) == len(ref["boxes"]) > 0
+    assert detection_set_difference(ref["boxes"].numpy(), ref["scores"].numpy(), boxes, scores)[0] <= 1e-3
+    (tmp_path / "kept" / parts[0].name).write_bytes(b"damaged")
+    with pytest.raises(ValueError, match="part-000.bin: checksum"):
+        load_parts(tmp_path / "kept")

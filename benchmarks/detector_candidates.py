@@ -1,0 +1,133 @@
+"""Train the detector candidates side by side on one GPU, score them there, and keep the chosen one's checkpoint.
+
+    python -m export pack out/sim/detector-train --out gpu/detector-train.npz --quality 80     # on this machine
+    python -m export pack out/sim/tune-1 --out gpu/heldout-720p.npz --every 20 --limit 12
+    python -m export pack out/sim/paper-4k-small --out gpu/heldout-4k.npz --every 5 --limit 6 --quality 85
+    (gpu/add256: ADD256's training and test patches with their two JSON files)
+    PYTHONPATH=. python3 benchmarks/detector_candidates.py --data gpu --out $OUT --minutes 6   # on the GPU machine
+
+The three backbones (ResNet-50-FPN, the paper's; ResNet-18-FPN; MobileNetV3-Large-FPN) train at once, each
+``python -m export train --device cuda --amp --fit-minutes M``, from scratch. Then each one's last
+checkpoint (not the best on the test split: that would pick on the test) is scored on ADD256 test and on
+the held-out simulated frames at their native 720p and 4K. ``candidates.json`` holds the figures; the chosen
+model's weights come back as fp16 parts (``export.parts``) under ``OUT/<backbone>/``, with each run's log
+under ``OUT/logs``. Everything under OUT stays within what a device run returns (8 files, 60 MB).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+CANDIDATES = ["resnet50", "resnet18", "mobilenet_v3_large"]
+HELDOUT = {"sim_720p": "heldout-720p.npz", "sim_4k": "heldout-4k.npz"}
+#: What a device run brings back: files and bytes under OUT.
+MAX_FILES, MAX_BYTES = 8, 60_000_000
+
+
+def train_command(bb: str, data: Path, runs: Path, a) -> list[str]:
+    return [sys.executable, "-m", "export", "train", "--out", str(runs / bb), "--add256", str(data / "add256"),
+            "--sim-flight", str(data / "detector-train.npz"), "--backbone", bb, "--device", a.device,
+            *(["--amp"] if a.amp else []), "--batch", str(a.batch), "--lr", str(a.lr), "--sim-crops", str(a.sim_crops),
+            "--fit-minutes", str(a.minutes), "--max-minutes", str(a.minutes * 1.15), "--workers", str(a.workers),
+            "--checkpoint-every", "500", "--seed", str(a.seed)]
+
+
+def score(bb: str, runs: Path, data: Path, device: str) -> dict:
+    import torch
+
+    from export.data import load_add256, load_sim_frames
+    from export.model import load_checkpoint
+    from export.train import pick_device, score_samples
+
+    last = runs / bb / "last.pt"
+    if not last.is_file():
+        return {"backbone": bb, "error": "no checkpoint (see its log)"}
+    model, ckpt = load_checkpoint(last)
+    dev = pick_device(device)
+    model.to(dev)
+    out = {"backbone": bb, "parameters_m": round(sum(p.numel() for p in model.parameters()) / 1e6, 2),
+           "iterations": ckpt["iteration"], "epochs": ckpt["run"]["epochs"], "history": ckpt["history"]}
+    out["add256_test"] = score_samples(model, load_add256(data / "add256", "test"), device=dev)
+    for name, pack in HELDOUT.items():
+        if (data / pack).is_file():
+            out[name] = score_samples(model, load_sim_frames(data / pack), device=dev)
+    out["ckpt"] = ckpt
+    del model
+    if dev.type == "cuda":
+        torch.cuda.empty_cache()
+    return out
+
+
+def mean_ap(r: dict) -> float:
+    aps = [r[k]["ap50"] for k in ("add256_test", *HELDOUT) if k in r]
+    return sum(aps) / len(aps) if aps else -1.0
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, required=True)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--runs", type=Path, default=Path("/tmp/pomar-candidates"), help="checkpoints (not brought back)")
+    p.add_argument("--minutes", type=float, default=6.0, help="training time of each candidate (all at once)")
+    p.add_argument("--device", default="cuda")
+    p.add_argument("--amp", action=argparse.BooleanOptionalAction, default=True)
+    p.add_argument("--batch", type=int, default=16)
+    p.add_argument("--lr", type=float, default=0.02)
+    p.add_argument("--sim-crops", type=int, default=1500)
+    p.add_argument("--workers", type=int, default=4)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--only", nargs="*", default=CANDIDATES)
+    a = p.parse_args(argv)
+    a.out.mkdir(parents=True, exist_ok=True)
+    (a.out / "logs").mkdir(exist_ok=True)
+    t0 = time.time()
+    procs = {}
+    for bb in a.only:
+        log = open(a.out / "logs" / f"{bb}.log", "w")
+        procs[bb] = subprocess.Popen(train_command(bb, a.data, a.runs, a), stdout=log, stderr=subprocess.STDOUT)
+    deadline = t0 + a.minutes * 60 * 1.3 + 60
+    while any(pr.poll() is None for pr in procs.values()) and time.time() < deadline:
+        time.sleep(2)
+    for bb, pr in procs.items():
+        if pr.poll() is None:
+            pr.terminate()
+            pr.wait(30)
+    print(f"trained in {(time.time() - t0) / 60:.1f} min: " + ", ".join(f"{b} rc {pr.returncode}" for b, pr in procs.items()),
+          flush=True)
+    results, ckpts = [], {}
+    for bb in a.only:
+        r = score(bb, a.runs, a.data, a.device)
+        ckpts[bb] = r.pop("ckpt", None)
+        results.append(r)
+        print(json.dumps({k: v for k, v in r.items() if k != "history"}), flush=True)
+        (a.out / "candidates.json").write_text(json.dumps({"candidates": results}, indent=1))
+    # Keep the best mean AP among the candidates whose parts fit beside the logs and this table.
+    from export.parts import PART_BYTES, save_parts
+
+    used_files = len(a.only) + 1
+    chosen = None
+    for r in sorted(results, key=mean_ap, reverse=True):
+        ck = ckpts.get(r["backbone"])
+        if ck is None:
+            continue
+        size = 2 * sum(v.numel() for v in ck["model"].values() if v.is_floating_point()) + 1_000_000
+        files = -(-size // PART_BYTES) + 1
+        if used_files + files <= MAX_FILES and size <= MAX_BYTES:
+            save_parts(ck, a.out / r["backbone"])
+            chosen = r["backbone"]
+            break
+        r["not_kept"] = f"its fp16 weights ({size / 1e6:.0f} MB, {files} files) do not fit through a device run's return"
+    summary = {"candidates": results, "chosen": chosen, "rule": "highest mean AP@0.5 over ADD256 test and the held-out "
+               "simulated frames, among checkpoints that can be kept", "minutes": round((time.time() - t0) / 60, 1)}
+    (a.out / "candidates.json").write_text(json.dumps(summary, indent=1))
+    print(f"chosen: {chosen}; {summary['minutes']} min in all", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
