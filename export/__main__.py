@@ -87,7 +87,8 @@ def evaluate_arguments(p: argparse.ArgumentParser):
     p.add_argument("--model", type=Path, help="ONNX model (default: the shipped one)")
     p.add_argument("--add256", help="ADD256 folder (default: $POMAR_ADD256, then the workplace's shared copy)")
     p.add_argument("--sim-flight", type=Path, action="append", default=[],
-                   help="held-out simulated flight(s) to score on (every --sim-every-th frame)")
+                   help="held-out simulated flight(s) to score on (every --sim-every-th frame), or packs of export "
+                        "pack (.npz: their boxes as packed, frames at their own size)")
     p.add_argument("--sim-every", type=int, default=5)
     p.add_argument("--min-visible", type=float, default=MIN_VISIBLE,
                    help="simulated apples at least this visible are truth; less visible ones are ignored")

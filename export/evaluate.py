@@ -58,10 +58,14 @@ def evaluate(model=None, add256=None, sim_flights=(), sim_every: int = 5, min_vi
     test = ((read_rgb(p), b, None) for p, b in add256_split(add256, "test"))
     out["add256_test"] = score(det, test, thresh, "ADD256 test")
     for f in sim_flights:
-        frames = load_sim_frames(f, min_visible, every=sim_every)
-        radius = flight_radius_px(FlightDir(f))
         key = "sim" if f == sim_flights[0] else f"sim:{Path(f).name}"  # the first is the headline
-        scales = [policy.scale(float(radius[int(s.name.rsplit(":", 1)[1])])) for s in frames]
+        if str(f).endswith(".npz"):  # a pack of export pack: its frames and boxes as packed, at their own size
+            frames = load_sim_frames(f, every=sim_every)
+            scales = [1.0] * len(frames)
+        else:
+            frames = load_sim_frames(f, min_visible, every=sim_every)
+            radius = flight_radius_px(FlightDir(f))
+            scales = [policy.scale(float(radius[int(s.name.rsplit(":", 1)[1])])) for s in frames]
         out[key] = score(det, ((s.image, s.boxes, s.ignore, k) for s, k in zip(frames, scales)), thresh, key)
         out[key].update(flight=str(f), image_size=list(frames[0].image.shape[1::-1]) if frames else None,
                         scale_median=float(np.median(scales)) if scales else None)
