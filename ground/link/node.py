@@ -273,9 +273,10 @@ class GroundNode:
                 "registered": len(p.poses.model_pose) if p.poses else 0,
                 "failed": reg["failed"] if reg else 0,
                 "submodels": reg["submodels"] if reg else 0,
-                # the mapping process died by itself (exit code, keyframes mapped and lost): the frames after it were
-                # tracked against the map it left, and nothing more was mapped
+                # the mapping process died by itself (exit code, keyframes mapped and lost); each restart, and how its
+                # new model was placed in the map's frame (keyframes shared, residuals) or null if it never was
                 "mapper_died": p.poses.mapper.died if p.poses else None,
+                "mapper_restarts": list(p.poses.mapper.restarts) if p.poses else [],
                 # across passes: keyframes matched to earlier keyframes of the same place, re-anchorings of a
                 # sub-model onto earlier passes' points, sub-models placed by telemetry after the chain broke
                 "revisits": reg["revisits"] if reg else 0,

@@ -201,10 +201,19 @@ def summary_markdown(report: dict, live: dict) -> str:
                  f"({trk.get('failed', 0)} failed to track), {fr.get('interpolated', 0)} interpolated, "
                  f"{fr.get('telemetry', 0)} from telemetry alone, {fr.get('frames_without_pose', 0)} without")
     died = reg.get("mapper_died")
-    if died:
+    restarts = reg.get("mapper_restarts") or []
+    if died and not restarts:
         lines.append(f"\n**The mapping process died** (exit code {died.get('exit_code')}) after "
                      f"{died.get('keyframes_mapped', 0)} keyframes: the frames since are tracked against the map it "
                      f"left, or placed by telemetry; nothing more is mapped")
+    for r in restarts:
+        placed = r.get("placed")
+        how = (f"its new model joined the map by {placed['keyframes']} shared keyframes" if isinstance(placed, dict)
+               else "its new model never shared keyframes with the map: the frames since are tracked against the map"
+               if placed is None else placed)
+        lines.append(f"\n**The mapping process died** (exit code {r.get('exit_code')}) after "
+                     f"{r.get('keyframes_mapped', 0)} keyframes, {r.get('keyframes_lost', 0)} lost; **restarted** "
+                     f"with the last {r.get('resent', 0)}: {how}")
     link = report.get("link", {})
     onboard = report.get("onboard_status") or {}
     lines.append("")

@@ -33,8 +33,9 @@ import numpy as np
 from ground.poses.georeference import fit_similarity, georeference_poses
 from ground.poses.telemetry_poses import camera_rotations
 from ground.poses.registration import IncrementalRegistrar, RegistrationSettings, Submodel
+from ground.poses.restart import align_models, move_pose, move_reference
 from ground.poses.tracking import Reference
-from pomar.align import Similarity, compose
+from pomar.align import Similarity, compose, inverse
 from pomar.camera import Camera
 from pomar.telemetry.base import UNSTATED_H_ACC_M
 
@@ -67,6 +68,7 @@ class Mapper:
     max_point_error_px = 1.5
     #: Mapping in this process never dies apart from the ground (see MapperProcess.died).
     died: dict | None = None
+    restarts: tuple = ()  # nor is restarted
 
     def __init__(self, kf_camera: Camera, camera: Camera, workdir, settings: RegistrationSettings | None = None,
                  sigma_att_deg: float = 0.5):
@@ -415,14 +417,25 @@ class MappingWorker:
 
 class MapperProcess:
     """:class:`Mapper` in a process of its own (a :class:`MappingWorker`, given or started here), with the same
-    reading interface; what it sends back is taken in whenever the caller reads."""
+    reading interface; what it sends back is taken in whenever the caller reads.
+
+    A process that dies (killed, out of memory, a crash in pycolmap) is started again, up to MAX_RESTARTS times, and
+    given the last RESEND keyframes first: its model is placed in the old one's frame by the keyframes both placed
+    (:mod:`ground.poses.restart`), and the flight goes on mapping. Until then, and if that never happens, frames are
+    tracked against the map that was."""
+
+    #: Times a mapping process that died is started again in one flight.
+    MAX_RESTARTS = 3
+    #: Keyframes kept (as sent) to give a restarted process first, so that its model overlaps the old one.
+    RESEND = 8
 
     def __init__(self, kf_camera: Camera, camera: Camera, workdir, settings: RegistrationSettings | None = None,
                  sigma_att_deg: float = 0.5, points_every: int = 10, worker: MappingWorker | None = None):
         self.settings = settings or RegistrationSettings()
         worker = worker or MappingWorker()
         self._proc, self._results, self._outbox = worker.proc, worker.results, worker.outbox
-        self._outbox.put((kf_camera, camera, str(workdir), self.settings, sigma_att_deg, points_every))
+        self._config = (kf_camera, camera, str(workdir), self.settings, sigma_att_deg, points_every)
+        self._outbox.put(self._config)
         self.model_pose: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.kf_sorted: list[int] = []
         self.fit: Similarity | None = None
@@ -443,6 +456,19 @@ class MapperProcess:
         self._closed = False
         #: When the mapping process died by itself: its exit code, the keyframes it had mapped, those sent and lost.
         self.died: dict | None = None
+        #: Each restart: when, why, and whether (and how well) its model was placed in the old frame.
+        self.restarts: list[dict] = []
+        self._recent: list[tuple] = []  # the last RESEND keyframe jobs sent
+        self._to_old: Similarity | None = None  # a restarted process's frame -> the map's frame, once known
+        self._new_pose: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # its poses in its own frame, until then
+        self._new_ref: Reference | None = None
+        self._base_attempts = 0  # attempts of the processes before this one
+        self._earlier_stats: dict = {}  # their stats
+        self._closing = False
+        self._given_up = False  # died more than MAX_RESTARTS times
+        self._placing = False  # a restarted process's model is to be placed in the map's frame (there was a map)
+        self._map_before: set[int] = set()  # the keyframes the map held when the process last restarted
+        self._new_frames: set[int] = set()  # the keyframes the restarted process placed
 
     def add(self, frame: int, image_bgr: np.ndarray, tel) -> None:
         """Hand over a keyframe: sent now if the process is free, else held, replacing any held before it (the
@@ -470,8 +496,7 @@ class MapperProcess:
                 kp, raw, _ = self._sift(image_bgr)
                 job = (*job[:3], (kp, raw))
                 self.early_extracted += 1
-            self._outbox.put(job)
-            self.sent += 1
+            self._put(job)
             return
         if self._held is not None:
             self.skipped += 1
@@ -483,9 +508,13 @@ class MapperProcess:
 
     def _send(self) -> None:
         if self._held is not None and self.answered == self.sent:
-            self._outbox.put(self._held)
+            self._put(self._held)
             self._held = None
-            self.sent += 1
+
+    def _put(self, job) -> None:
+        self._outbox.put(job)
+        self.sent += 1
+        self._recent = (self._recent + [job])[-self.RESEND:]
 
     def busy(self) -> bool:
         """Whether a keyframe handed over is still being mapped, or waiting to be (never, once the process died: it
@@ -494,17 +523,48 @@ class MapperProcess:
         return (self.answered < self.sent or self._held is not None) and self._running()
 
     def _running(self) -> bool:
-        """Whether the process runs; the first time it is found dead (killed, out of memory, a crash in pycolmap), that
-        is logged and kept in ``died``: the ground goes on, tracking against the map it left."""
+        """Whether the process runs. When it is found dead (killed, out of memory, a crash in pycolmap), that is logged
+        and kept (``died``, ``restarts``), and it is started again while MAX_RESTARTS allow; the frames go on meanwhile,
+        tracked against the map it left."""
         if self._proc is None or self._proc.is_alive():
             return self._proc is not None
-        if self.died is None and not self._closed:
-            self._poll()
-            self.died = {"exit_code": self._proc.exitcode, "keyframes_mapped": self.answered,
-                         "keyframes_lost": self.sent - self.answered + (self._held is not None)}
-            log.error("the mapping process died (exit code %s) after mapping %d keyframes: the frames go on, tracked "
-                      "against the map it left; nothing more is mapped", self._proc.exitcode, self.answered)
-        return False
+        if self._closed or self._closing or self._given_up:
+            return False
+        self._poll()
+        death = {"exit_code": self._proc.exitcode, "keyframes_mapped": self.answered,
+                 "keyframes_lost": self.sent - self.answered + (self._held is not None)}
+        if self.died is None:
+            self.died = death
+        if len(self.restarts) >= self.MAX_RESTARTS:
+            self._given_up = True
+            log.error("the mapping process died (exit code %s) after mapping %d keyframes, restarted %d times already: "
+                      "the frames go on, tracked against the map it left; nothing more is mapped",
+                      self._proc.exitcode, self.answered, len(self.restarts))
+            return False
+        self._restart(death)
+        return True
+
+    def _restart(self, death: dict) -> None:
+        """A new mapping process, given the last keyframes first; the old one's unanswered keyframes are lost."""
+        n = len(self.restarts) + 1
+        kf_camera, camera, workdir, *rest = self._config
+        worker = MappingWorker()
+        self._proc, self._results, self._outbox = worker.proc, worker.results, worker.outbox
+        self._outbox.put((kf_camera, camera, str(Path(workdir) / f"restart-{n}"), *rest))
+        self._base_attempts = self.attempts
+        self._earlier_stats = dict(self._stats)
+        self.answered = self.sent
+        resend, self._recent = self._recent, []
+        for job in resend:
+            self._put(job)
+        self._to_old, self._new_pose, self._new_ref = None, {}, None
+        self._placing = bool(self.model_pose)  # without a map before, the new model is the map
+        self._map_before, self._new_frames = set(self.model_pose), set()
+        self.restarts.append({**death, "restart": n, "at_keyframe": self.processed, "resent": len(resend),
+                              "placed": None if self._placing else "no map before it: its model is the map"})
+        log.error("the mapping process died (exit code %s) after %d keyframes; started again (restart %d of at most "
+                  "%d) with the last %d keyframes, to be placed in the map's frame by those both models hold",
+                  death["exit_code"], death["keyframes_mapped"], n, self.MAX_RESTARTS, len(resend))
 
     def wait(self, timeout_s: float = 120.0) -> None:
         """Until every keyframe handed over is mapped (or the process died, or timeout_s passed)."""
@@ -521,10 +581,13 @@ class MapperProcess:
             except queue.Empty:
                 return got
             got, timeout = True, 0.0
-            self._stats = r["stats"]
-            if r.get("points") is not None:
-                self._points = r["points"]
+            self._stats = self._with_earlier(r["stats"])
             if "closed" in r:
+                points = r.get("points")
+                if points is not None and self._placing:
+                    points = self._to_map_frame({}, None, None, points)[3]
+                if points is not None:
+                    self._points = points
                 self._submodels = r["closed"]
                 self._closed = True
                 return got
@@ -534,19 +597,63 @@ class MapperProcess:
                          for f, (R, t) in r["poses"].items() if f in self.model_pose]
                 log.debug("keyframe %d mapped (%s): the keyframes before it moved up to %.4f model units",
                           r["frame"], r["ok"], max(moved, default=0.0))
-            for f in r["poses"]:
+            poses, fit, ref, points = r["poses"], r["fit"][0], r["ref"], r.get("points")
+            if self._placing:  # a restarted process: its frame is moved onto the map's, once both share keyframes
+                poses, fit, ref, points = self._to_map_frame(poses, fit, ref, points)
+            elif r["first_refs"]:
+                self.first_references = r["first_refs"]
+            if points is not None:
+                self._points = points
+            for f in poses:
                 if f not in self.model_pose:
                     bisect.insort(self.kf_sorted, f)
-            self.model_pose.update(r["poses"])
-            self.moved.update(r["poses"])
-            if r["fit"][0] is not None:
-                self.fit, self.fit_residual_m = r["fit"]
-            if r["ref"] is not None:
-                self._ref = r["ref"]
-            if r["first_refs"]:
-                self.first_references = r["first_refs"]
-            self.processed, self.attempts = r["processed"], r["attempts"]
+            self.model_pose.update(poses)
+            self.moved.update(poses)
+            if fit is not None:
+                self.fit, self.fit_residual_m = fit, r["fit"][1]
+            if ref is not None:
+                self._ref = ref
+            self.processed = max(self.processed, r["processed"])
+            self.attempts = self._base_attempts + r["attempts"]
             self._send()
+
+    #: Counts in the mapper's stats that add up over the processes of one flight.
+    _ADDITIVE = ("keyframes_processed", "failed", "submodels", "revisits", "reanchored", "rejoined")
+
+    def _with_earlier(self, stats: dict) -> dict:
+        """A process's stats with those of the processes before it (after a restart) added in."""
+        if not self._earlier_stats:
+            return stats
+        out = dict(stats)
+        for k in self._ADDITIVE:
+            out[k] = stats.get(k, 0) + self._earlier_stats.get(k, 0)
+        out["seconds"] = self._earlier_stats.get("seconds", []) + list(stats.get("seconds", []))
+        return out
+
+    def _to_map_frame(self, poses, fit, ref, points):
+        """A restarted process's poses, fit, reference and points in the map's frame; nothing until it can be placed."""
+        self._new_frames.update(poses)
+        if self._to_old is None:
+            self._new_pose.update(poses)
+            self._new_ref = ref if ref is not None else self._new_ref
+            placed = align_models(self.model_pose, self._new_pose)
+            if placed is None:
+                return {}, None, None, None
+            self._to_old, info = placed
+            self.restarts[-1]["placed"] = {**info, "scale": self._to_old.scale}
+            log.warning("the restarted mapping process's model placed in the map's frame by %d keyframes (centres "
+                        "within %.3g of the map's %.3g extent, orientations within %.2f deg)", info["keyframes"],
+                        info["centre_residual_max"], info["extent"], info["rotation_residual_max_deg"])
+            poses, ref = self._new_pose, self._new_ref
+        S = self._to_old
+        # the keyframes the map held before the restart keep their poses (refined by more keyframes than the new
+        # model has seen): moving them would move every frame and apple near them, for nothing
+        poses = {f: move_pose(S, R, t) for f, (R, t) in poses.items() if f not in self._map_before}
+        # its georeference fits its own keyframes' GPS only: a short stretch at first, whose scale is poor. The map's
+        # fit holds for the same frame, so it stays until the new model holds more keyframes than the map did.
+        fit = compose(fit, inverse(S)) if fit is not None and len(self._new_frames) > len(self._map_before) else None
+        points = {k: S.apply(X) for k, X in points.items()} if points is not None else None
+        return poses, fit, move_reference(S, ref), points
 
     @property
     def has_model(self) -> bool:
@@ -589,6 +696,7 @@ class MapperProcess:
         back is lost (the map's model files; the frames' poses and the apples are the ground's)."""
         if self._proc is None:
             return
+        self._closing = True
         t_end = time.monotonic() + timeout_s
         while self._held is not None and self._proc.is_alive() and time.monotonic() < t_end:  # the last one too
             self._poll(timeout=min(1.0, max(t_end - time.monotonic(), 0.0)))
