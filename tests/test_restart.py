@@ -53,3 +53,27 @@ def test_too_few_shared_keyframes_or_one_place_give_no_placement():
     assert align_models(old, {f + 10: p for f, p in old.items()}) is None
     same_place = _poses(np.zeros((4, 3)), rng)
     assert align_models(same_place, same_place) is None
+
+
+def test_half_a_result_left_by_a_killed_mapping_process_does_not_hold_the_ground():
+    """A mapping process killed while it wrote a result leaves part of a message in the pipe. Reading the queue waits
+    for the rest for ever (the ground froze for 10 minutes so, 1 run in 2); the ground reads what a thread received."""
+    import os
+    import queue
+    import struct
+    import time
+
+    import pytest
+
+    from ground.poses.mapping import MappingWorker
+
+    w = MappingWorker()
+    try:
+        # a 1 MB message's header and its first kilobyte, as a process killed mid-write leaves them
+        os.write(w.results._writer.fileno(), struct.pack("!i", 1_000_000) + b"x" * 1000)
+        t0 = time.monotonic()
+        with pytest.raises(queue.Empty):
+            w.inbox.get(timeout=1.0)
+        assert time.monotonic() - t0 < 3
+    finally:
+        w.stop()

@@ -394,6 +394,18 @@ class MappingWorker:
         # a pipe's send blocks until the other side reads: a thread sends instead
         self.outbox: queue.SimpleQueue = queue.SimpleQueue()
         threading.Thread(target=self._sender, daemon=True, name="mapping-jobs").start()
+        # and a thread receives: a process killed while it wrote a result (a reference's image is hundreds of kB)
+        # leaves half a message in the pipe, and reading it would wait for the rest for ever. That thread waits,
+        # the ground does not (it froze for 10 minutes so)
+        self.inbox: queue.SimpleQueue = queue.SimpleQueue()
+        threading.Thread(target=self._receiver, daemon=True, name="mapping-results").start()
+
+    def _receiver(self) -> None:
+        while True:
+            try:
+                self.inbox.put(self.results.get())
+            except (EOFError, OSError, ValueError):  # the queue was closed
+                return
 
     def _sender(self) -> None:
         while True:
@@ -433,7 +445,7 @@ class MapperProcess:
                  sigma_att_deg: float = 0.5, points_every: int = 10, worker: MappingWorker | None = None):
         self.settings = settings or RegistrationSettings()
         worker = worker or MappingWorker()
-        self._proc, self._results, self._outbox = worker.proc, worker.results, worker.outbox
+        self._proc, self._results, self._outbox = worker.proc, worker.inbox, worker.outbox
         self._config = (kf_camera, camera, str(workdir), self.settings, sigma_att_deg, points_every)
         self._outbox.put(self._config)
         self.model_pose: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -549,7 +561,7 @@ class MapperProcess:
         n = len(self.restarts) + 1
         kf_camera, camera, workdir, *rest = self._config
         worker = MappingWorker()
-        self._proc, self._results, self._outbox = worker.proc, worker.results, worker.outbox
+        self._proc, self._results, self._outbox = worker.proc, worker.inbox, worker.outbox
         self._outbox.put((kf_camera, camera, str(Path(workdir) / f"restart-{n}"), *rest))
         self._base_attempts = self.attempts
         self._earlier_stats = dict(self._stats)
