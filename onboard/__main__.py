@@ -239,7 +239,7 @@ def main(argv=None) -> int:
     lv.add_argument("--truth-flight", help="for --detector truth-replay: the simulated flight whose truth to replay")
     _detector_options(lv)
     _link_options(lv)
-    lv.add_argument("--clock-offset-s", type=float, default=0.0, help="camera clock minus autopilot clock")
+    add_options(lv, NodeSettings(), ["clock_offset_s"])
     lv.add_argument("--max-gap-s", type=float, default=1.0, help="telemetry gaps longer than this flag frames")
     lv.add_argument("--play-fps", type=float, help="play a video file at this rate (a camera sets its own)")
     lv.add_argument("--max-frames", type=int, help="stop after this many processed frames")
@@ -254,7 +254,7 @@ def main(argv=None) -> int:
     t.add_argument("--json", help="write a summary here: format, positions, lat_range, lon_range, span_s, attitudes, "
                                   "gimbal_attitudes, camera_events, problems, ...")
     t.add_argument("--flight", help="flight directory: sample the telemetry at its frames")
-    t.add_argument("--clock-offset-s", type=float, default=0.0, help="camera clock minus autopilot clock")
+    add_options(t, NodeSettings(), ["clock_offset_s"])
     t.add_argument("--max-gap-s", type=float, default=1.0)
     mount_arguments(t)
     t.add_argument("--show", type=int, default=0, help="print this many frames' samples")

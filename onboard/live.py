@@ -4,8 +4,8 @@
 
 Frames come from OpenCV (a camera index, a stream URL, or a file played at its own rate); the node
 always takes the newest frame and counts the ones it had no time for. Each frame's capture time is
-the companion computer's clock when the frame was read, plus ``clock_offset_s`` (camera minus
-autopilot clock); its telemetry is sampled there from the live link, once every stream has a sample
+the companion computer's clock when the frame was read, put on the autopilot's clock by ``clock_offset_s``
+(the companion's clock minus the autopilot's, as for a recorded flight); its telemetry is sampled there from the live link, once every stream has a sample
 after the capture (at most ``telemetry_max_wait_s`` after it; the frame's flags say what was missing). Keyframes go every N frames, S seconds or D
 metres (:class:`onboard.node.KeyframePolicy`).
 """
@@ -18,6 +18,7 @@ import time
 import numpy as np
 
 from onboard.loop import Capture, publish_frames, sent_keyframe_width, telemetry_record
+from pomar.telemetry import TelemetryLog
 from onboard.node import KeyframePolicy
 from onboard.sources import LatestFrame, VideoSource
 from pomar import wire
@@ -61,7 +62,8 @@ def sample_when_bracketed(telemetry, t: float, deadline: float) -> dict:
 
 class LiveFrames:
     """A camera or stream as a frame source (onboard.loop): the newest frame, its capture time this computer's clock
-    when it was read plus ``clock_offset_s`` (camera minus autopilot clock), its telemetry sampled from the live link
+    when it was read, on the autopilot's clock (``clock_offset_s``: this computer's clock minus the autopilot's), its
+    telemetry sampled from the live link
     once every stream has a sample after the capture (at most ``telemetry_max_wait_s``); the apple size each frame
     is detected at is the one the previous frame's telemetry foresaw (the height changes slowly)."""
 
@@ -79,7 +81,7 @@ class LiveFrames:
     def __iter__(self):
         for i, img in self._frames:
             t_read = self._frames.read_time.get(i, time.time())
-            yield Capture(i, img, t_read, t_read + self.clock_offset_s)
+            yield Capture(i, img, t_read, TelemetryLog.log_clock(t_read, self.clock_offset_s))
 
     def period_s(self, t0: float) -> float:
         """The camera's frame period: the rate asked for, else the rate frames have come at so far."""

@@ -95,7 +95,7 @@ class NodeSettings:
     jpeg_quality: int = 85
     #: Seconds between the node's status messages.
     status_period_s: float = 1.0
-    #: Camera clock minus the log's clock, for logs without camera events.
+    #: Camera clock (live: the companion computer's) minus the log's clock, for logs without camera events.
     clock_offset_s: float = 0.0
     #: The flight's telemetry from another log of any supported format (.tlog, ArduPilot DataFlash .bin, PX4 .ulg, DJI
     #: .SRT) instead of the flight directory's telemetry.tlog.

@@ -108,7 +108,7 @@ def start_time(tl: TelemetryLog, fps: float, container_unix: float | None, clock
     elif len(tl.video_clock) >= 2:
         t0, how = float(tl.log_time_of_video(0.0)), "the subtitles' times"
     elif container_unix is not None:
-        t0, how = container_unix - clock_offset_s, "the container's creation time"
+        t0, how = tl.log_clock(container_unix, clock_offset_s), "the container's creation time"
     elif len(tl.position):
         t0, how = float(tl.position.t[0]), "the log's first position (no camera events, no container time)"
     else:

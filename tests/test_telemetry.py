@@ -185,3 +185,21 @@ def test_gps_reports_that_stop_are_not_repeated(bundled_flight, tmp_path):
     assert (s["gps_fix"][late] == 0).all() and np.isnan(s["h_acc"][late]).all()
     assert (s["flags"][late] & Flags.NO_GPS_FIX).all() and not (s["flags"][late] & Flags.NO_POSITION).any()
     assert any("GPS reports span" in p for p in tl.problems)
+
+
+def test_a_clock_offset_means_the_same_live_and_recorded():
+    """--clock-offset-s is the camera's clock minus the log's, for a recorded video and a live camera alike: both put
+    a frame at its camera time minus the offset (live added it, so a stated offset moved frames twice as far wrong)."""
+    from onboard.live import LiveFrames
+    from pomar.telemetry import TelemetryLog
+    from tests.conftest import BUNDLED
+
+    offset = 2.5
+    tl = TelemetryLog.__new__(TelemetryLog)  # frame_times of a log with no camera events and no video clock
+    tl.video_clock, tl.captures = np.zeros(0), {}
+    t, _ = tl.frame_times(3, 1000.0, 10.0, clock_offset_s=offset)
+    assert t[0] == 1000.0 - offset
+    frames = LiveFrames(str(BUNDLED / "video.mp4"), telemetry=None, camera_fx=1000.0, clock_offset_s=offset)
+    c = next(iter(frames))
+    frames._frames._thread.join(60)  # the reader goes to the video's end: let it, not the interpreter's exit, stop it
+    assert c.t_capture == c.t_read - offset

@@ -213,11 +213,17 @@ class TelemetryLog:
         return [s for s in (self.position, self.attitude, self.gimbal, self.gps) if len(s)]
 
     # -- frame times and samples
+    @staticmethod
+    def log_clock(t_camera, clock_offset_s: float = 0.0):
+        """A time of the camera's clock (the video's, or the companion computer's that reads the camera) on the log's:
+        ``clock_offset_s`` is the camera's clock minus the log's. The one place the offset's sign is written."""
+        return t_camera - clock_offset_s
+
     def frame_times(self, n_frames: int, video_start_unix: float, fps: float, clock_offset_s: float = 0.0):
         """Capture time (the log's clock) of each frame: the camera event when there is one, else the log's own
         video clock (a DJI .SRT), else the video clock corrected by clock_offset_s (camera clock minus the log's).
         Returns (t, flags)."""
-        t = video_start_unix - clock_offset_s + np.arange(n_frames) / fps
+        t = self.log_clock(video_start_unix, clock_offset_s) + np.arange(n_frames) / fps
         flags = np.full(n_frames, int(Flags.NO_CAPTURE_RECORD), np.int64)
         if len(self.video_clock) >= 2:
             t = self.log_time_of_video(np.arange(n_frames) / fps)
