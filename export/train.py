@@ -33,6 +33,8 @@ import torch
 from export.data import Augment, DataError, load_add256, load_sim_frames
 from export.metrics import evaluate_detections
 from export.model import load_checkpoint, make
+from export.settings import TRAIN_FIELDS, TrainSettings
+from pomar.settings import from_options
 
 log = logging.getLogger(__name__)
 
@@ -139,10 +141,14 @@ def save_atomic(obj, path: Path):
 FIT_AFTER, FIT_SHARE = 60, 0.85
 
 
-def train(out: Path, add256=None, sim_flights=(), backbone="resnet18", fpn_channels=128, epochs=8, batch=4,
-          lr=0.01, sim_crops=400, seed=0, threads=None, checkpoint_every=100, resume=False, log_every=10,
-          max_minutes=None, init=None, add256_scale=(0.45, 1.3), device="auto", amp=False, workers=None,
-          fit_minutes=None):
+def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
+    """Train as ``settings`` say; the per-epoch ADD256 test scores."""
+    s = settings
+    out, add256, sim_flights, backbone, fpn_channels = s.out, s.add256, s.sim_flight, s.backbone, s.fpn_channels
+    epochs, batch, lr, sim_crops, seed, threads = s.epochs, s.batch, s.lr, s.sim_crops, s.seed, s.threads
+    checkpoint_every, resume, max_minutes, init, add256_scale = (s.checkpoint_every, s.resume, s.max_minutes, s.init,
+                                                                 tuple(s.add256_scale))
+    device, amp, workers, fit_minutes = s.device, s.amp, s.workers, s.fit_minutes
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     dev = pick_device(device)
@@ -262,10 +268,7 @@ def train(out: Path, add256=None, sim_flights=(), backbone="resnet18", fpn_chann
 
 def run(args) -> int:
     try:
-        train(args.out, args.add256, args.sim_flight, args.backbone, args.fpn_channels, args.epochs, args.batch, args.lr,
-              args.sim_crops, args.seed, args.threads, args.checkpoint_every, args.resume, max_minutes=args.max_minutes,
-              init=args.init, add256_scale=tuple(args.add256_scale), device=args.device, amp=args.amp,
-              workers=args.workers, fit_minutes=args.fit_minutes)
+        train(from_options(TrainSettings(), args, TRAIN_FIELDS))
     except (TrainingError, DataError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

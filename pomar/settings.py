@@ -61,9 +61,10 @@ def add_options(parser, settings, names: list[str], prefix: str = "") -> None:
         default = getattr(settings, name)
         doc = one_line(docs.get(name, ""))
         kw = {"dest": f.metadata.get("dest", name), "default": default,
-              "help": prefix + doc + ("" if default is None else ("; " if doc else "") + "default %(default)s")}
-        if "choices" in f.metadata:
-            kw["choices"] = f.metadata["choices"]
+              "help": prefix + doc + ("" if default is None or default == [] else ("; " if doc else "") + "default %(default)s")}
+        for key in ("choices", "nargs", "metavar", "action", "required"):  # argparse's own, where a field needs them
+            if key in f.metadata:
+                kw[key] = f.metadata[key]
         if isinstance(default, bool):
             parser.add_argument(flag(f), action=argparse.BooleanOptionalAction, **kw)
         else:

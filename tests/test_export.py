@@ -258,3 +258,25 @@ def test_a_checkpoint_kept_as_fp16_parts_exports_to_onnx_with_the_same_boxes(tmp
     (tmp_path / "kept" / parts[0].name).write_bytes(b"damaged")
     with pytest.raises(ValueError, match="part-000.bin: checksum"):
         load_parts(tmp_path / "kept")
+
+
+def test_export_options_are_the_settings_fields():
+    """Each subcommand's options come from its settings dataclass (declared once): parsing no options gives the
+    dataclass's defaults, and every field is an option."""
+    import argparse
+    import dataclasses
+
+    from export.__main__ import onnx_arguments, pack_arguments, quantize_arguments, train_arguments
+    from export.settings import OnnxSettings, PackSettings, QuantizeSettings, TrainSettings
+
+    for build, cls, positional in ((train_arguments, TrainSettings, []), (onnx_arguments, OnnxSettings, ["ck.pt"]),
+                                   (quantize_arguments, QuantizeSettings, ["m.onnx"]),
+                                   (pack_arguments, PackSettings, ["flight", "--out", "p.npz"])):
+        p = argparse.ArgumentParser()
+        build(p)
+        args = vars(p.parse_args(positional))
+        for f in dataclasses.fields(cls):
+            want = getattr(cls(), f.name)
+            if f.name == "out" and cls is PackSettings:
+                want = "p.npz"
+            assert str(args[f.name]) == str(want), (cls.__name__, f.name)

@@ -1,0 +1,145 @@
+"""The detector's training settings, declared once: ``python -m export train``'s options are built from them.
+
+No torch here, so that every subcommand's ``--help`` runs without it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+#: The backbones ``export.model`` builds.
+BACKBONE_NAMES = ["resnet18", "resnet50", "mobilenet_v3_large"]
+
+
+@dataclass
+class TrainSettings:
+    #: Run folder (checkpoints, history).
+    out: Path = Path("out/export/resnet18")
+    #: ADD256 folder (default: $POMAR_ADD256, then the workplace's shared copy).
+    add256: str | None = None
+    #: Simulated flight folders, or packs of export pack (.npz), to crop training patches from (repeatable).
+    sim_flight: list[Path] = field(default_factory=list, metadata={"action": "append", "type": Path})
+    #: The Faster R-CNN's backbone.
+    backbone: str = field(default="resnet18", metadata={"choices": BACKBONE_NAMES})
+    #: Channels of the feature pyramid's levels.
+    fpn_channels: int = 128
+    #: Epochs: each the ADD256 training split plus sim_crops simulated crops.
+    epochs: int = 8
+    #: Images per iteration.
+    batch: int = 4
+    #: Peak learning rate (SGD, warm-up then cosine).
+    lr: float = 0.01
+    #: Simulated crops per epoch.
+    sim_crops: int = 400
+    #: Seed of the epochs' order and augmentation.
+    seed: int = 0
+    #: Torch CPU threads (default: torch's choice; 2 beside a GPU).
+    threads: int | None = field(default=None, metadata={"type": int})
+    #: Iterations between checkpoints (last.pt), besides each epoch's end.
+    checkpoint_every: int = 100
+    #: Stop (checkpointed, resumable) after this many minutes.
+    max_minutes: float | None = field(default=None, metadata={"type": float})
+    #: Continue from OUT/last.pt.
+    resume: bool = False
+    #: Start from this checkpoint's weights (a .pt, or a folder of fp16 parts) with a fresh optimiser and schedule.
+    init: Path | None = field(default=None, metadata={"type": Path, "metavar": "CKPT"})
+    #: Random scale range of ADD256 patches (0.45 1.3: down to the simulated flights' apple sizes; 0.8 1.25 to train
+    #: for ADD256-like imagery alone).
+    add256_scale: tuple[float, float] = field(default=(0.45, 1.3), metadata={"nargs": 2, "type": float,
+                                                                             "metavar": ("LO", "HI")})
+    #: Where to train (auto: the GPU if torch sees one, else the CPU).
+    device: str = field(default="auto", metadata={"choices": ["auto", "cpu", "cuda"]})
+    #: Mixed precision: the forward pass in bfloat16.
+    amp: bool = False
+    #: Augmentation processes (default: 0 on the CPU, up to 4 beside a GPU).
+    workers: int | None = field(default=None, metadata={"type": int})
+    #: Set the epochs so that the whole schedule takes about this many minutes, from the first iterations' rate.
+    fit_minutes: float | None = field(default=None, metadata={"type": float, "metavar": "M"})
+
+
+TRAIN_FIELDS = [f for f in TrainSettings.__dataclass_fields__]
+
+
+@dataclass
+class OnnxSettings:
+    """``python -m export onnx CHECKPOINT``'s settings."""
+
+    #: ONNX file to write (its metadata goes next to it, same name with .json).
+    out: Path = Path("out/export/apple-detector.onnx")
+    #: ONNX opset.
+    opset: int = 17
+    #: Store the weights as float16 (the computation stays float32).
+    fp16: bool = False
+    #: Operating score threshold written in the metadata.
+    score_thresh: float = 0.5
+    #: Region proposals kept per image at inference (torchvision's 1000 spent a fifth of a 1280x720 frame's time in the
+    #: box head; 300 score the same here).
+    proposals: int = 300
+    #: An image to compare torch and onnxruntime on (default: synthetic).
+    check_image: Path | None = field(default=None, metadata={"type": Path})
+
+
+@dataclass
+class QuantizeSettings:
+    """``python -m export quantize MODEL``'s settings."""
+
+    #: The int8 ONNX file to write (its metadata goes next to it).
+    out: Path = Path("out/export/int8/apple-detector.onnx")
+    #: Store the weights left in float32 as float16 (a smaller file).
+    fp16: bool = False
+    #: Operator types to quantize, comma-separated (Conv; Conv,Gemm).
+    ops: str = "Conv"
+    #: ADD256 folder (default: $POMAR_ADD256, then the workplace's shared copy).
+    add256: str | None = None
+    #: ADD256 training patches to calibrate on.
+    add256_images: int = 24
+    #: Simulated training flights to calibrate on (repeatable).
+    sim_flight: list[Path] = field(default_factory=list, metadata={"action": "append", "type": Path})
+    #: Frames per simulated flight to calibrate on.
+    sim_frames: int = 8
+    #: Seed of the calibration sample.
+    seed: int = 0
+
+
+@dataclass
+class EvaluateSettings:
+    """``python -m export evaluate``'s settings (the detector scale's option is ``pomar.apple_scale``'s)."""
+
+    #: ONNX model (default: the shipped one).
+    model: Path | None = field(default=None, metadata={"type": Path})
+    #: ADD256 folder (default: $POMAR_ADD256, then the workplace's shared copy).
+    add256: str | None = None
+    #: Held-out simulated flights to score on (every sim_every-th frame), or packs of export pack (.npz: their boxes
+    #: as packed, frames at their own size).
+    sim_flight: list[Path] = field(default_factory=list, metadata={"action": "append", "type": Path})
+    #: Score every this many frames of a flight.
+    sim_every: int = 5
+    #: Operating threshold (default: the model's metadata).
+    score_thresh: float | None = field(default=None, metadata={"type": float})
+    #: Choose the operating threshold as the best F1 on this simulated flight (held out from training and scoring).
+    val_flight: Path | None = field(default=None, metadata={"type": Path})
+    #: Choose the operating threshold as the best F1 on N ADD256 training patches instead (never the test split).
+    val_add256: int | None = field(default=None, metadata={"type": int, "metavar": "N"})
+    #: Write the metrics here.
+    json: Path | None = field(default=None, metadata={"type": Path})
+    #: Also store the metrics (and the score threshold used) in the model's metadata file.
+    write_metadata: bool = False
+
+
+@dataclass
+class PackSettings:
+    """``python -m export pack FLIGHT``'s settings."""
+
+    #: The .npz to write.
+    out: Path | None = field(default=None, metadata={"type": Path, "required": True})
+    #: Keep every this many frames.
+    every: int = 1
+    #: At most this many frames.
+    limit: int | None = field(default=None, metadata={"type": int})
+    #: JPEG quality of the packed frames.
+    quality: int = 95
+
+
+def fields_of(cls) -> list[str]:
+    return list(cls.__dataclass_fields__)
