@@ -59,10 +59,10 @@ def _cmd_register(args) -> int:
 def _settings(args):
     from dataclasses import replace
 
-    from ground.pipeline import profile
+    from ground.pipeline import GroundSettings
     from pomar.settings import from_options
 
-    g = profile("live")
+    g = GroundSettings()  # mapping "stream": the stream's profile
     try:
         return replace(from_options(g, args, GROUND_FIELDS),
                        association=from_options(g.association, args, ASSOCIATION_FIELDS),
@@ -136,8 +136,7 @@ def _cmd_replay(args) -> int:
             return 2
         print(describe(built), file=sys.stderr)
         flight, args.log = built["flight_dir"], None  # the built flight names its log
-    ground_args = _ground_argv(args) \
-        + (["--mapping", args.mapping] if args.realtime or (args.recorded and args.speed > 0) else [])  # lock-step: inline
+    ground_args = _ground_argv(args)  # the stream says lock-step or live: the ground takes its profile from it
     try:
         rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
                      keyframe_every=args.keyframe_every, keyframe_width=args.keyframe_width, every=args.every,
@@ -222,12 +221,12 @@ def _registration_settings(args, **extra):
 
 def _ground_argv(args) -> list[str]:
     """The ground's options of a parsed command line as `ground run` arguments: every option _ground_options defines,
-    but --mapping (the replay chooses it), so that none is accepted and then left behind."""
+    so that none is accepted and then left behind."""
     p = argparse.ArgumentParser(add_help=False)
     _ground_options(p)
     out: list[str] = []
     for a in p._actions:
-        if not a.option_strings or a.dest == "mapping":
+        if not a.option_strings:
             continue
         value = getattr(args, a.dest)
         if a.nargs == 0:  # a switch: --x or --no-x
@@ -238,11 +237,12 @@ def _ground_argv(args) -> list[str]:
 
 
 def _ground_options(p):
-    """`ground run`'s settings as options, the live profile's values their defaults."""
-    from ground.pipeline import profile
+    """`ground run`'s settings as options, GroundSettings' values their defaults (the profile, lock-step or live, is
+    the stream's to say: --mapping stream)."""
+    from ground.pipeline import GroundSettings
     from pomar.settings import add_options
 
-    g = profile("live")
+    g = GroundSettings()
     add_options(p, g.association, ASSOCIATION_FIELDS, prefix="association: ")
     _registration_options(p, g.registration)
     add_options(p, g.tracking, TRACKING_FIELDS, prefix="tracking: ")

@@ -19,7 +19,7 @@ from __future__ import annotations
 import logging
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -55,9 +55,10 @@ class GroundSettings:
     #: A frame without a pose of its own is interpolated between the nearest posed frames only when they are at most
     #: this many frames apart (else it takes its telemetry pose).
     max_interp_gap: int = 10
-    #: "inline": each mapping keyframe is registered before the frames after it go on (lock-step replays:
-    #: deterministic); "process": mapping runs in its own process and never holds up tracking (live).
-    mapping: str = field(default="inline", metadata={"choices": ["inline", "process"]})
+    #: "stream": as the stream says (its camera message): "inline" for a lock-step stream, "process" for a paced one,
+    #: "inline" where it does not say. "inline": each mapping keyframe is registered before the frames after it go on
+    #: (lock-step: deterministic); "process": mapping runs in its own process and never holds up tracking (live).
+    mapping: str = field(default="stream", metadata={"choices": ["stream", "inline", "process"]})
     tracking: TrackingSettings = field(default_factory=TrackingSettings)
     #: Before the first model, the mapper takes images at least this far apart in capture time: its baseline is
     #: then the same at any frame rate (at 30 fps, 6 consecutive images span too little flight for a model).
@@ -88,6 +89,12 @@ def profile(name: str) -> GroundSettings:
     return GroundSettings(**PROFILES[name])
 
 
+def stream_profile(paced: bool | None) -> str:
+    """The profile a stream asks for: live for a paced one, lock-step for one that sends every frame (or says
+    nothing)."""
+    return "live" if paced else "lockstep"
+
+
 @dataclass
 class FrameEvent:
     frame: int
@@ -113,8 +120,8 @@ class GroundPipeline:
         self.count = Counting(self.s.counting, self.frames,
                               reach=self.s.association.merge_window + 2 * self.s.association.k)
         self.pending: dict[int, wire.FrameMessage] = {}
-        if self.s.mapping not in ("inline", "process"):
-            raise ValueError(f"GroundSettings.mapping must be 'inline' or 'process', got {self.s.mapping!r}")
+        if self.s.mapping not in ("stream", "inline", "process"):
+            raise ValueError(f"GroundSettings.mapping must be 'stream', 'inline' or 'process', got {self.s.mapping!r}")
         # live, the mapping process starts now: its imports would otherwise hold up the first model
         self._mapping_worker = MappingWorker() if self.s.mapping == "process" else None
         self.keyframes: dict[int, bytes] = {}  # images waiting for tracking (and mapping)
@@ -165,7 +172,15 @@ class GroundPipeline:
         self.fps = msg.fps
         self.flight_id, self.drone_id = msg.flight_id, msg.drone_id
         self._kf_width_said = msg.keyframe_width or None
-        # the registration is made in step(), once the first keyframe tells the keyframes' width (or, if the frames
+        said = stream_profile(msg.paced)
+        if self.s.mapping == "stream":
+            self.s = replace(self.s, **PROFILES[said])
+            if self.s.mapping == "process" and self._mapping_worker is None:
+                self._mapping_worker = MappingWorker()
+            log.info("profile %s, from the stream (%s): mapping %s", said, "paced" if msg.paced else
+                     "every frame, as fast as taken" if msg.paced is False else "it does not say", self.s.mapping)
+        else:
+            log.info("mapping %s, as set (the stream asks for the %s profile)", self.s.mapping, said)        # the registration is made in step(), once the first keyframe tells the keyframes' width (or, if the frames
         # cannot wait for it, from what the camera message says)
 
     def _make_poses(self, kf_width: int):

@@ -103,7 +103,7 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
     """Run until the source ends, ``max_frames`` frames were processed or ``duration_s`` passed."""
     cam = Camera.from_dict(camera)
     publisher.publish(wire.CameraMessage(flight_id, drone_id, camera, play_fps or 0.0, time.time(),
-                                         sent_keyframe_width(keyframe_width, cam.width)))
+                                         sent_keyframe_width(keyframe_width, cam.width), paced=True))
     frames = LiveFrames(camera_url, telemetry, cam.fx, clock_offset_s, telemetry_max_wait_s, play_fps)
     scaling = policy_for(detector, detector_scale)
     return publish_frames(frames, flight_id, drone_id, publisher, detector, scaling, scaling.pacer(), keyframes,

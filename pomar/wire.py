@@ -382,11 +382,15 @@ class CameraMessage:
     #: The width of the keyframes' images (px; 0: not said, as by nodes before it): a ground that must start before
     #: the first image comes sizes its keyframe camera from it.
     keyframe_width: int = 0
+    #: True: frames come at the video's own pace, and the drone drops those it has no time for (live); False: every
+    #: frame, as fast as they are taken (lock-step); None: not said. The ground takes its profile from it.
+    paced: bool | None = None
 
     def encode(self) -> bytes:
         return msgpack.packb({"v": SCHEMA_VERSION, "type": "camera", "flight": self.flight_id, "drone": self.drone_id,
                               "camera": self.camera, "fps": self.fps, "start": self.video_start_unix,
-                              "kfw": int(self.keyframe_width)}, use_bin_type=True)
+                              "kfw": int(self.keyframe_width),
+                              **({} if self.paced is None else {"paced": bool(self.paced)})}, use_bin_type=True)
 
     @property
     def size(self) -> tuple[int, int]:
@@ -414,9 +418,12 @@ class CameraMessage:
         fps = _float("camera message: fps", d["fps"], 0.0, 10000.0)
         if not fps > 0:
             raise WireError("camera message: fps must be > 0", "out_of_range")
+        paced = d.get("paced")
+        if paced is not None and not isinstance(paced, bool):
+            raise WireError(f"camera message: paced must be true or false, got {paced!r}", "malformed")
         return cls(_str("flight", d["flight"]), _str("drone", d["drone"]), dict(d["camera"]), fps,
                    _float("camera message: start", d.get("start", 0.0), 0.0, 2.0**33),
-                   _int("camera message: keyframe width", d.get("kfw", 0), 0, MAX_IMAGE_SIDE))
+                   _int("camera message: keyframe width", d.get("kfw", 0), 0, MAX_IMAGE_SIDE), paced)
 
 
 _TYPES = {"frame": FrameMessage, "keyframe": KeyframeMessage, "status": StatusMessage, "camera": CameraMessage}

@@ -14,8 +14,8 @@ def test_replay_hands_every_ground_option_to_the_ground():
              "--upright", "--no-revisit", "--confirm-score", "0.8", "--mapping", "inline"]
     args = p.parse_args(given)
     again = p.parse_args(_ground_argv(args))
-    # every option as given, but --mapping, which the replay chooses (lock-step or live)
-    assert vars(again) == {**vars(args), "mapping": p.get_default("mapping")}
+    # every option as given, --mapping too (by default the stream chooses: lock-step or live)
+    assert vars(again) == vars(args)
     s = _settings(again)
     assert s.tracking.max_points == 600 and s.tracking.min_share_to_go_on == 0.3
     assert s.registration.init_frames == 4 and s.init_spacing_s == 0.7
@@ -59,12 +59,12 @@ def test_every_ground_setting_option_comes_from_its_field():
     the live profile's field and its help from the field's doc (none without one)."""
     from ground.__main__ import (ASSOCIATION_FIELDS, COUNTING_FIELDS, GROUND_FIELDS, REGISTRATION_FIELDS,
                                  TRACKING_FIELDS)
-    from ground.pipeline import profile
+    from ground.pipeline import GroundSettings, profile
     from pomar.settings import field_docs
 
     p = argparse.ArgumentParser()
     _ground_options(p)
-    g = profile("live")
+    g = GroundSettings()
     helps = {a.dest: a.help for a in p._actions}
     for obj, names in ((g.association, ASSOCIATION_FIELDS), (g.registration, REGISTRATION_FIELDS),
                        (g.tracking, TRACKING_FIELDS), (g.counting, COUNTING_FIELDS), (g, GROUND_FIELDS)):
@@ -72,7 +72,8 @@ def test_every_ground_setting_option_comes_from_its_field():
         for n in names:
             assert p.get_default(n) == getattr(obj, n), n
             assert docs.get(n) and docs[n].split()[0].rstrip(",.:;") in helps[n], (n, helps[n])
-    assert p.get_default("mapping") == "process" and profile("lockstep").mapping == "inline"
+    assert p.get_default("mapping") == "stream"
+    assert profile("live").mapping == "process" and profile("lockstep").mapping == "inline"
 
 
 def test_ground_run_help_lists_every_setting_as_readme_says():

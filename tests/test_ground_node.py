@@ -701,3 +701,37 @@ def test_a_mapping_process_killed_mid_flight_is_restarted_and_the_map_holds(tmp_
     text = summary_markdown({"apples": 0, "registration": {"mapper_died": mapper.died,
                                                             "mapper_restarts": mapper.restarts}}, {})
     assert "restarted" in text and "joined the map by" in text
+
+
+def test_one_lock_step_stream_gives_the_same_map_through_every_entry_point(replay_test_flight, tmp_path):
+    """The ground takes its profile from the stream, not from how it was started: a lock-step stream gives the same
+    apples.csv, byte for byte, through `ground replay`, `onboard run` + `ground run`, and its recording played at
+    --speed 0; the ground says at start which profile the stream asked for. (The bundled flight gave 221 apples one
+    way and 202 the other when the start chose.)"""
+    from ground.replay import free_port
+
+    flight = replay_test_flight.path
+    r = subprocess.run([sys.executable, "-m", "ground", "replay", str(flight), "--detector", "truth-replay",
+                        "--out", str(tmp_path / "replay"), "--quiet"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    onboard = subprocess.Popen([sys.executable, "-m", "onboard", "run", str(flight), "--listen", endpoint,
+                                "--detector", "truth-replay", "--wait-for-ground", "30", "--linger", "3"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        g = subprocess.run([sys.executable, "-m", "ground", "run", "--flight-id", replay_test_flight.meta().flight_id,
+                            "--connect", endpoint, "--out", str(tmp_path / "run"), "--fresh", "--idle-timeout", "60"],
+                           capture_output=True, text=True, timeout=600)
+    finally:
+        onboard.wait(60)
+    assert g.returncode == 0, g.stderr[-2000:]
+    assert "profile lockstep, from the stream" in g.stderr
+    p = subprocess.run([sys.executable, "-m", "ground", "replay", str(flight), "--recorded",
+                        str(tmp_path / "replay" / "journal.bin"), "--speed", "0", "--out", str(tmp_path / "played"),
+                        "--quiet"], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-2000:]
+    first = (tmp_path / "replay" / "apples.csv").read_bytes()
+    assert first.count(b"\n") > 5
+    assert (tmp_path / "run" / "apples.csv").read_bytes() == first
+    assert (tmp_path / "played" / "apples.csv").read_bytes() == first
+    assert json.loads((tmp_path / "run" / "report.json").read_text())["registration"]["mapping"] == "inline"

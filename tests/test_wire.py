@@ -322,3 +322,15 @@ def test_a_refreshed_subscriber_asks_for_the_history_again():
         if s is not None:
             s.close()
         stop(p)
+
+
+def test_a_camera_message_says_whether_the_stream_is_paced():
+    cam = {"model": "PINHOLE", "width": 8, "height": 6, "params": [1, 1, 4, 3]}
+    for paced in (True, False, None):
+        assert wire.CameraMessage.decode(wire.CameraMessage("f", "d", cam, 10.0, paced=paced).encode()).paced is paced
+    import msgpack
+
+    d = msgpack.unpackb(wire.CameraMessage("f", "d", cam, 10.0, paced=True).encode())
+    d["paced"] = "yes"
+    with pytest.raises(wire.WireError, match="paced"):
+        wire.CameraMessage.decode(msgpack.packb(d))

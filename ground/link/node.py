@@ -287,7 +287,7 @@ class GroundNode:
                 "drift_corrected": p.poses.drift_corrected if p.poses else False,
                 "seconds_per_keyframe_median": float(np.median(reg["seconds"])) if reg and reg["seconds"] else None,
                 "stage_seconds_median": reg["stage_seconds_median"] if reg else None,
-                "mapping": self.settings.mapping,
+                "mapping": p.s.mapping,  # as the stream asked for it (or as set)
                 # proposals the mapping process replaced with a newer one before it was free
                 "proposals_skipped": p.poses.mapper.skipped if p.poses else 0,
                 # keyframes before the first model whose SIFT features this process extracted, the mapper being busy
@@ -329,7 +329,7 @@ class GroundNode:
                         "peak_rss_mb": peak_rss_mb(),
                         # the mapping process's (live), once it has ended: its own peak, beside the ground's
                         "mapping_peak_rss_mb": (resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
-                                                if self.settings.mapping == "process" else None),
+                                                if p.s.mapping == "process" else None),
                         "rss_mb_by_frames_mapped": self.memory,
                         "frames_mapped_by_wall_s": self.progress},
             "onboard_status": vars(st).copy() if st else None,

@@ -16,6 +16,8 @@ records, plays every complete record and says what it skipped.
 
 from __future__ import annotations
 
+import dataclasses
+
 import logging
 import time
 from dataclasses import dataclass, field
@@ -103,6 +105,8 @@ def play(rec: Recording, publisher, speed: float = 1.0, progress_s: float = 5.0)
     sent = {k: 0 for k in wire.KINDS}
     finished = False
     for t, kind, payload, msg in rec.items:
+        if kind == "camera":  # the stream says how it comes: at a pace, or as fast as taken (speed 0: lock-step)
+            payload = dataclasses.replace(msg, paced=speed > 0).encode()
         if speed > 0:
             wait = start + t / speed - time.monotonic()
             if wait > 0:
