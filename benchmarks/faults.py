@@ -7,11 +7,14 @@ processes, as in the field. For each fault: F1 (the shape F1 at 0.10 m), count, 
 of ``--clean`` clean runs, and what the user saw (the ground's warnings and errors about it). Run it with nothing
 else on the machine: the frame delays are timings.
 
-Faults (more of issue 38's list are to come: ground and onboard killed and restarted, link outages, a journal on a
-full disk, a keyframe stream that stops):
+Faults (more of issue 38's list are to come: ground and onboard killed and restarted, a 30-s outage on a longer
+flight, a journal on a full disk, a keyframe stream that stops):
 - ``mapper-killed``: the ground's mapping process killed (SIGKILL) 8 s in;
 - ``tracker-killed``: multiprocessing's resource tracker killed 8 s in;
-- ``cpu-hogs``: two busy processes beside the whole flight.
+- ``cpu-hogs``: two busy processes beside the whole flight;
+- ``outage-2``, ``outage-8``: nothing reaches the ground for 2 or 8 s from 8 s in: the onboard node stopped with
+  SIGSTOP, then let go. It then sends the frames it held, late; none are lost. An outage of the link itself, which
+  loses what was sent meanwhile, is still to come.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ from ground.evaluation.scoring import evaluate_map  # noqa: E402
 from ground.replay import free_port  # noqa: E402
 from pomar.flight import FlightDir  # noqa: E402
 
-FAULTS = ("mapper-killed", "tracker-killed", "cpu-hogs")
+FAULTS = ("mapper-killed", "tracker-killed", "cpu-hogs", "outage-2", "outage-8")
 FAULT_AT_S = 8.0
 
 
@@ -76,7 +79,12 @@ def run(flight: FlightDir, out: Path, fault: str | None) -> dict:
         try:
             while ground.poll() is None and time.monotonic() - t0 < 600:
                 time.sleep(0.2)
-                if not done and time.monotonic() - t0 > FAULT_AT_S:
+                if not done and fault.startswith("outage") and time.monotonic() - t0 > FAULT_AT_S:
+                    os.kill(onboard.pid, signal.SIGSTOP)
+                    time.sleep(float(fault.split("-")[1]))
+                    os.kill(onboard.pid, signal.SIGCONT)
+                    done = True
+                elif not done and time.monotonic() - t0 > FAULT_AT_S:
                     want = "spawn_main" if fault == "mapper-killed" else "resource_tracker"
                     for pid in children(ground.pid):
                         if want in cmdline(pid):
