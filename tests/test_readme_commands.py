@@ -192,3 +192,30 @@ def test_every_command_of_the_section_is_run_here():
            ("sim info",), ("pomar cameras",), ("pomar scale",)]
     for c in readme_commands():
         assert sum(all(w in c for w in words) for words in ran) == 1, c
+
+
+def test_make_check_is_the_quick_tier():
+    """README's `make check`: what it runs (make -n shows it, as written in the Makefile) selects every test that is
+    not marked `system`, none that renders or replays a flight, and runs in the environment `make test` set up."""
+    import os
+    import re
+    import shlex
+    import subprocess
+    import sys
+
+    from tests.conftest import SYSTEM_FILES
+
+    env = dict(os.environ, VENV=str(Path(sys.executable).parents[1]))  # the environment these tests run in
+    dry = subprocess.run(["make", "-n", "check"], cwd=ROOT, capture_output=True, text=True, env=env, timeout=60)
+    assert dry.returncode == 0, dry.stderr
+    line = [ln for ln in dry.stdout.splitlines() if "-m pytest" in ln][-1]
+    cmd = shlex.split(line)
+    assert cmd[cmd.index("-m", cmd.index("pytest")) + 1] == "not system"
+    listed = subprocess.run([sys.executable, *[c for c in cmd[1:] if c != "-q"], "--collect-only", "-q"], cwd=ROOT,
+                            capture_output=True,
+                            text=True, timeout=300)
+    assert listed.returncode == 0, listed.stdout[-2000:]
+    ids = [ln for ln in listed.stdout.splitlines() if "::" in ln]
+    assert len(ids) > 100
+    assert not [i for i in ids if i.split("::")[0].rsplit("/", 1)[-1] in SYSTEM_FILES]
+    assert re.search(r"\d+/\d+ tests collected \(\d+ deselected\)", listed.stdout)
