@@ -735,3 +735,30 @@ def test_one_lock_step_stream_gives_the_same_map_through_every_entry_point(repla
     assert (tmp_path / "run" / "apples.csv").read_bytes() == first
     assert (tmp_path / "played" / "apples.csv").read_bytes() == first
     assert json.loads((tmp_path / "run" / "report.json").read_text())["registration"]["mapping"] == "inline"
+
+
+def test_a_mapping_process_that_stops_answering_is_taken_for_dead_and_restarted(replay_test_flight, tmp_path,
+                                                                                monkeypatch):
+    """The mapping process stalls (SIGSTOP) with a keyframe in work: past its stall limit (here 2 s) the ground stops
+    it and starts another, as for one that died; the flight ends with every frame posed."""
+    from ground.pipeline import GroundPipeline, GroundSettings
+    from ground.poses.mapping import MapperProcess
+
+    monkeypatch.setattr(MapperProcess, "STALL_MIN_S", 2.0)
+    monkeypatch.setattr(MapperProcess, "STALL_FACTOR", 1.0)
+    msgs = _onboard_messages(replay_test_flight, keyframe_every=1)
+    pipe = GroundPipeline(tmp_path / "work", GroundSettings(mapping="process"))
+    events, stopped = [], None
+    for m in msgs:
+        events += pipe.feed(m)
+        mapper = pipe.poses.mapper if pipe.poses is not None else None
+        if stopped is None and mapper is not None and mapper.has_model and mapper.answered >= 4:
+            stopped = mapper._proc.pid
+            os.kill(stopped, signal.SIGSTOP)
+        time.sleep(0.1)
+    events += pipe.finish()
+    assert stopped is not None
+    assert [e.frame for e in events] == list(range(20)) and all(e.pose is not None for e in events)
+    restarts = pipe.poses.mapper.restarts
+    assert restarts and restarts[0]["stalled"] and restarts[0]["exit_code"] == -signal.SIGKILL, restarts
+    assert _gone([stopped], 10)

@@ -478,6 +478,7 @@ class MapperProcess:
         self._earlier_stats: dict = {}  # their stats
         self._closing = False
         self._given_up = False  # died more than MAX_RESTARTS times
+        self._last_progress = time.monotonic()  # the last answer, or the start of work after an idle spell
         self._placing = False  # a restarted process's model is to be placed in the map's frame (there was a map)
         self._map_before: set[int] = set()  # the keyframes the map held when the process last restarted
         self._new_frames: set[int] = set()  # the keyframes the restarted process placed
@@ -524,6 +525,8 @@ class MapperProcess:
             self._held = None
 
     def _put(self, job) -> None:
+        if self.answered == self.sent:  # the process was idle: its work on this one starts now
+            self._last_progress = time.monotonic()
         self._outbox.put(job)
         self.sent += 1
         self._recent = (self._recent + [job])[-self.RESEND:]
@@ -538,13 +541,21 @@ class MapperProcess:
         """Whether the process runs. When it is found dead (killed, out of memory, a crash in pycolmap), that is logged
         and kept (``died``, ``restarts``), and it is started again while MAX_RESTARTS allow; the frames go on meanwhile,
         tracked against the map it left."""
-        if self._proc is None or self._proc.is_alive():
-            return self._proc is not None
+        if self._proc is None:
+            return False
+        stalled = self._proc.is_alive() and self._stalled()
+        if self._proc.is_alive() and not stalled:
+            return True
         if self._closed or self._closing or self._given_up:
             return False
+        if stalled:
+            log.error("the mapping process has answered nothing for %.0f s with a keyframe in work: stopped",
+                      time.monotonic() - self._last_progress)
+            self._proc.kill()
+            self._proc.join(5)
         self._poll()
         death = {"exit_code": self._proc.exitcode, "keyframes_mapped": self.answered,
-                 "keyframes_lost": self.sent - self.answered + (self._held is not None)}
+                 "keyframes_lost": self.sent - self.answered + (self._held is not None), "stalled": stalled}
         if self.died is None:
             self.died = death
         if len(self.restarts) >= self.MAX_RESTARTS:
@@ -555,6 +566,17 @@ class MapperProcess:
             return False
         self._restart(death)
         return True
+
+    #: A process that answers nothing for this long with a keyframe in work is taken for dead: STALL_FACTOR times its
+    #: median seconds per keyframe so far, and at least STALL_MIN_S (a first model takes several keyframes' time).
+    STALL_MIN_S, STALL_FACTOR = 60.0, 20.0
+
+    def _stalled(self) -> bool:
+        if self.answered >= self.sent or self._closing:
+            return False
+        secs = self._stats.get("seconds") or []
+        limit = max(self.STALL_MIN_S, self.STALL_FACTOR * float(np.median(secs)) if secs else 0.0)
+        return time.monotonic() - self._last_progress > limit
 
     def _restart(self, death: dict) -> None:
         """A new mapping process, given the last keyframes first; the old one's unanswered keyframes are lost."""
@@ -604,6 +626,7 @@ class MapperProcess:
                 self._closed = True
                 return got
             self.answered += 1
+            self._last_progress = time.monotonic()
             if log.isEnabledFor(logging.DEBUG):  # how far the mapper moved the keyframes it had already placed
                 moved = [np.linalg.norm(self.model_pose[f][0].T @ self.model_pose[f][1] - R.T @ t)
                          for f, (R, t) in r["poses"].items() if f in self.model_pose]
