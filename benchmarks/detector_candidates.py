@@ -8,8 +8,8 @@
 
 The three backbones (ResNet-50-FPN, the paper's; ResNet-18-FPN; MobileNetV3-Large-FPN) train at once, each
 ``python -m export train --device cuda --amp --fit-minutes M``, from scratch; with ``--one-at-a-time`` one after
-another, M/3 minutes each. (At once on an H100, all three ran at 0.33 s per iteration whatever their size: three
-processes time-sharing one GPU, each launch-bound by torchvision's per-image detection heads.) Then each one's last
+another, M/3 minutes each. (At once on an H100, all three ran at 0.33 s per iteration whatever their size: the GPU
+time-shared by three processes, or OpenCV's threads in every loader process, since set to one.) Then each one's last
 checkpoint (not the best on the test split: that would pick on the test) is scored on ADD256 test and on
 the held-out simulated frames at their native 720p and 4K. ``candidates.json`` holds the figures; the chosen
 model's weights come back as fp16 parts (``export.parts``) under ``OUT/<backbone>/``, with each run's log
