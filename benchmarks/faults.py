@@ -12,6 +12,8 @@ flight, a journal on a full disk, a keyframe stream that stops):
 - ``mapper-killed``: the ground's mapping process killed (SIGKILL) 8 s in;
 - ``tracker-killed``: multiprocessing's resource tracker killed 8 s in;
 - ``cpu-hogs``: two busy processes beside the whole flight;
+- ``ground-killed``: the ground killed (SIGKILL) 8 s in and started again at once with the same command (it resumes
+  from its journal and asks the drone for what it missed);
 - ``outage-2``, ``outage-8``: nothing reaches the ground for 2 or 8 s from 8 s in: the onboard node stopped with
   SIGSTOP, then let go. It then sends the frames it held, late; none are lost. An outage of the link itself, which
   loses what was sent meanwhile, is still to come.
@@ -37,7 +39,7 @@ from ground.evaluation.scoring import evaluate_map  # noqa: E402
 from ground.replay import free_port  # noqa: E402
 from pomar.flight import FlightDir  # noqa: E402
 
-FAULTS = ("mapper-killed", "tracker-killed", "cpu-hogs", "outage-2", "outage-8")
+FAULTS = ("mapper-killed", "tracker-killed", "cpu-hogs", "outage-2", "outage-8", "ground-killed")
 FAULT_AT_S = 8.0
 
 
@@ -71,15 +73,22 @@ def run(flight: FlightDir, out: Path, fault: str | None) -> dict:
                                 "--detector", "truth-replay", "--realtime", "--wait-for-ground", "30", "--linger", "3"],
                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=ROOT)
     err_path = out.with_suffix(".err")
+    ground_cmd = [sys.executable, "-m", "ground", "run", "--flight-id", flight.meta().flight_id, "--connect", endpoint,
+                  "--out", str(out), "--idle-timeout", "60"]
     with open(err_path, "w") as errf:
-        ground = subprocess.Popen([sys.executable, "-m", "ground", "run", "--flight-id", flight.meta().flight_id,
-                                   "--connect", endpoint, "--out", str(out), "--fresh", "--idle-timeout", "60"],
-                                  stdout=subprocess.DEVNULL, stderr=errf, env=env, cwd=ROOT)
+        ground = subprocess.Popen(ground_cmd + ["--fresh"], stdout=subprocess.DEVNULL, stderr=errf, env=env, cwd=ROOT)
         t0, done = time.monotonic(), fault in (None, "cpu-hogs")
         try:
             while ground.poll() is None and time.monotonic() - t0 < 600:
                 time.sleep(0.2)
-                if not done and fault.startswith("outage") and time.monotonic() - t0 > FAULT_AT_S:
+                if not done and fault == "ground-killed" and time.monotonic() - t0 > FAULT_AT_S:
+                    for pid in children(ground.pid):
+                        os.kill(pid, signal.SIGKILL)
+                    ground.kill()
+                    ground.wait()
+                    ground = subprocess.Popen(ground_cmd, stdout=subprocess.DEVNULL, stderr=errf, env=env, cwd=ROOT)
+                    done = True
+                elif not done and fault.startswith("outage") and time.monotonic() - t0 > FAULT_AT_S:
                     os.kill(onboard.pid, signal.SIGSTOP)
                     time.sleep(float(fault.split("-")[1]))
                     os.kill(onboard.pid, signal.SIGCONT)

@@ -413,6 +413,14 @@ class GroundPipeline:
         self._kf_for_event.clear()
         return events
 
+    def wait_for_mapping(self, timeout_s: float = 120.0) -> None:
+        """Until the mapping process has mapped what it was given. A resumed journal's backlog is fed through this
+        after each message, so that it is mapped keyframe by keyframe as when it came at the flight's pace: fed in a
+        burst, the process mapped only the newest proposal of each spell, tracking ran off the map, and a ground
+        killed and restarted ended with F1 0.01."""
+        if self.poses is not None and self.s.mapping == "process":
+            self.poses.mapper.wait(timeout_s)
+
     def metres_per_unit(self) -> float:
         """The association frame's unit in metres, as the map's georeference knows it now: the frame was fixed by
         the first fit, from a few keyframes' GPS, and the later fits scale it (tens of percent with a DJI log's)."""

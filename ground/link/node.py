@@ -409,6 +409,7 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
                 continue
             if msg is not None:
                 node.handle(msg)
+                node.pipe.wait_for_mapping()
     journal = node.journal = Journal(journal_path)
     sampling = threading.Event()
     threading.Thread(target=node.sample_memory, args=(sampling,), daemon=True, name="memory").start()
