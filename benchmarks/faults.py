@@ -36,24 +36,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ground.evaluation.scoring import evaluate_map  # noqa: E402
-from ground.replay import free_port  # noqa: E402
+from ground.replay import child_pids, free_port  # noqa: E402
 from pomar.flight import FlightDir  # noqa: E402
 
 FAULTS = ("mapper-killed", "tracker-killed", "cpu-hogs", "outage-2", "outage-8", "ground-killed")
 FAULT_AT_S = 8.0
-
-
-def children(pid: int) -> list[int]:
-    out = []
-    for d in os.listdir("/proc"):
-        if d.isdigit():
-            try:
-                stat = open(f"/proc/{d}/stat").read()
-            except OSError:
-                continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-                out.append(int(d))
-    return out
 
 
 def cmdline(pid: int) -> str:
@@ -82,7 +69,7 @@ def run(flight: FlightDir, out: Path, fault: str | None) -> dict:
             while ground.poll() is None and time.monotonic() - t0 < 600:
                 time.sleep(0.2)
                 if not done and fault == "ground-killed" and time.monotonic() - t0 > FAULT_AT_S:
-                    for pid in children(ground.pid):
+                    for pid in child_pids(ground.pid):
                         os.kill(pid, signal.SIGKILL)
                     ground.kill()
                     ground.wait()
@@ -95,7 +82,7 @@ def run(flight: FlightDir, out: Path, fault: str | None) -> dict:
                     done = True
                 elif not done and time.monotonic() - t0 > FAULT_AT_S:
                     want = "spawn_main" if fault == "mapper-killed" else "resource_tracker"
-                    for pid in children(ground.pid):
+                    for pid in child_pids(ground.pid):
                         if want in cmdline(pid):
                             os.kill(pid, signal.SIGKILL)
                             done = True

@@ -180,7 +180,8 @@ class GroundPipeline:
             log.info("profile %s, from the stream (%s): mapping %s", said, "paced" if msg.paced else
                      "every frame, as fast as taken" if msg.paced is False else "it does not say", self.s.mapping)
         else:
-            log.info("mapping %s, as set (the stream asks for the %s profile)", self.s.mapping, said)        # the registration is made in step(), once the first keyframe tells the keyframes' width (or, if the frames
+            log.info("mapping %s, as set (the stream asks for the %s profile)", self.s.mapping, said)
+        # the registration is made in step(), once the first keyframe tells the keyframes' width (or, if the frames
         # cannot wait for it, from what the camera message says)
 
     def _make_poses(self, kf_width: int):

@@ -129,17 +129,9 @@ def test_killed_ground_resumes_with_every_frame(replay_test_flight, tmp_path):
 
 
 def _children(pid: int) -> list[int]:
-    """The processes whose parent is ``pid`` (read from /proc)."""
-    out = []
-    for d in os.listdir("/proc"):
-        if d.isdigit():
-            try:
-                stat = open(f"/proc/{d}/stat").read()
-            except OSError:
-                continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-                out.append(int(d))
-    return out
+    from ground.replay import child_pids
+
+    return child_pids(pid)
 
 
 def _gone(pids: list[int], timeout_s: float) -> bool:
@@ -450,6 +442,25 @@ def test_mapping_in_its_own_process_maps_every_frame(replay_test_flight, tmp_pat
     assert len(subs[0].reconstruction().images) >= 3
 
 
+def _fed_at_flight_pace(flight, tmp_path, sig):
+    """The test flight's messages to a ground mapping in a process, at the flight's 5 fps; ``sig`` sent to the mapping
+    process once it has a model and has mapped 4 keyframes. (pipeline, events, the pid signalled or None)."""
+    from ground.pipeline import GroundPipeline, GroundSettings
+
+    msgs = _onboard_messages(flight, keyframe_every=1)
+    pipe = GroundPipeline(tmp_path / "work", GroundSettings(mapping="process"))
+    events, hit = [], None
+    for m in msgs:
+        events += pipe.feed(m)
+        mapper = pipe.poses.mapper if pipe.poses is not None else None
+        if hit is None and mapper is not None and mapper.has_model and mapper.answered >= 4:
+            hit = mapper._proc.pid
+            os.kill(hit, sig)
+        time.sleep(0.1)
+    events += pipe.finish()
+    return pipe, events, hit
+
+
 def test_a_mapping_process_that_dies_leaves_the_flight_going(replay_test_flight, tmp_path):
     """Live, the mapping process is killed (SIGKILL) part way: the ground does not wait for it for ever (it froze for
     12 minutes), every frame still gets a pose, the flight ends with a map, and the mapper's death is kept for the
@@ -458,20 +469,9 @@ def test_a_mapping_process_that_dies_leaves_the_flight_going(replay_test_flight,
     import signal
 
     from ground.outputs.rerun_log import summary_markdown
-    from ground.pipeline import GroundPipeline, GroundSettings
 
-    msgs = _onboard_messages(replay_test_flight, keyframe_every=1)
-    pipe = GroundPipeline(tmp_path / "work", GroundSettings(mapping="process"))
-    events, killed = [], None
     t0 = time.monotonic()
-    for m in msgs:
-        events += pipe.feed(m)
-        mapper = pipe.poses.mapper if pipe.poses is not None else None
-        if killed is None and mapper is not None and mapper.has_model and mapper.answered >= 4:
-            killed = mapper._proc.pid
-            os.kill(killed, signal.SIGKILL)
-        time.sleep(0.1)
-    events += pipe.finish()
+    pipe, events, killed = _fed_at_flight_pace(replay_test_flight, tmp_path, signal.SIGKILL)
     assert killed is not None, "the mapper never had a model to lose"
     assert time.monotonic() - t0 < 120
     assert [e.frame for e in events] == list(range(20)) and all(e.pose is not None for e in events)
@@ -741,22 +741,11 @@ def test_a_mapping_process_that_stops_answering_is_taken_for_dead_and_restarted(
                                                                                 monkeypatch):
     """The mapping process stalls (SIGSTOP) with a keyframe in work: past its stall limit (here 2 s) the ground stops
     it and starts another, as for one that died; the flight ends with every frame posed."""
-    from ground.pipeline import GroundPipeline, GroundSettings
     from ground.poses.mapping import MapperProcess
 
     monkeypatch.setattr(MapperProcess, "STALL_MIN_S", 2.0)
     monkeypatch.setattr(MapperProcess, "STALL_FACTOR", 1.0)
-    msgs = _onboard_messages(replay_test_flight, keyframe_every=1)
-    pipe = GroundPipeline(tmp_path / "work", GroundSettings(mapping="process"))
-    events, stopped = [], None
-    for m in msgs:
-        events += pipe.feed(m)
-        mapper = pipe.poses.mapper if pipe.poses is not None else None
-        if stopped is None and mapper is not None and mapper.has_model and mapper.answered >= 4:
-            stopped = mapper._proc.pid
-            os.kill(stopped, signal.SIGSTOP)
-        time.sleep(0.1)
-    events += pipe.finish()
+    pipe, events, stopped = _fed_at_flight_pace(replay_test_flight, tmp_path, signal.SIGSTOP)
     assert stopped is not None
     assert [e.frame for e in events] == list(range(20)) and all(e.pose is not None for e in events)
     restarts = pipe.poses.mapper.restarts

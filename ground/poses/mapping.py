@@ -479,8 +479,9 @@ class MapperProcess:
         self._closing = False
         self._given_up = False  # died more than MAX_RESTARTS times
         self._last_progress = time.monotonic()  # the last answer, or the start of work after an idle spell
-        self._placing = False  # a restarted process's model is to be placed in the map's frame (there was a map)
-        self._map_before: set[int] = set()  # the keyframes the map held when the process last restarted
+        #: The keyframes the map held when the process last restarted: a restarted process's model is to be placed in
+        #: the map's frame where there were some (without a map before, its model is the map).
+        self._map_before: set[int] = set()
         self._new_frames: set[int] = set()  # the keyframes the restarted process placed
 
     def add(self, frame: int, image_bgr: np.ndarray, tel) -> None:
@@ -572,11 +573,11 @@ class MapperProcess:
     STALL_MIN_S, STALL_FACTOR = 60.0, 20.0
 
     def _stalled(self) -> bool:
-        if self.answered >= self.sent or self._closing:
+        quiet = time.monotonic() - self._last_progress
+        if self.answered >= self.sent or self._closing or quiet <= self.STALL_MIN_S:
             return False
         secs = self._stats.get("seconds") or []
-        limit = max(self.STALL_MIN_S, self.STALL_FACTOR * float(np.median(secs)) if secs else 0.0)
-        return time.monotonic() - self._last_progress > limit
+        return quiet > (self.STALL_FACTOR * float(np.median(secs)) if secs else 0.0)
 
     def _restart(self, death: dict) -> None:
         """A new mapping process, given the last keyframes first; the old one's unanswered keyframes are lost."""
@@ -592,10 +593,9 @@ class MapperProcess:
         for job in resend:
             self._put(job)
         self._to_old, self._new_pose, self._new_ref = None, {}, None
-        self._placing = bool(self.model_pose)  # without a map before, the new model is the map
         self._map_before, self._new_frames = set(self.model_pose), set()
         self.restarts.append({**death, "restart": n, "at_keyframe": self.processed, "resent": len(resend),
-                              "placed": None if self._placing else "no map before it: its model is the map"})
+                              "placed": None if self._map_before else "no map before it: its model is the map"})
         log.error("the mapping process died (exit code %s) after %d keyframes; started again (restart %d of at most "
                   "%d) with the last %d keyframes, to be placed in the map's frame by those both models hold",
                   death["exit_code"], death["keyframes_mapped"], n, self.MAX_RESTARTS, len(resend))
@@ -618,7 +618,7 @@ class MapperProcess:
             self._stats = self._with_earlier(r["stats"])
             if "closed" in r:
                 points = r.get("points")
-                if points is not None and self._placing:
+                if points is not None and self._map_before:
                     points = self._to_map_frame({}, None, None, points)[3]
                 if points is not None:
                     self._points = points
@@ -633,7 +633,7 @@ class MapperProcess:
                 log.debug("keyframe %d mapped (%s): the keyframes before it moved up to %.4f model units",
                           r["frame"], r["ok"], max(moved, default=0.0))
             poses, fit, ref, points = r["poses"], r["fit"][0], r["ref"], r.get("points")
-            if self._placing:  # a restarted process: its frame is moved onto the map's, once both share keyframes
+            if self._map_before:  # a restarted process: its frame is moved onto the map's, once both share keyframes
                 poses, fit, ref, points = self._to_map_frame(poses, fit, ref, points)
             elif r["first_refs"]:
                 self.first_references = r["first_refs"]
