@@ -53,13 +53,13 @@ def candidates(flight: FlightDir, journal: Path) -> tuple[list[dict], dict[str, 
     emitted = {}  # every apple the association gave, confirmed or not
     with tempfile.TemporaryDirectory() as work:
         pipe = GroundPipeline(Path(work), GroundSettings(mapping="inline"))
-        confirm = pipe.count.confirm
+        confirm = pipe.apples.count.confirm
 
         def _confirm(apples, steps):
             emitted.update((a.id, a) for a in apples)
             return confirm(apples, steps)
 
-        pipe.count.confirm = _confirm
+        pipe.apples.count.confirm = _confirm
         for payload in read_journal(journal):
             m = wire.decode(payload)
             if isinstance(m, wire.FrameMessage):  # the detections as the pipeline keeps them (it forgets old ones)
@@ -68,17 +68,17 @@ def candidates(flight: FlightDir, journal: Path) -> tuple[list[dict], dict[str, 
                 scores[m.frame] = np.asarray(m.scores)[keep]
             pipe.feed(m)
         pipe.finish()
-        checks = pipe.count.checks(all_expected=True)
+        checks = pipe.apples.count.checks(all_expected=True)
         out = []
         for k, i in enumerate(checks["id"]):
-            a = pipe.count.apples[int(i)]
+            a = pipe.apples.count.apples[int(i)]
             votes: dict[int, int] = {}
             views = []
             for o in a.observations:
                 seq, d = o.frame, o.index
-                f = pipe.frames.frame[seq]
+                f = pipe.apples.frames.frame[seq]
                 b = boxes[f][d]
-                pose = pipe.frames.poses.get(f)
+                pose = pipe.apples.frames.poses.get(f)
                 depth = float((pose.R @ a.X + pose.t)[2]) if pose is not None else np.nan
                 vis = np.nan
                 j = _truth_row(b, f, td, by_frame)
@@ -96,7 +96,7 @@ def candidates(flight: FlightDir, journal: Path) -> tuple[list[dict], dict[str, 
                 "radius_m": float(checks["radius"][k] * pipe.metres_per_unit()),
                 "roundness": float(np.median(np.minimum(w, h) / np.maximum(w, h))),
                 "best_visible": float(np.nanmax(V[:, 4])) if np.isfinite(V[:, 4]).any() else float("nan"),
-                "depth_m": float(np.nanmedian(V[:, 2])), "parallax_deg": float(pipe.count.parallax_deg(a))})
+                "depth_m": float(np.nanmedian(V[:, 2])), "parallax_deg": float(pipe.apples.count.parallax_deg(a))})
         lost = missed(pipe, emitted, out, td, by_frame, visible, boxes)
     return out, lost
 
@@ -134,7 +134,7 @@ def missed(pipe, emitted: dict, rows: list[dict], td, by_frame, visible: set, bo
         votes: dict[int, int] = {}
         for o in a.observations:
             seq, d = o.frame, o.index
-            f = pipe.frames.frame[seq]
+            f = pipe.apples.frames.frame[seq]
             t = _truth_of(boxes[f][d], f, td, by_frame)
             if t is not None:
                 votes[t] = votes.get(t, 0) + 1

@@ -214,7 +214,7 @@ def test_pipeline_survives_bad_keyframes_and_late_frames(replay_test_flight, tmp
     assert next(e for e in events if e.frame == 9).pose.source in ("interpolated", "telemetry")
     assert pipe.counters["registered"] >= 10
     t, _ = apple_table(pipe)
-    assert len(t["id"]) == len(pipe.count.counted_ids()) > 0 and np.isfinite(t["lat"]).all()
+    assert len(t["id"]) == len(pipe.apples.count.counted_ids()) > 0 and np.isfinite(t["lat"]).all()
 
 
 def _onboard_messages(flight, **settings):
@@ -262,7 +262,7 @@ def test_every_frame_tracked_keyframes_mapped_and_a_failed_track_falls_back_flag
     assert pipe.counters["tracked"] >= 3, pipe.counters
     # fewer keyframes mapped than images: tracking carries the rest
     assert 3 <= pipe.poses.mapper.stats()["keyframes_processed"] < 19
-    assert len(pipe.count.apples) > 0
+    assert len(pipe.apples.count.apples) > 0
 
 
 def test_lock_step_repeats_bit_for_bit(replay_test_flight, tmp_path):
@@ -277,8 +277,8 @@ def test_lock_step_repeats_bit_for_bit(replay_test_flight, tmp_path):
         for m in msgs:
             pipe.feed(m, step=not batched)
         pipe.finish()
-        poses = {f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.frames.poses.items()}
-        runs.append((poses, {i: a.X.copy() for i, a in pipe.count.apples.items()}))
+        poses = {f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.apples.frames.poses.items()}
+        runs.append((poses, {i: a.X.copy() for i, a in pipe.apples.count.apples.items()}))
     (p0, a0), (p1, a1) = runs
     assert p0.keys() == p1.keys() and all(np.array_equal(p0[f], p1[f]) for f in p0)
     assert a0.keys() == a1.keys() and len(a0) > 0 and all(np.array_equal(a0[i], a1[i]) for i in a0)
@@ -309,15 +309,15 @@ def test_lock_step_keeps_its_poses_when_the_images_come_late_on_a_busy_machine(r
             time.sleep(0.5)  # longer than max_wait_s, and the frames flew 4 s past the first one
             pipe.step()
             if mapping == "process":  # live: released without waiting for the images that did not come
-                assert pipe.released == 19 and pipe.counters["telemetry"] == 20, pipe.counters
+                assert pipe.arrivals.released == 19 and pipe.counters["telemetry"] == 20, pipe.counters
                 assert (pipe.poses.kf_cam.width, pipe.poses.kf_cam.height) == (480, 270)
             else:
-                assert pipe.released == -1, pipe.counters
+                assert pipe.arrivals.released == -1, pipe.counters
             for m in images:
                 pipe.feed(m)
         pipe.finish()
-        runs.append(({f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.frames.poses.items()},
-                     {i: a.X.copy() for i, a in pipe.count.apples.items()}, pipe.counters))
+        runs.append(({f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.apples.frames.poses.items()},
+                     {i: a.X.copy() for i, a in pipe.apples.count.apples.items()}, pipe.counters))
     (p0, a0, c0), (p1, a1, c1) = runs[:2]
     assert c0["registered"] + c0["tracked"] >= 10 and c1 == c0, (c0, c1)
     assert p0.keys() == p1.keys() and all(np.array_equal(p0[f], p1[f]) for f in p0)
@@ -343,13 +343,13 @@ def test_lock_step_waits_for_the_keyframes_the_frames_announce_when_the_link_bri
         for m in (msgs if k == 0 else [m for m in msgs if m not in late]):
             pipe.feed(m)
         if k == 1:
-            assert pipe.kf_awaited == {0, 2} and pipe.released == -1, pipe.counters
+            assert pipe.arrivals.kf_awaited == {0, 2} and pipe.arrivals.released == -1, pipe.counters
             for m in late:
                 pipe.feed(m)
-            assert not pipe.kf_awaited
+            assert not pipe.arrivals.kf_awaited
         pipe.finish()
-        runs.append(({f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.frames.poses.items()},
-                     {i: a.X.copy() for i, a in pipe.count.apples.items()}, pipe.counters))
+        runs.append(({f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.apples.frames.poses.items()},
+                     {i: a.X.copy() for i, a in pipe.apples.count.apples.items()}, pipe.counters))
     (p0, a0, c0), (p1, a1, c1) = runs
     assert c0["registered"] + c0["tracked"] >= 10 and c1 == c0, (c0, c1)
     assert p0.keys() == p1.keys() and all(np.array_equal(p0[f], p1[f]) for f in p0)
@@ -477,7 +477,7 @@ def test_a_mapping_process_that_dies_leaves_the_flight_going(replay_test_flight,
     assert [e.frame for e in events] == list(range(20)) and all(e.pose is not None for e in events)
     died = pipe.poses.mapper.died
     assert died and died["exit_code"] == -signal.SIGKILL and died["keyframes_mapped"] >= 4, died
-    assert pipe.count.apples, "no apple mapped"
+    assert pipe.apples.count.apples, "no apple mapped"
     text = summary_markdown({"apples": 0, "registration": {"mapper_died": died}}, {})
     assert "mapping process died" in text
 
@@ -528,7 +528,7 @@ def test_apples_need_fewer_strong_views_when_frames_come_sparser(replay_test_fli
         for m in _onboard_messages(replay_test_flight, every=every, keyframe_every=0):
             pipe.feed(m)
         pipe.finish()
-        needed[every] = pipe.count.views_needed(pipe.steps)
+        needed[every] = pipe.apples.count.views_needed(pipe.arrivals.steps)
     assert needed == {1: 3, 2: 2, 4: 2}
 
 
@@ -556,16 +556,16 @@ def test_an_apple_counts_once_enough_views_are_strong(tmp_path):
 
     s = GroundSettings(counting=CountingSettings(confirm_score=0.9, confirm_views=3))
     pipe = GroundPipeline(tmp_path / "work", s)
-    pipe.count.camera = Camera.from_fov(640, 360, 60.0)
-    pipe.frames.frame = list(range(5))
+    pipe.apples.count.camera = Camera.from_fov(640, 360, 60.0)
+    pipe.apples.frames.frame = list(range(5))
     views = [Detection(f, 0, score=sc) for f, sc in enumerate([0.95, 0.8, 0.93, 0.75, 0.91])]
     a = Apple(7, np.zeros(3), views[:4], 0.5)
-    assert pipe.count.confirm([a], pipe.steps) == [] and 7 not in pipe.count.apples  # two strong views of four
+    assert pipe.apples.count.confirm([a], pipe.arrivals.steps) == [] and 7 not in pipe.apples.count.apples  # two strong views of four
     a.observations.append(views[4])
-    assert pipe.count.confirm([a], pipe.steps) == [a] and pipe.count.apples[7] is a  # a third strong view
+    assert pipe.apples.count.confirm([a], pipe.arrivals.steps) == [a] and pipe.apples.count.apples[7] is a  # a third strong view
     # the flight goes on: frames 0-2 fall out of the association's reach; the count stays
-    pipe.frames.frame = list(range(s.association.merge_window + 2 * s.association.k + 3))
-    assert pipe.count.confirm([a], pipe.steps) == [a]
+    pipe.apples.frames.frame = list(range(s.association.merge_window + 2 * s.association.k + 3))
+    assert pipe.apples.count.confirm([a], pipe.arrivals.steps) == [a]
 
 
 def test_a_resumed_ground_waits_for_the_frames_its_history_brings(replay_test_flight, tmp_path):

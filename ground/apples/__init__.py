@@ -1,1 +1,1 @@
-"""Apples: detections linked across frames into apples (association, geometry, the paper's method) and apples split into rows (rows)."""
+"""Apples: detections linked across frames into apples (association, geometry, the paper's method; live.LiveApples wires them with the frames fed and the counting) and apples split into rows (rows)."""

@@ -157,11 +157,11 @@ class GroundNode:
             return
         self._last_progress = now
         c, n = self.pipe.counters, self.expected_frames
-        mapped, fps = self.pipe.released + 1, self.ground_fps()
+        mapped, fps = self.pipe.arrivals.released + 1, self.ground_fps()
         eta = f", ETA {(n - mapped) / fps:.0f} s" if n and fps == fps and fps > 0 else ""
         rejected = sum(self.stream.rejected.values()) if self.stream else 0
         log.info("frames %d received, %d%s mapped (%.1f fps%s), keyframes %d, apples %d, wall %.0f s%s",
-                 c["frames"], mapped, f"/{n}" if n else "", fps, eta, c["keyframes"], len(self.pipe.count.apples),
+                 c["frames"], mapped, f"/{n}" if n else "", fps, eta, c["keyframes"], len(self.pipe.apples.count.apples),
                  now - self.t_start, f", {rejected} messages rejected" if rejected else "")
 
     def _log_events(self, events):
@@ -174,7 +174,7 @@ class GroundNode:
             latency = now - e.t_capture if abs(now - e.t_capture) < 3600 else None  # None: a replay's recorded times
             if latency is not None:
                 self.latency.append(latency)
-            behind = self.pipe.newest_t - e.t_capture
+            behind = self.pipe.arrivals.newest_t - e.t_capture
             fps = self.ground_fps()
             st = self.pipe.status
             # the drone's rate as its heartbeat measures it (frames processed a second), not the video's nominal one
@@ -193,14 +193,14 @@ class GroundNode:
                     **{f"rejected/{reason}": float(n) for reason, n in rejected.items()},
                 }, to_enu=to_enu)
                 for a in e.new_apples:
-                    rr.apple_views(a.id, self.pipe.apple_boxes(a))
+                    rr.apple_views(a.id, self.pipe.apples.boxes(a))
 
     def sample_memory(self, stop: threading.Event, period_s: float = 1.0) -> None:
         """Record (frames mapped, resident MB) every period_s until ``stop`` (run it in a thread: a lock-step backlog
         is mapped in one long step); at most 400 samples, thinned evenly."""
         while not stop.wait(period_s):
-            self.memory.append((self.pipe.released + 1, round(rss_mb(), 1)))
-            self.progress.append((round(time.monotonic() - self.t_start, 2), self.pipe.released + 1))
+            self.memory.append((self.pipe.arrivals.released + 1, round(rss_mb(), 1)))
+            self.progress.append((round(time.monotonic() - self.t_start, 2), self.pipe.arrivals.released + 1))
             if len(self.memory) > 400:
                 self.memory = self.memory[::2]
                 self.progress = self.progress[::2]
@@ -245,12 +245,13 @@ class GroundNode:
             write_atomic(self.out / "candidates.csv", candidates_csv(candidate_table(self.pipe)))
         report = self.report(table, rows, final)
         rr = self._rerun()
-        if rr is not None and self.pipe.released >= 0:
+        if rr is not None and self.pipe.arrivals.released >= 0:
             from ground.outputs.rerun_log import summary_markdown
 
             drone = [cams["lat"][-1], cams["lon"][-1]] if len(cams["frame"]) else None
-            rr.apples(self.pipe.released, self.pipe.frame_times.get(self.pipe.released, float("nan")), table,
-                      self.pipe.count.apples, rows, drone_latlon=drone, force=True,
+            last = self.pipe.arrivals.released
+            rr.apples(last, self.pipe.arrivals.frame_times.get(last, float("nan")), table,
+                      self.pipe.apples.count.apples, rows, drone_latlon=drone, force=True,
                       points=poses.sparse_points() if poses is not None else None,
                       summary=summary_markdown(report, self._live),
                       trajectory_latlon=np.stack([cams["lat"], cams["lon"]], 1)[::5] if len(cams["frame"]) else None)
@@ -264,8 +265,8 @@ class GroundNode:
         r = {
             "flight_id": p.flight_id, "drone_id": p.drone_id, "final": final,
             "apples": int(len(table["id"])), "rows": rows,
-            "counting": p.count.report(),
-            "frames": dict(p.counters), "gaps": p.gaps[:100],
+            "counting": p.apples.count.report(),
+            "frames": dict(p.counters), "gaps": p.arrivals.gaps[:100],
             # what share of the mapped frames got each kind of pose
             "pose_shares": {k: p.counters[k] / max(1, sum(p.counters[j] for j in POSE_SOURCES)) for k in POSE_SOURCES},
             "registration": {
@@ -307,8 +308,8 @@ class GroundNode:
                          "failed_frames": p.poses.tracking_failed[-100:] if p.poses else []},
             # poses given earlier, corrected as the mapper moved the keyframes about them; the apples triangulated again
             "corrections": dict(p.corrections),
-            "association": {"params": vars(self.settings.association).copy(), "stats": dict(p.assoc.stats),
-                            "strong_views_needed": p.count.views_needed(p.steps),
+            "association": {"params": vars(self.settings.association).copy(), "stats": dict(p.apples.assoc.stats),
+                            "strong_views_needed": p.apples.count.views_needed(p.arrivals.steps),
                             # the association frame's unit in metres: its first georeference's scale error
                             "metres_per_unit": p.metres_per_unit()},
             "timings": {"wall_seconds": time.monotonic() - self.t_start,
@@ -320,12 +321,12 @@ class GroundNode:
                         "correction_seconds": p.seconds["corrections"],
                         "ground_latency_median_s": float(np.median(self.latency)) if self.latency else None,
                         # how long frames waited on the ground, from their message's arrival to being mapped
-                        **delay_stats(self.pipe.frame_delays),
+                        **delay_stats(self.pipe.arrivals.frame_delays),
                         # the same, of the frames that came once the first model was made (no wait for it)
-                        **{f"{k}_after_first_model": v for k, v in delay_stats(self.pipe.frame_delays_mapped).items()},
+                        **{f"{k}_after_first_model": v for k, v in delay_stats(self.pipe.arrivals.frame_delays_mapped).items()},
                         # from the first frame's arrival to the first model (frames before it wait for it)
-                        "first_model_after_s": (p.t_first_model - p.t_first_frame
-                                                if p.t_first_model and p.t_first_frame else None),
+                        "first_model_after_s": (p.arrivals.t_first_model - p.arrivals.t_first_frame
+                                                if p.arrivals.t_first_model and p.arrivals.t_first_frame else None),
                         "peak_rss_mb": peak_rss_mb(),
                         # the mapping process's (live), once it has ended: its own peak, beside the ground's
                         "mapping_peak_rss_mb": (resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
@@ -456,12 +457,12 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
                         if not contradicted(m):
                             claim = (m, now)
                 node.step()
-            elif node.pipe.pending:
+            elif node.pipe.arrivals.pending:
                 node.step()  # frames may wait on the mapping process (its first model)
             if claim is not None:
                 have = node.pipe.counters["frames"] + node.pipe.counters["late_frames"]
                 said = claim[0].frames_processed
-                awaited = len(node.pipe.kf_awaited)  # keyframes announced by their frames that did not come
+                awaited = len(node.pipe.arrivals.kf_awaited)  # keyframes announced by their frames that did not come
                 if have == said and not awaited and now - max(claim[1], last_frame) >= end_quiet_s:
                     break
                 if contradicted(claim[0]):

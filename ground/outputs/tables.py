@@ -37,7 +37,7 @@ def apples_enu(pipe, A: list) -> np.ndarray:
     X = np.array([a.X for a in A]).reshape(-1, 3)
     if pipe.poses is None or not len(X):
         return X
-    seen = [[pipe.frames.frame[o.frame] for o in a.observations] for a in A]
+    seen = [[pipe.apples.frames.frame[o.frame] for o in a.observations] for a in A]
     frames = np.unique(np.concatenate(seen))
     off = dict(zip(frames.tolist(), pipe.poses.drift_correction(frames, _drift_sigma_frames(pipe))))
     return pipe.poses.to_enu(X) + np.array([np.mean([off[f] for f in fs], 0) for fs in seen])
@@ -55,41 +55,41 @@ def apple_table(pipe) -> tuple[dict[str, np.ndarray], float]:
     to right looking along the row direction, radius in metres ...), and the rows' direction (rad)."""
     from ground.apples.rows import direction_rows
 
-    ids = pipe.count.counted_ids()
-    A = [pipe.count.apples[i] for i in ids]
+    ids = pipe.apples.count.counted_ids()
+    A = [pipe.apples.count.apples[i] for i in ids]
     enu = apples_enu(pipe, A)
     geo = _geodetic(pipe, enu)
     rows, direction = direction_rows(enu[:, :2]) if len(A) >= 2 else (np.zeros(len(A), int), 0.0)
     return {"id": np.array(ids, int), "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
             "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
             "row": np.asarray(rows, int) + 1,
-            "radius_m": np.array([pipe.count.radius.get(i, np.nan) for i in ids], float) * pipe.metres_per_unit(),
+            "radius_m": np.array([pipe.apples.count.radius.get(i, np.nan) for i in ids], float) * pipe.metres_per_unit(),
             "observations": np.array([a.n_observations for a in A], int),
             "reprojection_error_px": np.array([a.reprojection_error for a in A], float),
-            "first_frame": np.array([pipe.frames.frame[a.first_frame] for a in A], int),
-            "last_frame": np.array([pipe.frames.frame[a.last_frame] for a in A], int)}, direction
+            "first_frame": np.array([pipe.apples.frames.frame[a.first_frame] for a in A], int),
+            "last_frame": np.array([pipe.apples.frames.frame[a.last_frame] for a in A], int)}, direction
 
 
 def candidate_table(pipe) -> dict[str, np.ndarray]:
     """Every apple the count was chosen from (the counting's checks, with each apple's position, ENU and WGS84, its
     radius in metres and its first and last frame): candidates.csv's columns."""
-    c = pipe.count.checks(all_expected=True)
-    A = [pipe.count.apples[i] for i in c["id"]]
+    c = pipe.apples.count.checks(all_expected=True)
+    A = [pipe.apples.count.apples[i] for i in c["id"]]
     enu = apples_enu(pipe, A)
     geo = _geodetic(pipe, enu)
     radius = c.pop("radius") * pipe.metres_per_unit()
     return {**c, "radius_m": radius, "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
             "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
-            "first_frame": np.array([pipe.frames.frame[a.first_frame] for a in A], int),
-            "last_frame": np.array([pipe.frames.frame[a.last_frame] for a in A], int)}
+            "first_frame": np.array([pipe.apples.frames.frame[a.first_frame] for a in A], int),
+            "last_frame": np.array([pipe.apples.frames.frame[a.last_frame] for a in A], int)}
 
 
 def pose_table(pipe) -> dict[str, np.ndarray]:
     """Every mapped frame's camera: frame, capture time, source, centre (ENU and WGS84), ENU-to-camera quaternion."""
     from scipy.spatial.transform import Rotation
 
-    frames = sorted(pipe.frames.poses)
-    P = [pipe.frames.poses[f] for f in frames]
+    frames = sorted(pipe.apples.frames.poses)
+    P = [pipe.apples.frames.poses[f] for f in frames]
     if not P or pipe.poses is None:
         return {k: np.zeros(0) for k in ("frame", "t_unix", "source", "x", "y", "z", "lat", "lon", "alt",
                                          "qw", "qx", "qy", "qz", "sigma_m")}
@@ -98,7 +98,7 @@ def pose_table(pipe) -> dict[str, np.ndarray]:
     R = np.array([p.R for p in P]) @ S.R.T  # ENU-to-camera
     q = Rotation.from_matrix(R).as_quat()  # xyzw
     geo = np.asarray(pipe.poses.origin.to_geodetic(C)).reshape(-1, 3) if pipe.poses.origin else np.full(C.shape, np.nan)
-    return {"frame": np.array(frames), "t_unix": np.array([pipe.frame_times.get(f, np.nan) for f in frames]),
+    return {"frame": np.array(frames), "t_unix": np.array([pipe.arrivals.frame_times.get(f, np.nan) for f in frames]),
             "source": np.array([p.source for p in P], dtype=object), "x": C[:, 0], "y": C[:, 1], "z": C[:, 2],
             "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
             "qw": q[:, 3], "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2],

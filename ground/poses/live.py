@@ -131,6 +131,28 @@ class LivePoses:
         self.tel[frame] = KeyframeTelemetry(enu, np.asarray(q_gimbal, float), float(h_acc), float(height),
                                             float(height_acc), (int(flags) & track_heading) != track_heading)
 
+    def add_frame(self, msg) -> None:
+        """A frame message's telemetry (:class:`pomar.wire.FrameMessage`)."""
+        t = msg.telemetry
+        self.add_telemetry(msg.frame, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc, t.height, t.height_acc, t.flags)
+
+    def add_jpeg(self, frame: int, jpeg: bytes, t_capture: float = float("nan")) -> bool:
+        """A frame's image as the stream sends it (JPEG); False, and nothing done, if it does not decode."""
+        img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        if img is None:
+            return False
+        self.add_image(frame, img, t_capture)
+        return True
+
+    @staticmethod
+    def keyframe_width(jpegs) -> int | None:
+        """The width of the first of these JPEG images that decodes (None if none does)."""
+        for jpeg in jpegs:
+            img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+            if img is not None:
+                return img.shape[1]
+        return None
+
     def add_image(self, frame: int, image_bgr: np.ndarray, t_capture: float = float("nan")) -> None:
         """A frame's image, in frame order: tracked against the map once there is one (until then it waits, and goes
         to the mapper if it was taken ``init_spacing_s`` or more after the last one it went: the first model needs a

@@ -1,0 +1,152 @@
+"""Frames in order: the stream's frame and keyframe messages, de-duplicated, and handed on in frame index order.
+
+    arrivals = Arrivals()
+    arrivals.take(msg)                          # a wire.FrameMessage or wire.KeyframeMessage: any order, repeats allowed
+    arrivals.fresh()                            # the frame messages taken since the last call (their telemetry)
+    for frame, jpeg in arrivals.images(...):    # keyframe images in frame order, once they may go on
+        ...
+    for msg in arrivals.release(ready, ...):    # frame messages in index order, while ready(frame)
+        ...
+
+The two streams (frames, keyframes) do not keep each other's order. A frame that arrives after a later one was
+released is late and dropped (the association only moves forward); missing frame indices are gaps.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from typing import Callable, Iterator
+
+from pomar import wire
+
+log = logging.getLogger(__name__)
+
+
+class Arrivals:
+    def __init__(self):
+        self.pending: dict[int, wire.FrameMessage] = {}  # frames taken and not yet released
+        self._fresh: list[wire.FrameMessage] = []  # frames taken since fresh() was last called
+        self.keyframes: dict[int, bytes] = {}  # keyframe images waiting to go on
+        self._kf_seen: set[int] = set()
+        self.kf_awaited: set[int] = set()  # keyframes their frame messages announced that have not come yet
+        self.counters = {"frames": 0, "keyframes": 0, "late_frames": 0, "gaps": 0, "missing_frames": 0}
+        self.frame_times: dict[int, float] = {}  # frame -> capture time
+        self.newest_t = float("-inf")  # the latest capture time of any frame received
+        self._newest_frame = -1  # the highest frame index received
+        self._arrived: dict[int, float] = {}  # frame -> when its message came (monotonic clock)
+        self.t_first_frame: float | None = None  # when the first frame message came
+        self.t_first_model: float | None = None  # when the first model was there (seen as a frame is released)
+        self._last_kf_t = time.monotonic()  # when the last keyframe came, or the poses were last free again
+        self._last_kf_capture = float("nan")  # capture time of the last keyframe's frame (or of the first frame)
+        self._hold_gaps_until = 0.0  # until then (monotonic), a frame after a missing one waits for it
+        self.released = -1  # the last frame released
+        self.steps: deque[int] = deque(maxlen=20)  # frame-index steps between the last frames released
+        self.gaps: list[tuple[int, int]] = []  # (first, last) frame indices missing between released frames
+        self.frame_delays: list[float] = []  # per released frame: seconds from its message's arrival to its release
+        self.frame_delays_mapped: list[float] = []  # ... of the frames that arrived once the first model existed
+
+    # -- in
+    def take(self, msg: wire.FrameMessage | wire.KeyframeMessage) -> None:
+        if isinstance(msg, wire.KeyframeMessage):
+            self._take_keyframe(msg)
+            return
+        if msg.frame <= self.released or msg.frame in self.pending:
+            if msg.frame <= self.released:
+                self.counters["late_frames"] += 1
+                log.warning("frame %d arrived after frame %d was processed: dropped", msg.frame, self.released)
+            return
+        self.pending[msg.frame] = msg
+        self._fresh.append(msg)
+        self.frame_times[msg.frame] = msg.t_capture
+        self.newest_t = max(self.newest_t, msg.t_capture)
+        self._newest_frame = max(self._newest_frame, msg.frame)
+        self._arrived[msg.frame] = time.monotonic()
+        if self.t_first_frame is None:
+            self.t_first_frame = self._arrived[msg.frame]
+        if self.counters["frames"] == 0 and not self._kf_seen:
+            self._last_kf_t = time.monotonic()  # the wait for keyframes starts with the first frame
+            self._last_kf_capture = msg.t_capture
+        self.counters["frames"] += 1
+        if msg.keyframe and msg.frame not in self._kf_seen:
+            self.kf_awaited.add(msg.frame)
+
+    def _take_keyframe(self, msg: wire.KeyframeMessage) -> None:
+        if msg.frame in self._kf_seen:
+            return
+        self._kf_seen.add(msg.frame)
+        self.kf_awaited.discard(msg.frame)
+        self._last_kf_t = time.monotonic()
+        self._last_kf_capture = self.frame_times.get(msg.frame, self.newest_t)
+        self.keyframes[msg.frame] = msg.jpeg
+        self.counters["keyframes"] += 1
+
+    def fresh(self) -> list[wire.FrameMessage]:
+        """The frame messages taken since the last call, in the order they came."""
+        out, self._fresh = self._fresh, []
+        return out
+
+    def hold_gaps(self, seconds: float) -> None:
+        """For the next ``seconds``, a frame after a missing one waits for it instead of leaving it to come late and
+        be dropped: a resumed ground gets the frames it missed from the publisher's history while the live ones
+        come too, in either order."""
+        self._hold_gaps_until = time.monotonic() + seconds
+
+    # -- out
+    def images(self, final: bool, wait_for_announced: bool) -> Iterator[tuple[int, bytes]]:
+        """The keyframe images in frame order, but never ahead of the frames: a frame needs the image after it. An
+        image waits for its frame's message (the telemetry the mapper's georeferencing needs), unless a later
+        frame's came (then it was lost). ``wait_for_announced`` (lock-step): an image also waits for the earlier
+        keyframes announced by their frames' messages, so that the images go on in the same order whatever the
+        link did."""
+        wait_before = min(self.kf_awaited) if self.kf_awaited and wait_for_announced and not final else None
+        for f in sorted(self.keyframes):
+            if f not in self.frame_times and f > self._newest_frame and not final:
+                break
+            if wait_before is not None and f > wait_before:
+                break
+            yield f, self.keyframes.pop(f)
+
+    def image_done(self) -> None:
+        """The poses took an image: the wait for the next keyframe counts from now."""
+        self._last_kf_t = time.monotonic()
+
+    def stalled(self, max_wait_s: float) -> bool:
+        """No keyframe for max_wait_s, while the frames went on for max_wait_s of flight past the last one: the
+        drone stopped sending keyframes. A slow onboard detector delays frames and keyframes alike and stalls
+        nothing."""
+        flown = self.newest_t - self._last_kf_capture
+        return time.monotonic() - self._last_kf_t > max_wait_s and not flown <= max_wait_s
+
+    def release(self, ready: Callable[[int], bool], final: bool,
+                has_model: Callable[[], bool]) -> Iterator[wire.FrameMessage]:
+        """The waiting frames in index order, each once ``ready(frame)`` says its pose can be decided (a frame before
+        it may still come while hold_gaps holds). ``has_model()``: whether the map has its first model (the frame
+        delays are also kept for the frames that came after it)."""
+        while self.pending:
+            f = min(self.pending)
+            if not final and f > self.released + 1 and time.monotonic() < self._hold_gaps_until:
+                break
+            if not ready(f):
+                break
+            msg = self.pending.pop(f)
+            arrived = self._arrived.pop(f, None)
+            if self.t_first_model is None and has_model():
+                self.t_first_model = time.monotonic()
+            if arrived is not None:
+                self.frame_delays.append(time.monotonic() - arrived)
+                if self.t_first_model is not None and arrived >= self.t_first_model:
+                    self.frame_delays_mapped.append(self.frame_delays[-1])
+            if self.released >= 0:
+                self.steps.append(f - self.released)
+            if f > self.released + 1 and self.released >= 0:
+                self.gaps.append((self.released + 1, f - 1))
+                self.counters["gaps"] += 1
+                self.counters["missing_frames"] += f - 1 - self.released
+            self.released = f
+            yield msg
+
+    def drop_images(self) -> None:
+        """Told to stop: the images not yet tracked are dropped."""
+        self.keyframes.clear()
