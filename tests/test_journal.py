@@ -37,3 +37,25 @@ def test_a_journal_in_a_folder_that_cannot_be_made_is_a_warning(tmp_path, caplog
         j.close()
     assert j.failed and str(blocker) in j.failed
     assert any("can no longer be resumed" in r.getMessage() for r in caplog.records)
+
+
+def test_map_files_the_disk_refuses_leave_the_flight_going_and_the_files_before_whole(tmp_path, caplog):
+    """A disk that refuses the map files (full, or a path taken): the refresh warns once, the report says why, the
+    files written before stay whole, no temporary file is left, and the next refresh that can write does."""
+    from ground.link.node import GroundNode
+
+    out = tmp_path / "out"
+    node = GroundNode(out, rrd=False)
+    node.refresh()
+    before = (out / "apples.csv").read_bytes()
+    (out / ".apples.csv.tmp").mkdir()  # the write of apples.csv fails with an OSError, as on a full disk
+    with caplog.at_level(logging.WARNING, logger="ground.link.node"):
+        rep = node.refresh()
+        node.refresh()
+    assert "apples.csv" in rep["link"]["outputs_write_failed"]
+    assert sum("cannot be written" in r.getMessage() for r in caplog.records) == 1
+    assert (out / "apples.csv").read_bytes() == before and (out / "report.json").is_file()
+    (out / ".apples.csv.tmp").rmdir()
+    rep = node.refresh(final=True)
+    assert rep["link"]["outputs_write_failed"] is None and (out / "candidates.csv").is_file()
+    assert not list(out.glob(".*.tmp"))

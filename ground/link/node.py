@@ -23,7 +23,8 @@ import numpy as np
 
 from ground.link.journal import Journal, read_journal_report
 from ground.outputs.tables import (apple_table, candidate_table, candidates_csv, harvest_correlation, pose_table,
-                                   poses_csv, read_harvest, write_atomic, write_json, write_map)
+                                   poses_csv, read_harvest, rows_summary, write_atomic, write_json,
+                                   write_map)
 from ground.pipeline import GroundPipeline, GroundSettings
 from pomar import wire
 
@@ -111,6 +112,8 @@ class GroundNode:
         self.history_requeries = 0  # times the publishers' history was asked for again (frames missing at the end)
         self.journal_damage: dict | None = None
         self.journal: Journal | None = None  # the journal being written (run_ground)
+        self.outputs_failed: str | None = None  # why the map files could not be written at the last refresh
+        self._was_failing = False  # the refresh before failed to write
 
     def _rerun(self):
         if self.rr is None and self.pipe.flight_id is not None and any(self._rr_args):
@@ -216,7 +219,9 @@ class GroundNode:
                 "ignored_end_claims": self.ignored_end_claims, "history_requeries": self.history_requeries,
                 "journal": self.journal_damage,
                 # the journal could not be written (a full disk): the flight could no longer be resumed from it
-                "journal_write_failed": self.journal.failed if self.journal is not None else None}
+                "journal_write_failed": self.journal.failed if self.journal is not None else None,
+                # the map files could not be written at the last refresh (a full disk)
+                "outputs_write_failed": self.outputs_failed}
 
     FPS_WINDOW_S = 5.0
 
@@ -237,12 +242,15 @@ class GroundNode:
             self._trim(0)
         table, direction = apple_table(self.pipe)
         poses = self.pipe.poses
-        rows = write_map(self.out, table, direction, poses.origin if poses is not None else None,
-                         self.settings.tree_spacing_m)
+        origin = poses.origin if poses is not None else None
+        self._was_failing, self.outputs_failed = self.outputs_failed is not None, None
+        rows = self._written(lambda: write_map(self.out, table, direction, origin, self.settings.tree_spacing_m))
+        if rows is None:
+            rows = rows_summary(table, direction, origin)
         cams = pose_table(self.pipe)
-        write_atomic(self.out / "poses.csv", poses_csv(cams))
+        self._written(lambda: write_atomic(self.out / "poses.csv", poses_csv(cams)))
         if final:
-            write_atomic(self.out / "candidates.csv", candidates_csv(candidate_table(self.pipe)))
+            self._written(lambda: write_atomic(self.out / "candidates.csv", candidates_csv(candidate_table(self.pipe))))
         report = self.report(table, rows, final)
         rr = self._rerun()
         if rr is not None and self.pipe.arrivals.released >= 0:
@@ -255,8 +263,24 @@ class GroundNode:
                       points=poses.sparse_points() if poses is not None else None,
                       summary=summary_markdown(report, self._live),
                       trajectory_latlon=np.stack([cams["lat"], cams["lon"]], 1)[::5] if len(cams["frame"]) else None)
-        write_json(self.out / "report.json", report)
+        self._written(lambda: write_json(self.out / "report.json", report))
+        if self._was_failing and self.outputs_failed is None:
+            log.warning("the map files are written again")
         return report
+
+    def _written(self, write):
+        """``write()``'s result (True where it returns nothing); None, with a warning the first time, where the disk
+        refuses it (full, read-only): the flight goes on in memory, the files already there stay whole (they are
+        replaced atomically), and every refresh tries again."""
+        try:
+            out = write()
+        except OSError as exc:
+            if not self._was_failing and self.outputs_failed is None:
+                log.warning("the map files cannot be written (%s): the flight goes on; every refresh tries again",
+                            exc.strerror or exc)
+            self.outputs_failed = f"{getattr(exc, 'filename', None) or self.out}: {exc.strerror or exc}"
+            return None
+        return True if out is None else out
 
     def report(self, table, rows, final) -> dict:
         p = self.pipe
@@ -351,7 +375,7 @@ class GroundNode:
             self.errors.append(f"finish: {exc}")
         report = self.refresh(final=True)
         if self.pipe.poses is not None and self.pipe.poses.mapper.submodels():
-            self.write_model()
+            self._written(self.write_model)
         if self.rr is not None:
             self.rr.close()
         return report
