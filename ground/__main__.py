@@ -84,10 +84,10 @@ def _cmd_run(args) -> int:
                         resume=not args.fresh, expected_frames=args.expected_frames, max_ahead_s=args.max_ahead_s)
     rows = ", ".join(f"row {r['row']}: {r['count']}" for r in report["rows"])
     print(f"{report['apples']} apples ({rows}); outputs in {args.out}/")
-    failed = report.get("link", {}).get("outputs_write_failed")
+    failed, rescued = report.get("link", {}).get("outputs_write_failed"), report.get("link", {}).get("outputs_rescued_to")
     if failed:
-        print(f"error: the map files could not be written at the end ({failed}): free space and run the same "
-              f"command again; it resumes from the journal where that was written", file=sys.stderr)
+        print(f"error: the map files could not be written to {args.out} ({failed})"
+              + (f"; they are in {rescued}" if rescued else "; nor anywhere else"), file=sys.stderr)
         return 1
     return 0
 

@@ -114,7 +114,7 @@ class GroundPipeline:
         self.status: wire.StatusMessage | None = None
         if self.s.mapping not in ("stream", "inline", "process"):
             raise ValueError(f"GroundSettings.mapping must be 'stream', 'inline' or 'process', got {self.s.mapping!r}")
-        self.arrivals = Arrivals()
+        self.arrivals = Arrivals(self.s.max_wait_s)
         self.poses: LivePoses | None = None
         self.apples = LiveApples(self.s.association, self.s.counting, self.s.min_score)
         # live, the mapping process starts now: its imports would otherwise hold up the first model
@@ -219,7 +219,7 @@ class GroundPipeline:
         """Live: the drone stopped sending keyframes (:meth:`Arrivals.stalled`). Lock-step (mapping inline) never
         stalls: frames wait for their images until the stream ends, so that neither a busy machine nor the order the
         two streams happen to arrive in changes a pose."""
-        return self.s.mapping != "inline" and self.arrivals.stalled(self.s.max_wait_s)
+        return self.s.mapping != "inline" and self.arrivals.stalled()
 
     def _release(self, final: bool) -> list[FrameEvent]:
         """Every frame whose pose can be decided, in order: its pose, then its apples."""
@@ -236,7 +236,7 @@ class GroundPipeline:
             else:
                 self._counts[pose.source] += 1
                 t0 = time.perf_counter()
-                new = self.apples.add(msg, pose, self.arrivals.steps, self.metres_per_unit())
+                new = self.apples.add(msg, pose, self.arrivals.steps, poses.metres_per_unit())
                 self.seconds["association"] += time.perf_counter() - t0
             events.append(FrameEvent(f, msg.t_capture, pose, msg, new, self._kf_for_event.pop(f, None)))
             for k in [k for k in self._kf_for_event if k < f]:
@@ -266,7 +266,7 @@ class GroundPipeline:
         new = self.poses.corrected(fed.poses, frames)
         if not new:
             return
-        changed, merged = self.apples.repose(new, self.arrivals.steps, self.metres_per_unit())
+        changed, merged = self.apples.repose(new, self.arrivals.steps, self.poses.metres_per_unit())
         self.seconds["corrections"] += time.perf_counter() - t0
         c = self.corrections
         c["rounds"] += 1
@@ -310,6 +310,5 @@ class GroundPipeline:
             self.poses.mapper.wait(timeout_s)
 
     def metres_per_unit(self) -> float:
-        """The association frame's unit in metres, as the map's georeference knows it now: the frame was fixed by
-        the first fit, from a few keyframes' GPS, and the later fits scale it (tens of percent with a DJI log's)."""
-        return float(self.poses.assoc_to_enu().scale) if self.poses is not None else 1.0
+        """:meth:`LivePoses.metres_per_unit` (1 before the poses exist)."""
+        return self.poses.metres_per_unit() if self.poses is not None else 1.0

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+from pathlib import Path
 
 import pytest
 
@@ -59,3 +61,23 @@ def test_map_files_the_disk_refuses_leave_the_flight_going_and_the_files_before_
     rep = node.refresh(final=True)
     assert rep["link"]["outputs_write_failed"] is None and (out / "candidates.csv").is_file()
     assert not list(out.glob(".*.tmp"))
+
+
+def test_map_files_the_disk_refuses_at_the_end_go_to_a_rescue_folder(tmp_path, monkeypatch):
+    """Nothing computed is lost: when the flight's last map files cannot be written where asked, they are written to
+    the system's temporary directory and the report says where (and that the first place failed)."""
+    import tempfile
+
+    from ground.link.node import GroundNode
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    out = tmp_path / "out"
+    node = GroundNode(out, rrd=False)
+    (out / ".apples.csv.tmp").mkdir()
+    rep = node.finish()
+    rescued = Path(rep["link"]["outputs_rescued_to"])
+    assert rescued.parent == tmp_path / "tmp" and "apples.csv" in rep["link"]["outputs_write_failed"]
+    assert {"apples.csv", "rows.csv", "trees.csv", "poses.csv", "candidates.csv", "report.json"} <= {
+        p.name for p in rescued.iterdir()}
+    assert json.loads((rescued / "report.json").read_text())["link"]["outputs_rescued_to"] == str(rescued)

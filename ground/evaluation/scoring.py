@@ -112,7 +112,36 @@ def score_map(flight: FlightDir, pred: np.ndarray, min_visible: float = MIN_VISI
         "worst_row_error_pct": max((abs(r["count_error_pct"]) for r in per_row
                                     if r["truth_visible"] >= MIN_ROW_APPLES), default=float("nan")),
         "trees": trees,
+        "load": against_load(per_row),
     }
+
+
+def against_load(per_row: list[dict]) -> dict:
+    """The count against the load, the paper's per-row figure of merit: over the rows with MIN_ROW_APPLES countable
+    apples or more, Pearson r of each row's count against all its apples (hidden ones included), and the coefficient
+    of variation of count / all across those rows (0: the count is one fixed share of the load in every row). NaN
+    with fewer than 3 such rows. Meaningful where the flight saw the rows' whole length (a whole-plot flight)."""
+    rows = [r for r in per_row if r["truth_visible"] >= MIN_ROW_APPLES and r["truth_all"]]
+    if len(rows) < 3:
+        return {"rows": len(rows), "r": float("nan"), "cv": float("nan")}
+    count = np.array([r["count"] for r in rows], float)
+    load = np.array([r["truth_all"] for r in rows], float)
+    share = count / load
+    r = float(np.corrcoef(count, load)[0, 1]) if count.std() > 0 and load.std() > 0 else float("nan")
+    return {"rows": len(rows), "r": r, "cv": float(share.std() / share.mean()) if share.mean() else float("nan")}
+
+
+def repeat_pair(rows_a: list[dict], rows_b: list[dict]) -> dict:
+    """The same orchard flown twice: per row with MIN_ROW_APPLES countable apples or more in both flights, the
+    count's ratio to that flight's countable apples, and how far the two ratios are apart (the count's bias must not
+    move with the flight). ``rows_*``: score_map's per-row lists."""
+    b = {r["row"]: r for r in rows_b if r["truth_visible"] >= MIN_ROW_APPLES}
+    out = []
+    for r in rows_a:
+        if r["truth_visible"] >= MIN_ROW_APPLES and r["row"] in b:
+            ra, rb = r["count"] / r["truth_visible"], b[r["row"]]["count"] / b[r["row"]]["truth_visible"]
+            out.append({"row": r["row"], "ratio_a": ra, "ratio_b": rb, "difference": abs(ra - rb)})
+    return {"rows": out, "worst": max((x["difference"] for x in out), default=float("nan"))}
 
 
 
@@ -214,14 +243,18 @@ def evaluate_map(flight: FlightDir, out: Path, min_visible: float = MIN_VISIBLE,
     flight, and the scale it gives over a short straight line), which no image processing can see;
     its size is reported as ``georeference_error``."""
     keys = ("precision", "recall", "f1", "count", "truth_count", "count_error_pct", "median_error_m", "p95_error_m",
-            "recall_all_apples_in_rows_seen", "duplicates", "rows", "worst_row_error_pct", "trees")
+            "recall_all_apples_in_rows_seen", "duplicates", "rows", "worst_row_error_pct", "trees", "load")
     apples = _enu(flight, out / "apples.csv")
     frames, cams, R_ours = replay_cameras(flight, out)
     res = {}
     if len(frames) >= 3:
         R_true, t_true = flight.truth_poses()
         C_true = -np.einsum("nji,nj->ni", R_true, t_true)[frames]
-        fit = shape_fit(flight, frames, cams, R_ours)
+        # the map's shape is judged on the cameras the map placed: a frame with a telemetry pose (GPS and gimbal alone,
+        # no image) sits where the GPS put it, and its attitude, weighed as a mapped camera's, would turn the fit
+        own = read_csv(out / "poses.csv", ["source"], str_columns=("source",))["source"] != "telemetry"
+        own = own if own.sum() >= 3 else np.ones(len(frames), bool)
+        fit = shape_fit(flight, frames[own], cams[own], R_ours[own])
         S = fit.similarity
         shape = score_map(flight, S.apply(apples), min_visible=min_visible, match_m=match_m)
         res = {k: shape[k] for k in keys}
@@ -237,13 +270,13 @@ def evaluate_map(flight: FlightDir, out: Path, min_visible: float = MIN_VISIBLE,
         }
         # local: over minutes of flight the map follows the GPS's slow wander (a metre), which one similarity cannot
         # take away; a translation per LOCAL_WINDOW_S of flight more does, and scores the map's shape at tree scale
-        C_fit = S.apply(cams)
-        off, win = local_offsets(frames, C_fit, C_true, LOCAL_WINDOW_S * flight.meta().fps)
+        C_fit = S.apply(cams[own])
+        off, win = local_offsets(frames[own], C_fit, C_true[own], LOCAL_WINDOW_S * flight.meta().fps)
         a = read_csv(out / "apples.csv", ["first_frame", "last_frame"])
         mid = (np.asarray(a["first_frame"]) + np.asarray(a["last_frame"])).reshape(-1) / 2
-        at = np.clip(np.searchsorted(frames, mid), 0, len(frames) - 1)
+        at = np.clip(np.searchsorted(frames[own], mid), 0, int(own.sum()) - 1)
         local = score_map(flight, S.apply(apples) + off[win[at]], min_visible=min_visible, match_m=match_m)
-        d = C_fit + off[win] - C_true
+        d = C_fit + off[win] - C_true[own]
         res["local"] = {**{k: local[k] for k in ("precision", "recall", "f1", "median_error_m", "p95_error_m")},
                         "window_s": LOCAL_WINDOW_S, "windows": int(win.max() + 1),
                         "camera_rms_m": float(np.sqrt((d ** 2).sum(1).mean()))}

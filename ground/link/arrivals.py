@@ -25,7 +25,11 @@ log = logging.getLogger(__name__)
 
 
 class Arrivals:
-    def __init__(self):
+    def __init__(self, max_wait_s: float = 5.0):
+        #: Frames wait this long (s) for the keyframes after them (see stalled); a silence of half as long, no frame at
+        #: all, is a link outage, after which the wait starts again.
+        self.max_wait_s = max_wait_s
+        self._last_frame_t = float("-inf")  # when the last frame message came (monotonic)
         self.pending: dict[int, wire.FrameMessage] = {}  # frames taken and not yet released
         self._fresh: list[wire.FrameMessage] = []  # frames taken since fresh() was last called
         self.keyframes: dict[int, bytes] = {}  # keyframe images waiting to go on
@@ -40,6 +44,7 @@ class Arrivals:
         self.t_first_model: float | None = None  # when the first model was there (seen as a frame is released)
         self._last_kf_t = time.monotonic()  # when the last keyframe came, or the poses were last free again
         self._last_kf_capture = float("nan")  # capture time of the last keyframe's frame (or of the first frame)
+        self._frames_since_kf: float | None = None  # when the first frame after the last keyframe came (monotonic)
         self._hold_gaps_until = 0.0  # until then (monotonic), a frame after a missing one waits for it
         self.released = -1  # the last frame released
         self.steps: deque[int] = deque(maxlen=20)  # frame-index steps between the last frames released
@@ -59,6 +64,10 @@ class Arrivals:
             return
         self.pending[msg.frame] = msg
         self._fresh.append(msg)
+        now = time.monotonic()
+        if self._frames_since_kf is None or now - self._last_frame_t > self.max_wait_s / 2:
+            self._frames_since_kf = now  # the first frame after a keyframe, or after an outage
+        self._last_frame_t = now
         self.frame_times[msg.frame] = msg.t_capture
         self.newest_t = max(self.newest_t, msg.t_capture)
         self._newest_frame = max(self._newest_frame, msg.frame)
@@ -78,6 +87,7 @@ class Arrivals:
         self._kf_seen.add(msg.frame)
         self.kf_awaited.discard(msg.frame)
         self._last_kf_t = time.monotonic()
+        self._frames_since_kf = None
         self._last_kf_capture = self.frame_times.get(msg.frame, self.newest_t)
         self.keyframes[msg.frame] = msg.jpeg
         self.counters["keyframes"] += 1
@@ -112,12 +122,15 @@ class Arrivals:
         """The poses took an image: the wait for the next keyframe counts from now."""
         self._last_kf_t = time.monotonic()
 
-    def stalled(self, max_wait_s: float) -> bool:
-        """No keyframe for max_wait_s, while the frames went on for max_wait_s of flight past the last one: the
-        drone stopped sending keyframes. A slow onboard detector delays frames and keyframes alike and stalls
-        nothing."""
+    def stalled(self) -> bool:
+        """No keyframe for max_wait_s while frames kept coming, and they went on for max_wait_s of flight past the last
+        keyframe: the drone stopped sending keyframes. A slow onboard detector delays frames and keyframes alike and
+        stalls nothing; nor does a link outage: the wait counts from when frames came again (after an outage both
+        streams come back in a burst, in either order, and the frames must not leave without their images)."""
+        now, wait = time.monotonic(), self.max_wait_s
         flown = self.newest_t - self._last_kf_capture
-        return time.monotonic() - self._last_kf_t > max_wait_s and not flown <= max_wait_s
+        return (now - self._last_kf_t > wait and not flown <= wait
+                and self._frames_since_kf is not None and now - self._frames_since_kf > wait)
 
     def release(self, ready: Callable[[int], bool], final: bool,
                 has_model: Callable[[], bool]) -> Iterator[wire.FrameMessage]:

@@ -13,7 +13,9 @@ flight is finished (and every frame it announced has arrived, or ``end_grace_s``
 from __future__ import annotations
 
 import logging
+import os
 import resource
+import tempfile
 import threading
 import time
 from collections import deque
@@ -114,6 +116,7 @@ class GroundNode:
         self.journal: Journal | None = None  # the journal being written (run_ground)
         self.outputs_failed: str | None = None  # why the map files could not be written at the last refresh
         self._was_failing = False  # the refresh before failed to write
+        self.rescued_to: Path | None = None  # where the map files went when they could not be written to out_dir
 
     def _rerun(self):
         if self.rr is None and self.pipe.flight_id is not None and any(self._rr_args):
@@ -221,7 +224,9 @@ class GroundNode:
                 # the journal could not be written (a full disk): the flight could no longer be resumed from it
                 "journal_write_failed": self.journal.failed if self.journal is not None else None,
                 # the map files could not be written at the last refresh (a full disk)
-                "outputs_write_failed": self.outputs_failed}
+                "outputs_write_failed": self.outputs_failed,
+                # ... and where they were written instead
+                "outputs_rescued_to": str(self.rescued_to) if self.rescued_to else None}
 
     FPS_WINDOW_S = 5.0
 
@@ -374,10 +379,28 @@ class GroundNode:
             log.exception("finishing the flight failed: %s", exc)
             self.errors.append(f"finish: {exc}")
         report = self.refresh(final=True)
-        if self.pipe.poses is not None and self.pipe.poses.mapper.submodels():
+        if self.outputs_failed:
+            report = self._rescue()
+        if self.pipe.poses is not None and self.pipe.poses.mapper.submodels() and not self.outputs_failed:
             self._written(self.write_model)
         if self.rr is not None:
             self.rr.close()
+        return report
+
+    def _rescue(self) -> dict:
+        """The map files could not be written where asked at the flight's end (a full disk): nothing computed is lost,
+        they go to a folder of the system's temporary directory (often another disk), and the report says where."""
+        failed, asked = self.outputs_failed, self.out
+        self.rescued_to = Path(tempfile.gettempdir()) / f"pomar-rescue-{self.pipe.flight_id or 'flight'}-{os.getpid()}"
+        self.out = self.rescued_to
+        try:
+            report = self.refresh(final=True)
+        finally:
+            self.out = asked
+        if self.outputs_failed is None:
+            log.warning("the map files could not be written to %s (%s): they are in %s", asked, failed, self.rescued_to)
+        self.outputs_failed = failed
+        report["link"]["outputs_write_failed"] = failed
         return report
 
     def write_model(self):

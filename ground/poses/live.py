@@ -326,6 +326,11 @@ class LivePoses:
             return compose(self.fit, inverse(self.frozen))
         return inverse(self.assoc_from_enu) if self.assoc_from_enu is not None else IDENTITY
 
+    def metres_per_unit(self) -> float:
+        """The association frame's unit in metres, as the map's georeference knows it now: the frame was fixed by
+        the first fit, from a few keyframes' GPS, and the later fits scale it (tens of percent with a DJI log's)."""
+        return float(self.assoc_to_enu().scale)
+
     def to_enu(self, X: np.ndarray) -> np.ndarray:
         return self.assoc_to_enu().apply(np.asarray(X, float).reshape(-1, 3))
 
