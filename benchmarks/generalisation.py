@@ -1,5 +1,7 @@
-"""Counts across flights (issue 17): replay simulated flights through both processes and print one table of F1,
-count error, per-row count error and per-tree correlation against each flight's truth.
+"""Counts across flights (issues 17, 40): replay simulated flights through both processes and print one table of F1,
+count error, per-row count error, per-tree correlation and the count against the load (per-row count against each
+row's true total, hidden apples included: Pearson r and the coefficient of variation of count / total) against each
+flight's truth; with ``--pair A B``, a repeat pair's per-row ratios of count to countable apples.
 
     for n in tune-1 tune-2; do .venv/bin/python -m sim flight --config sim/configs/generalise/$n.toml \
         --out out/sim/gen/$n; done
@@ -47,8 +49,10 @@ def main(argv=None) -> int:
     ap.add_argument("--name", default="default", help="the run's name (its output folder)")
     ap.add_argument("--out", type=Path, default=Path("out/bench/generalisation"))
     ap.add_argument("--rescore", action="store_true", help="score the replays already in the output folder again")
+    ap.add_argument("--pair", nargs=2, action="append", default=[], metavar=("A", "B"),
+                    help="two of the flights (folder names) that fly the same orchard: a repeat pair")
     a = ap.parse_args(argv)
-    from ground.evaluation.scoring import evaluate_map
+    from ground.evaluation.scoring import evaluate_map, repeat_pair
 
     rows_out, summary = [], []
     for path in a.flights:
@@ -63,19 +67,27 @@ def main(argv=None) -> int:
         big = [r for r in ev["rows"] if r["truth_visible"] >= 30]
         row_err = ", ".join(f"{r['count_error_pct']:+.0f}" for r in big)
         scale = (onboard.get("detector_scale") or {}).get("median", float("nan"))
-        tr = ev["trees"]
-        rows_out.append(f"{path.name:<10} {ev['f1']:>6.3f} {ev['count']:>6} {ev['truth_count']:>6} "
+        tr, load = ev["trees"], ev["load"]
+        rows_out.append(f"{path.name:<14} {ev['f1']:>6.3f} {ev['count']:>6} {ev['truth_count']:>6} "
                         f"{ev['count_error_pct']:>+7.1f} {ev['worst_row_error_pct']:>8.1f}  {tr['r']:>6.3f} "
-                        f"{scale:>6.2f}  [{row_err}]  {setting(flight)}")
+                        f"{load['r']:>6.3f} {load['cv']:>5.3f} {scale:>6.2f}  [{row_err}]  {setting(flight)}")
         summary.append({"flight": path.name, "f1": ev["f1"], "count": ev["count"], "truth_count": ev["truth_count"],
                         "count_error_pct": ev["count_error_pct"], "worst_row_error_pct": ev["worst_row_error_pct"],
-                        "rows": ev["rows"], "trees": tr, "detector_scale": scale, "replay_args": extra})
+                        "rows": ev["rows"], "trees": tr, "load": load, "detector_scale": scale, "replay_args": extra})
     print(f"run {a.name}" + (f" (replay {' '.join(extra)})" if extra else ""))
-    print(f"{'flight':<10} {'F1':>6} {'count':>6} {'truth':>6} {'err %':>7} {'worst row':>8}  {'tree r':>6} "
-          f"{'scale':>6}  [row errors %, rows of 30+]  setting")
+    print(f"{'flight':<14} {'F1':>6} {'count':>6} {'truth':>6} {'err %':>7} {'worst row':>8}  {'tree r':>6} "
+          f"{'load r':>6} {'cv':>5} {'scale':>6}  [row errors %, rows of 30+]  setting")
     print("\n".join(rows_out))
-    f1 = np.array([s["f1"] for s in summary])
-    print(f"mean F1 {f1.mean():.3f}; worst |count error| {max(abs(s['count_error_pct']) for s in summary):.1f} %")
+    by_name = {s["flight"]: s for s in summary}
+    for fa, fb in a.pair:
+        pr = repeat_pair(by_name[fa]["rows"], by_name[fb]["rows"])
+        rows = ", ".join(f"row {r['row']}: {r['ratio_a']:.2f}/{r['ratio_b']:.2f}" for r in pr["rows"])
+        print(f"repeat pair {fa} / {fb}: worst |ratio difference| {pr['worst']:.3f} over {len(pr['rows'])} rows "
+              f"(count / countable apples: {rows})")
+        summary.append({"pair": [fa, fb], **pr})
+    flights = [s for s in summary if "f1" in s]
+    f1 = np.array([s["f1"] for s in flights])
+    print(f"mean F1 {f1.mean():.3f}; worst |count error| {max(abs(s['count_error_pct']) for s in flights):.1f} %")
     (a.out / a.name).mkdir(parents=True, exist_ok=True)
     (a.out / a.name / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     return 0

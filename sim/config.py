@@ -48,6 +48,9 @@ class Orchard:
 @dataclass
 class Apples:
     per_tree: float = 8.0
+    #: Each row's load as a factor of per_tree, cycled across the rows (empty: every row alike): a whole-plot flight
+    #: whose rows differ in load, for the count against the load (the paper's per-row figure of merit).
+    row_load: list[float] = field(default_factory=list)
     diameter_min_m: float = 0.06
     diameter_max_m: float = 0.09
     #: Depth of an apple inside the canopy, as a fraction of the canopy radius (1 = surface);
@@ -161,6 +164,7 @@ _CHECKS = [
     ("orchard.leaves_per_tree", lambda v: v >= 0, "must be >= 0"),
     ("orchard.varieties", lambda v: len(v) > 0, "must name at least one variety"),
     ("apples.per_tree", lambda v: v >= 0, "must be >= 0"),
+    ("apples.row_load", lambda v: all(x >= 0 for x in v), "must hold factors >= 0"),
     ("apples.diameter_min_m", lambda v: v > 0, "must be > 0"),
     ("flight.altitude_m", lambda v: v > 0, "must be > 0"),
     ("flight.speed_mps", lambda v: v > 0, "must be > 0"),

@@ -174,7 +174,7 @@ def build_scene(cfg: SimConfig) -> Scene:
             kind.append(np.full(8, TRUNK, np.int8))
             aidx.append(np.full(8, -1, np.int32))
             # apples, mostly on the sides and lower half of the canopy
-            m = rng.poisson(a.per_tree)
+            m = rng.poisson(a.per_tree * (a.row_load[r % len(a.row_load)] if a.row_load else 1.0))
             if m == 0:
                 continue
             d = _unit_vectors(rng, 4 * m + 8)

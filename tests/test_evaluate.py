@@ -163,3 +163,19 @@ def test_the_shape_is_judged_on_the_cameras_the_map_placed(replayed_test_flight,
         scores.append(evaluate_map(flight, run))
     assert scores[0]["f1"] > 0.3 and scores[1]["f1"] == scores[0]["f1"], [s["f1"] for s in scores]
     assert scores[1]["georeference_error"]["scale_error_pct"] == scores[0]["georeference_error"]["scale_error_pct"]
+
+
+def test_the_count_against_the_load_and_a_repeat_pair():
+    from ground.evaluation.scoring import MIN_ROW_APPLES, against_load, repeat_pair
+
+    def row(r, count, visible, total):
+        return {"row": r, "count": count, "truth_visible": visible, "truth_all": total}
+
+    same_share = [row(1, 40, 40, 80), row(2, 60, 60, 120), row(3, 50, 50, 100), row(4, 5, MIN_ROW_APPLES - 1, 90)]
+    load = against_load(same_share)
+    assert load["rows"] == 3 and load["r"] == pytest.approx(1.0) and load["cv"] == pytest.approx(0.0)
+    uneven = against_load([row(1, 40, 40, 80), row(2, 30, 60, 120), row(3, 50, 50, 100)])
+    assert uneven["cv"] > 0.2 and uneven["r"] < 0.5
+    assert np.isnan(against_load(same_share[:2])["r"])  # too few rows to say
+    pair = repeat_pair([row(1, 36, 40, 80), row(2, 60, 60, 120)], [row(2, 57, 60, 120), row(1, 40, 40, 80)])
+    assert [r["row"] for r in pair["rows"]] == [1, 2] and pair["worst"] == pytest.approx(0.1)

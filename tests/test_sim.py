@@ -84,6 +84,20 @@ def test_seed_changes_the_orchard(tmp_path):
     assert not np.array_equal(a.apples["xyz"][:5], b.apples["xyz"][:5])
 
 
+def test_row_load_sets_each_rows_apples_and_leaves_an_unloaded_orchard_as_it_was():
+    from sim.orchard import build_scene
+
+    base = {"seed": 5, "orchard": {"rows": 3, "row_length_m": 40.0}, "apples": {"per_tree": 10}}
+    even = build_scene(config.from_dict(base))
+    ones = build_scene(config.from_dict({**base, "apples": {"per_tree": 10, "row_load": [1.0]}}))
+    assert np.array_equal(even.apples["xyz"], ones.apples["xyz"])  # a factor of 1 draws the same orchard
+    loaded = build_scene(config.from_dict({**base, "apples": {"per_tree": 10, "row_load": [0.5, 1.0, 1.5]}}))
+    n = np.bincount(loaded.apples["row"], minlength=4)[1:]
+    assert n[0] < 0.7 * n[1] and n[2] > 1.3 * n[1], n
+    with pytest.raises(config.ConfigError, match="row_load"):
+        config.from_dict({**base, "apples": {"row_load": [-1.0]}})
+
+
 def test_apples_do_not_interpenetrate():
     from scipy.spatial import cKDTree
 
