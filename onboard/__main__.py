@@ -11,8 +11,10 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from pathlib import Path
 
 from onboard.node import NodeSettings
+from onboard.numbering import default_state_dir
 from pomar.settings import add_options
 from pomar.telemetry import mount_arguments
 
@@ -162,7 +164,8 @@ def _cmd_live(args) -> int:
         summary = run_live(args.camera, telemetry, camera, args.flight_id, args.drone_id, pub, detector,
                            KeyframePolicy(args.keyframe_every, args.keyframe_every_s, args.keyframe_every_m),
                            args.keyframe_width, args.jpeg_quality, args.clock_offset_s, play_fps=args.play_fps,
-                           max_frames=args.max_frames, duration_s=args.duration, detector_scale=args.detector_scale)
+                           max_frames=args.max_frames, duration_s=args.duration, detector_scale=args.detector_scale,
+                           state_dir=args.state_dir)
         print(json.dumps(summary, indent=2))
         if summary["error"]:
             print(f"error: {summary['error']}", file=sys.stderr)
@@ -242,6 +245,9 @@ def main(argv=None) -> int:
     add_options(lv, NodeSettings(), ["clock_offset_s"])
     lv.add_argument("--max-gap-s", type=float, default=1.0, help="telemetry gaps longer than this flag frames")
     lv.add_argument("--play-fps", type=float, help="play a video file at this rate (a camera sets its own)")
+    lv.add_argument("--state-dir", type=Path, default=default_state_dir(),
+                    help="where the frame numbers are kept, so that a node restarted mid-flight goes on from them "
+                         "(default: %(default)s)")
     lv.add_argument("--max-frames", type=int, help="stop after this many processed frames")
     lv.add_argument("--duration", type=float, help="stop after this many seconds")
     lv.add_argument("--wait-for-ground", type=float, default=0.0,

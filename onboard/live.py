@@ -14,12 +14,14 @@ from __future__ import annotations
 
 import logging
 import time
+from pathlib import Path
 
 import numpy as np
 
 from onboard.loop import Capture, publish_frames, sent_keyframe_width, telemetry_record
 from pomar.telemetry import TelemetryLog
 from onboard.node import KeyframePolicy
+from onboard.numbering import FrameNumbers
 from onboard.sources import LatestFrame, VideoSource
 from pomar import wire
 from pomar.camera import Camera
@@ -68,8 +70,10 @@ class LiveFrames:
     is detected at is the one the previous frame's telemetry foresaw (the height changes slowly)."""
 
     def __init__(self, camera_url, telemetry, camera_fx: float, clock_offset_s: float = 0.0,
-                 telemetry_max_wait_s: float = 1.0, play_fps: float | None = None):
+                 telemetry_max_wait_s: float = 1.0, play_fps: float | None = None,
+                 numbers: FrameNumbers | None = None):
         self._frames = StampedFrames(VideoSource(camera_url), fps=play_fps)
+        self.numbers = numbers or FrameNumbers(None)  # frame indices kept across a restart of the node
         self.telemetry_link, self.fx = telemetry, camera_fx
         self.clock_offset_s, self.max_wait_s, self.play_fps = clock_offset_s, telemetry_max_wait_s, play_fps
         self._expected = float("nan")
@@ -79,9 +83,13 @@ class LiveFrames:
     error = property(lambda self: self._frames.error)
 
     def __iter__(self):
-        for i, img in self._frames:
-            t_read = self._frames.read_time.get(i, time.time())
-            yield Capture(i, img, t_read, TelemetryLog.log_clock(t_read, self.clock_offset_s))
+        try:
+            for i, img in self._frames:
+                t_read = self._frames.read_time.get(i, time.time())
+                yield Capture(self.numbers(i, t_read), img, t_read, TelemetryLog.log_clock(t_read, self.clock_offset_s),
+                              source_index=i)
+        finally:
+            self.numbers.save()
 
     def period_s(self, t0: float) -> float:
         """The camera's frame period: the rate asked for, else the rate frames have come at so far."""
@@ -99,12 +107,17 @@ class LiveFrames:
 def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str, publisher, detector,
              keyframes: KeyframePolicy, keyframe_width: int = 960, jpeg_quality: int = 85, clock_offset_s: float = 0.0,
              telemetry_max_wait_s: float = 1.0, play_fps: float | None = None, max_frames: int | None = None,
-             duration_s: float | None = None, status_period_s: float = 1.0, detector_scale: str = "auto") -> dict:
-    """Run until the source ends, ``max_frames`` frames were processed or ``duration_s`` passed."""
+             duration_s: float | None = None, status_period_s: float = 1.0, detector_scale: str = "auto",
+             state_dir: Path | None = None) -> dict:
+    """Run until the source ends, ``max_frames`` frames were processed or ``duration_s`` passed. ``state_dir``: where
+    the frame numbers are kept across a restart of the node (onboard.numbering); None: not kept."""
     cam = Camera.from_dict(camera)
     publisher.publish(wire.CameraMessage(flight_id, drone_id, camera, play_fps or 0.0, time.time(),
                                          sent_keyframe_width(keyframe_width, cam.width), paced=True))
-    frames = LiveFrames(camera_url, telemetry, cam.fx, clock_offset_s, telemetry_max_wait_s, play_fps)
+    numbers = FrameNumbers(Path(state_dir) / f"{flight_id}-{drone_id}.json" if state_dir else None)
+    frames = LiveFrames(camera_url, telemetry, cam.fx, clock_offset_s, telemetry_max_wait_s, play_fps, numbers)
     scaling = policy_for(detector, detector_scale)
-    return publish_frames(frames, flight_id, drone_id, publisher, detector, scaling, scaling.pacer(), keyframes,
-                          keyframe_width, jpeg_quality, status_period_s, max_frames, duration_s)
+    summary = publish_frames(frames, flight_id, drone_id, publisher, detector, scaling, scaling.pacer(), keyframes,
+                             keyframe_width, jpeg_quality, status_period_s, max_frames, duration_s)
+    summary["resumed_after_frame"] = numbers.resumed_from  # a node of this flight ran before: its last frame
+    return summary

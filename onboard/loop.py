@@ -32,6 +32,9 @@ class Capture:
     image: np.ndarray
     t_read: float
     t_capture: float
+    #: the frame's number in its source, where it is not the index (a live node restarted goes on numbering its
+    #: frames; a detector that replays a simulated flight's truth looks the frame up by this)
+    source_index: int | None = None
 
 
 def sent_keyframe_width(width: int, image_width: int) -> int:
@@ -85,7 +88,7 @@ def publish_frames(frames, flight_id: str, drone_id: str, publisher, detector, s
             if pacer is not None:
                 scale = pacer.cap(scale, img.shape[1], img.shape[0], frames.period_s(t0))
             td = time.perf_counter()
-            boxes, scores = detector.detect(c.index, img, scale)
+            boxes, scores = detector.detect(c.index if c.source_index is None else c.source_index, img, scale)
             frame_det_s = time.perf_counter() - td
             det_s += frame_det_s
             scales.append(scale)
