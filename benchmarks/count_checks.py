@@ -25,6 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ground.evaluation.scoring import evaluate_map  # noqa: E402
+from pomar.countable import MIN_VISIBLE  # noqa: E402
 from pomar.flight import FlightDir  # noqa: E402
 
 APPLE_COLUMNS = ["id", "x", "y", "z", "lat", "lon", "alt", "first_frame", "last_frame"]
@@ -53,6 +54,8 @@ def main(argv=None) -> int:
     ap.add_argument("flights", type=Path, nargs="+", help="the flights replayed there (their replay: RUN/NAME)")
     ap.add_argument("--size", type=float, nargs="+", default=[0.0, 0.6, 0.7, 0.8])
     ap.add_argument("--views", type=float, nargs="+", default=[0.0, 0.1, 0.15, 0.2])
+    ap.add_argument("--min-visible", type=float, default=MIN_VISIBLE,
+                    help="score against apples this visible (default: pomar.countable's definition)")
     a = ap.parse_args(argv)
     work = Path(tempfile.mkdtemp(prefix="pomar-checks-"))
     print(f"{'flight':<14} {'size':>5} {'views':>5} {'F1':>6} {'count':>6} {'truth':>6} {'err %':>7} {'worst row':>9}")
@@ -70,7 +73,7 @@ def main(argv=None) -> int:
                     w = csv.DictWriter(f, fieldnames=APPLE_COLUMNS, extrasaction="ignore", lineterminator="\n")
                     w.writeheader()
                     w.writerows(kept(cands, size, views))
-                ev = evaluate_map(flight, run)
+                ev = evaluate_map(flight, run, min_visible=a.min_visible)
                 print(f"{name:<14} {size:>5.2f} {views:>5.2f} {ev['f1']:>6.3f} {ev['count']:>6} {ev['truth_count']:>6} "
                       f"{ev['count_error_pct']:>+7.1f} {ev['worst_row_error_pct']:>9.1f}", flush=True)
     shutil.rmtree(work, ignore_errors=True)
