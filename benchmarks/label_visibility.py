@@ -23,6 +23,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from pomar.countable import IGNORE_ABOVE  # noqa: E402
 from pomar.flight import FlightDir  # noqa: E402
 
 INNER = 0.8
@@ -49,7 +50,7 @@ def share_in_circle(mask: np.ndarray, cx: float, cy: float, r: float) -> float:
 
 
 def simulated(flight: FlightDir, every: int, variety: str = "Gala") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(visible share, colour share, radius px) of every truth apple of ``variety`` at least 5 % visible, every
+    """(visible share, colour share, radius px) of every truth apple of ``variety`` at least IGNORE_ABOVE visible, every
     ``every``-th frame. Gala only by default: the simulator's Fuji is yellow-green, leaf-coloured to this measure, and
     ADD256's apples are red."""
     d = flight.truth_detections()
@@ -64,7 +65,7 @@ def simulated(flight: FlightDir, every: int, variety: str = "Gala") -> tuple[np.
             break
         if f % every == 0:
             mask = not_leaf(img)
-            sel = (d["frame"] == f) & (d["visible_fraction"] >= 0.05) & np.isin(d["apple_id"], list(keep))
+            sel = (d["frame"] == f) & (d["visible_fraction"] >= IGNORE_ABOVE) & np.isin(d["apple_id"], list(keep))
             for u, v, r, vf in zip(d["u"][sel], d["v"][sel], d["r_px"][sel], d["visible_fraction"][sel]):
                 vis.append(vf)
                 col.append(share_in_circle(mask, u, v, r))
@@ -98,7 +99,7 @@ def main(argv=None) -> int:
     vis, col, rad = vis[ok], col[ok], rad[ok]
     print(f"simulated ({a.flight.name}): {len(vis)} apple views, radius median {np.median(rad):.1f} px")
     print(f"{'visible share':>14} {'views':>6} {'colour share p10':>17} {'median':>7} {'p90':>6}")
-    edges = np.array([0.05, 0.2, 0.35, 0.5, 0.65, 0.8, 1.01])
+    edges = np.array([IGNORE_ABOVE, 0.2, 0.35, 0.5, 0.65, 0.8, 1.01])
     for lo, hi in zip(edges[:-1], edges[1:]):
         s = (vis >= lo) & (vis < hi)
         if s.sum():

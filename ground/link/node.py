@@ -384,7 +384,7 @@ class GroundNode:
         if self.pipe.poses is not None and self.pipe.poses.mapper.submodels() and not self.outputs_failed:
             self._written(self.write_model)
         if self.rr is not None:
-            self.rr.close()
+            self.rr.close(compact=not hurry)
         return report
 
     def _rescue(self) -> dict:

@@ -487,12 +487,14 @@ class RerunLog:
                                                             radii=[0.005] * n).partition([n]))
             self._tracks_logged.add(aid)
 
-    def close(self):
+    def close(self, compact: bool = True):
+        """Flush and close the recording; ``compact``: give the .rrd its chunk index (seconds; a ground told to stop
+        leaves it as written, a valid recording without an index)."""
         if self._view_data is not None:  # framed again on the whole map
             self._frame_view()
         self.rec.flush()
         self.rec.disconnect()
-        if self.rrd is not None:
+        if self.rrd is not None and compact:
             finish_rrd(self.rrd)
 
 
