@@ -42,38 +42,33 @@ def _autopilot(tlog, url, stop: threading.Event, heard: list):
             heard.append((r.get_srcComponent(), r.type))
 
 
-def test_live_camera_and_mavlink_to_zenoh(replay_test_flight, tmp_path):
+def _live_run(flight, flight_id: str, state_dir, *args: str) -> tuple[list, dict, list]:
+    """One `onboard live` run (the test video as its camera at 5 fps, its .tlog re-sent as the autopilot) until it says
+    it finished: the messages a ground got, the run's summary, and the heartbeats the autopilot heard back."""
     from ground.replay import free_port
 
     mav_port, zport = free_port(), free_port()
     endpoint = f"tcp/127.0.0.1:{zport}"
     stop, heard = threading.Event(), []
-    node = subprocess.Popen([sys.executable, "-m", "onboard", "live", "--camera", str(replay_test_flight.video),
+    node = subprocess.Popen([sys.executable, "-m", "onboard", "live", "--camera", str(flight.video),
                              "--play-fps", "5", "--mavlink", f"udpin:127.0.0.1:{mav_port}",
-                             "--camera-json", str(replay_test_flight.path / "camera.json"), "--flight-id", "live-test",
-                             "--detector", "truth-replay", "--truth-flight", str(replay_test_flight.path),
-                             "--keyframe-every-s", "0.5", "--state-dir", str(tmp_path), "--listen", endpoint,
-                             "--linger", "3",
-                             "--wait-for-ground", "30"],
+                             "--camera-json", str(flight.path / "camera.json"), "--flight-id", flight_id,
+                             "--detector", "truth-replay", "--truth-flight", str(flight.path),
+                             "--state-dir", str(state_dir), "--listen", endpoint, "--wait-for-ground", "30", *args],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    ap = threading.Thread(target=_autopilot, args=(replay_test_flight.tlog, f"udpout:127.0.0.1:{mav_port}", stop, heard),
-                          daemon=True)
-    ap.start()
+    threading.Thread(target=_autopilot, args=(flight.tlog, f"udpout:127.0.0.1:{mav_port}", stop, heard),
+                     daemon=True).start()
     session = transport.open_session(connect=[endpoint])
-    sub = transport.FlightSubscriber(session, "live-test")
-    frames, keyframes, statuses = [], [], []
+    sub = transport.FlightSubscriber(session, flight_id)
+    msgs = []
     try:
         t0 = time.monotonic()
         while time.monotonic() - t0 < 60:
             m = sub.recv(timeout=0.5)
-            if isinstance(m, wire.FrameMessage):
-                frames.append(m)
-            elif isinstance(m, wire.KeyframeMessage):
-                keyframes.append(m)
-            elif isinstance(m, wire.StatusMessage):
-                statuses.append(m)
-                if m.state in ("finished", "error"):
-                    break
+            if m is not None:
+                msgs.append(m)
+            if isinstance(m, wire.StatusMessage) and m.state in ("finished", "error"):
+                break
         out, err = node.communicate(timeout=30)
     finally:
         stop.set()
@@ -83,8 +78,16 @@ def test_live_camera_and_mavlink_to_zenoh(replay_test_flight, tmp_path):
             node.kill()
             node.wait()
     assert node.returncode == 0, err[-2000:]
+    return msgs, json.loads(out[out.index("{"):]), heard
+
+
+def test_live_camera_and_mavlink_to_zenoh(replay_test_flight, tmp_path):
+    msgs, summary, heard = _live_run(replay_test_flight, "live-test", tmp_path, "--keyframe-every-s", "0.5",
+                                     "--linger", "3")
+    frames = [m for m in msgs if isinstance(m, wire.FrameMessage)]
+    keyframes = [m for m in msgs if isinstance(m, wire.KeyframeMessage)]
+    statuses = [m for m in msgs if isinstance(m, wire.StatusMessage)]
     assert statuses and statuses[-1].state == "finished"
-    summary = json.loads(out[out.index("{"):])
     assert len(frames) == summary["frames_processed"] > 0
     assert summary["frames_read"] == 20
     # telemetry sampled live at each frame's capture time
@@ -106,56 +109,20 @@ def test_live_camera_and_mavlink_to_zenoh(replay_test_flight, tmp_path):
     assert (191, 18) in heard  # MAV_COMP_ID_ONBOARD_COMPUTER, MAV_TYPE_ONBOARD_CONTROLLER
 
 
-def _live_run(flight, flight_id: str, state_dir, max_frames: int) -> tuple[list[int], dict]:
-    """One `onboard live` run (the test video as its camera, its .tlog re-sent as the autopilot): the frame indices
-    published, and the run's summary."""
-    from ground.replay import free_port
-
-    mav_port, zport = free_port(), free_port()
-    endpoint = f"tcp/127.0.0.1:{zport}"
-    stop, heard = threading.Event(), []
-    node = subprocess.Popen([sys.executable, "-m", "onboard", "live", "--camera", str(flight.video),
-                             "--play-fps", "5", "--mavlink", f"udpin:127.0.0.1:{mav_port}",
-                             "--camera-json", str(flight.path / "camera.json"), "--flight-id", flight_id,
-                             "--detector", "truth-replay", "--truth-flight", str(flight.path),
-                             "--max-frames", str(max_frames), "--state-dir", str(state_dir),
-                             "--listen", endpoint, "--linger", "1", "--wait-for-ground", "30"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    threading.Thread(target=_autopilot, args=(flight.tlog, f"udpout:127.0.0.1:{mav_port}", stop, heard),
-                     daemon=True).start()
-    session = transport.open_session(connect=[endpoint])
-    sub = transport.FlightSubscriber(session, flight_id)
-    frames = []
-    try:
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < 60:
-            m = sub.recv(timeout=0.5)
-            if isinstance(m, wire.FrameMessage):
-                frames.append(m.frame)
-            elif isinstance(m, wire.StatusMessage) and m.state in ("finished", "error"):
-                break
-        out, err = node.communicate(timeout=30)
-    finally:
-        stop.set()
-        sub.close()
-        session.close()
-        if node.poll() is None:
-            node.kill()
-            node.wait()
-    assert node.returncode == 0, err[-2000:]
-    return frames, json.loads(out[out.index("{"):])
-
 
 def test_a_live_node_restarted_mid_flight_goes_on_numbering_its_frames(replay_test_flight, tmp_path):
     """The ground drops a frame whose index it already passed: a node restarted mid-flight that numbered from 0 again
     would lose every frame until it caught up. Restarted with the same flight, it goes on from its last frame, the
     time it was down a gap; another flight starts from 0."""
-    state = tmp_path / "state"
-    first, s1 = _live_run(replay_test_flight, "restart-test", state, 4)
+    def frames(flight_id, n):
+        msgs, summary, _ = _live_run(replay_test_flight, flight_id, tmp_path, "--max-frames", str(n), "--linger", "1")
+        return [m.frame for m in msgs if isinstance(m, wire.FrameMessage)], summary
+
+    first, s1 = frames("restart-test", 4)
     time.sleep(1.0)  # down for a second
-    second, s2 = _live_run(replay_test_flight, "restart-test", state, 4)
+    second, s2 = frames("restart-test", 4)
     assert first and second and first == sorted(first) and second == sorted(second)
     assert s1["resumed_after_frame"] is None and s2["resumed_after_frame"] == first[-1]
     assert second[0] > first[-1] + 1, (first, second)  # the second of downtime is a gap
-    other, _ = _live_run(replay_test_flight, "another-flight", state, 2)
+    other, _ = frames("another-flight", 2)
     assert other[0] < first[-1]
