@@ -109,3 +109,21 @@ def test_drift_offsets_follow_a_bent_chain_and_average_out_the_gps_noise():
     flat = drift_offsets(kf, rng.normal(0, 0.5, drift.shape), np.ones(len(kf)), q, sigma_frames=300.0)
     assert np.abs(flat).max() < 0.15
     assert not drift_offsets(kf, residuals, np.ones(len(kf)), q, sigma_frames=0).any()
+
+
+def test_the_floor_is_a_plane_through_the_ground_between_the_rows_not_the_canopy():
+    """A map tilted 1.2 degrees (a fixed mount's stated tilt against the gimbal's real one): the floor plane follows the
+    ground seen between the rows, and the canopy (rows of points a metre and more above it) does not pull it."""
+    from ground.poses.georeference import floor_plane
+
+    rng = np.random.default_rng(1)
+    tilt = np.radians(1.2)
+    xy = rng.uniform(-15, 15, (6000, 2))
+    ground = np.c_[xy, np.tan(tilt) * xy[:, 0] + rng.normal(0, 0.02, len(xy))]
+    rows = np.abs(((xy[:, 0] + 1.75) % 3.5) - 1.75) < 0.7  # rows 3.5 m apart, 1.4 m of canopy
+    canopy = ground[rows] + np.c_[np.zeros((rows.sum(), 2)), rng.uniform(0.8, 3.0, rows.sum())]
+    plane = floor_plane(np.concatenate([ground[~rows], canopy]))
+    assert plane is not None
+    assert abs(np.degrees(np.arccos(plane.normal[2])) - 1.2) < 0.1 and plane.normal[0] < 0
+    assert plane.sigma_m < 0.05
+    assert floor_plane(canopy[:30]) is None  # too few points to say

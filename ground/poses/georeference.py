@@ -15,6 +15,7 @@ and s (closed form), from a start on positions alone.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -139,3 +140,54 @@ def drift_offsets(kf_frames: np.ndarray, residuals: np.ndarray, weights: np.ndar
         out[qi] = np.where(line[:, None], (s2[:, None] * t0 - s1[:, None] * t1) / np.where(line, det, 1.0)[:, None],
                            t0 / np.maximum(s0, 1e-300)[:, None])
     return out
+
+
+class FloorPlane(NamedTuple):
+    normal: np.ndarray  # unit, pointing up (+z)
+    point: np.ndarray  # a point of the plane
+    sigma_m: float  # the floor samples' spread about it
+
+
+#: The floor's samples: the low tenth of the map's points in each FLOOR_CELL_M square that holds FLOOR_CELL_POINTS.
+FLOOR_CELL_M = 2.0
+FLOOR_CELL_POINTS = 10
+#: A floor sample within this of the plane is floor (the ground's roughness); the canopy stands 0.8 m and more above.
+FLOOR_INLIER_M = 0.1
+
+
+def floor_plane(points: np.ndarray, min_cells: int = 6) -> FloorPlane | None:
+    """The orchard floor the map sees, as a plane: the low tenth of the points of each 2-m cell is a sample (the ground
+    seen between the rows, or the canopy where a cell sees only that), and a RANSAC plane through the samples keeps the
+    ground's (within FLOOR_INLIER_M; the canopy's lie a metre higher), refined by least squares. A plane, not one
+    level: a map tilted a degree (a fixed mount's stated tilt against the gimbal's real one) puts the floor the cameras
+    look at, metres across, a decimetre higher or lower, and the cameras' heights above it are what scale the map.
+    None with fewer than ``min_cells`` samples, or fewer than half of them on the plane."""
+    P = np.asarray(points, float).reshape(-1, 3)
+    if len(P) < min_cells * FLOOR_CELL_POINTS:
+        return None
+    key = np.floor(P[:, :2] / FLOOR_CELL_M).astype(np.int64)
+    _, cell, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    cell = cell.reshape(-1)
+    samples = np.array([[*P[cell == k, :2].mean(0), np.percentile(P[cell == k, 2], 10)]
+                        for k in np.nonzero(count >= FLOOR_CELL_POINTS)[0]]).reshape(-1, 3)
+    if len(samples) < min_cells:
+        return None
+    rng = np.random.default_rng(0)  # the same plane each run
+    best = np.zeros(len(samples), bool)
+    for _ in range(200):
+        a, b, c = samples[rng.choice(len(samples), 3, replace=False)]
+        n = np.cross(b - a, c - a)
+        if np.linalg.norm(n) < 1e-9:
+            continue
+        n = n / np.linalg.norm(n)
+        inl = np.abs((samples - a) @ n) < FLOOR_INLIER_M
+        if inl.sum() > best.sum():
+            best = inl
+    if best.sum() < max(3, len(samples) // 2):
+        return None
+    A = np.c_[samples[best, :2], np.ones(int(best.sum()))]
+    coef = np.linalg.lstsq(A, samples[best, 2], rcond=None)[0]  # z = ax + by + c
+    normal = np.array([-coef[0], -coef[1], 1.0])
+    normal /= np.linalg.norm(normal)
+    sigma = float(np.std(samples[best, 2] - A @ coef))
+    return FloorPlane(normal, np.array([0.0, 0.0, coef[2]]), max(sigma, 0.02))

@@ -30,7 +30,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 
-from ground.poses.georeference import fit_similarity, georeference_poses
+from ground.poses.georeference import fit_similarity, floor_plane, georeference_poses
 from ground.poses.telemetry_poses import camera_rotations
 from ground.poses.registration import IncrementalRegistrar, RegistrationSettings, Submodel
 from ground.poses.restart import align_models, move_pose, move_reference
@@ -228,17 +228,13 @@ class Mapper:
             return None
         return fit.similarity, fit.position_rms_m
 
-    #: The orchard floor in the map: this low percentile of its points' heights (the ground seen between the rows;
-    #: the canopy stands above it); its spread below that percentile is how well the floor is known.
-    FLOOR_PERCENTILE = 5.0
-
     def _height_scale(self, fit: Similarity, frames, c_m, g, residual_m: float,
                       positions_scale: bool = True) -> float | None:
-        """The factor that brings the cameras' heights above the floor the map sees to the log's heights above the
-        take-off point, where those tell the map's scale better than the positions do: positions rounded coarsely
-        (a Phantom 4 Pro's SRT: 4 decimals, 11 m) over a short flight scale it by tens of percent, the heights (to
-        0.01 m) against the floor by about the floor's own spread over the height. None where the log gives no
-        heights, the map sees too little ground, or the positions know the scale better. Takes the take-off point to
+        """The factor that brings the cameras' heights above the floor the map sees (a plane: floor_plane) to the log's
+        heights above the take-off point, where those tell the map's scale better than the positions do: positions
+        rounded coarsely (a Phantom 4 Pro's SRT: 4 decimals, 11 m) over a short flight scale it by tens of percent, the
+        heights (to 0.01 m) against the floor by about the floor's own spread over the height. None where the log gives
+        no heights, the map sees too little ground, or the positions know the scale better. Takes the take-off point to
         be level with the orchard's floor (say how far it is not, and the scale is off by that over the height)."""
         h = np.array([self.tel[f].height for f in frames], float)
         h_sigma = np.array([self.tel[f].height_acc for f in frames], float)
@@ -249,12 +245,12 @@ class Mapper:
         pts = [compose(fit, sm.to_first).apply(np.array([p.xyz for p in sm.rec.points3D.values()
                                                           if p.track.length() >= 3 and p.error <= 2.0], float).reshape(-1, 3))
                for sm in self.registrar.submodels[-2:] if sm.rec is not None and sm.to_first is not None]
-        z = np.concatenate([p[:, 2] for p in pts]) if pts else np.zeros(0)
-        if len(z) < 200:
+        P = np.concatenate(pts) if pts else np.zeros((0, 3))
+        floor = floor_plane(P) if len(P) >= 200 else None
+        if floor is None:
             return None
-        floor = float(np.percentile(z, self.FLOOR_PERCENTILE))
-        floor_sigma = max(float(floor - np.percentile(z, 1.0)), 0.02)
-        h_map = fit.apply(c_m)[ok, 2] - floor
+        floor_sigma = floor.sigma_m
+        h_map = (fit.apply(c_m)[ok] - floor.point) @ floor.normal  # the cameras' heights above the floor plane
         if not np.median(h_map) > 0:
             return None
         # the scale's relative error from each: the positions' error over their spread, and the floor's spread with
