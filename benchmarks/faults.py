@@ -122,18 +122,11 @@ class Relay:
 def without_keyframes_after(journal: Path, after_s: float, out: Path) -> Path:
     """A copy of a recorded stream with every keyframe whose frame was taken more than ``after_s`` after the first
     frame left out."""
-    t_frame, t0, keep = {}, None, []
-    records = read_journal(journal)
-    for payload in records:
-        msg = wire.decode(payload)
-        if isinstance(msg, wire.FrameMessage):
-            t_frame[msg.frame] = msg.t_capture
-            t0 = msg.t_capture if t0 is None else min(t0, msg.t_capture)
-    for payload in records:
-        msg = wire.decode(payload)
-        if isinstance(msg, wire.KeyframeMessage) and t_frame.get(msg.frame, float("inf")) - t0 > after_s:
-            continue
-        keep.append(payload)
+    records = [(payload, wire.decode(payload)) for payload in read_journal(journal)]
+    t_frame = {m.frame: m.t_capture for _, m in records if isinstance(m, wire.FrameMessage)}
+    t0 = min(t_frame.values())
+    keep = [payload for payload, m in records
+            if not (isinstance(m, wire.KeyframeMessage) and t_frame.get(m.frame, float("inf")) - t0 > after_s)]
     out.unlink(missing_ok=True)
     j = Journal(out)
     for payload in keep:

@@ -26,15 +26,16 @@ class LiveApples:
         self.count = Counting(counting, self.frames, reach=association.merge_window + 2 * association.k)
         self.min_score = min_score  # detections below this score are not used
         self.detections = 0  # detections used
-        self._camera = None
 
     @property
     def camera(self):
-        return self._camera
+        """The camera (pomar.camera.Camera) once the camera message came: the counting's (its expected views need
+        it)."""
+        return self.count.camera
 
     @camera.setter
     def camera(self, camera) -> None:
-        self._camera = self.count.camera = camera
+        self.count.camera = camera
 
     def add(self, msg: wire.FrameMessage, pose, steps, metres_per_unit: float) -> list[Apple]:
         """A posed frame's detections (``steps``: the frame-index steps between the last frames released); returns
@@ -42,7 +43,7 @@ class LiveApples:
         keep = np.asarray(msg.scores) >= self.min_score
         xy = msg.centres[keep]
         self.detections += len(xy)
-        P = self._camera.projection_matrix(pose.R, pose.t)
+        P = self.camera.projection_matrix(pose.R, pose.t)
         # The association's window is the next k frames *of the stream*: a real-time onboard node
         # that drops frames sends indices with gaps, so the association counts frames, not indices.
         seq = self.frames.add(msg.frame, pose, P)
@@ -56,7 +57,7 @@ class LiveApples:
         where they turn out to be one apple. Returns (apples moved, (gone, into) merges)."""
         P = {}
         for f, pose in new.items():
-            Pf = self._camera.projection_matrix(pose.R, pose.t)
+            Pf = self.camera.projection_matrix(pose.R, pose.t)
             P[self.frames.correct(f, pose, Pf)] = Pf
         self.assoc.metres_per_unit = metres_per_unit
         changed, merged = self.assoc.repose(P)

@@ -167,7 +167,8 @@ class GroundNode:
         eta = f", ETA {(n - mapped) / fps:.0f} s" if n and fps == fps and fps > 0 else ""
         rejected = sum(self.stream.rejected.values()) if self.stream else 0
         log.info("frames %d received, %d%s mapped (%.1f fps%s), keyframes %d, apples %d, wall %.0f s%s",
-                 c["frames"], mapped, f"/{n}" if n else "", fps, eta, c["keyframes"], len(self.pipe.apples.count.apples),
+                 c["frames"], mapped, f"/{n}" if n else "", fps, eta, c["keyframes"],
+                 len(self.pipe.apples.count.apples),
                  now - self.t_start, f", {rejected} messages rejected" if rejected else "")
 
     def _log_events(self, events):
@@ -195,7 +196,7 @@ class GroundNode:
                     "delay/behind_drone_s": behind, "delay/ground_latency_s": latency,
                     "delay/detector_s": float(st.detector_latency_s) if st else None,
                     "link/dropped_onboard": float(st.frames_dropped) if st else None,
-                    "link/missing_frames": float(self.pipe.counters["missing_frames"]),
+                    "link/missing_frames": float(self.pipe.arrivals.counters["missing_frames"]),
                     **{f"rejected/{reason}": float(n) for reason, n in rejected.items()},
                 }, to_enu=to_enu)
                 for a in e.new_apples:
@@ -240,8 +241,10 @@ class GroundNode:
             return float("nan")
         return len(t) / self.FPS_WINDOW_S
 
-    def refresh(self, final: bool = False) -> dict:
-        """Write the map files and report.json (atomically) and log the map to rerun."""
+    def refresh(self, final: bool = False, out: Path | None = None) -> dict:
+        """Write the map files and report.json (atomically; to ``out``, by default the node's folder) and log the map
+        to rerun."""
+        out = out or self.out
         self._last_refresh = time.monotonic()
         if self._trim is not None:  # hand freed heap back to the system: the map's arrays are rebuilt at each refresh
             self._trim(0)
@@ -249,13 +252,13 @@ class GroundNode:
         poses = self.pipe.poses
         origin = poses.origin if poses is not None else None
         self._was_failing, self.outputs_failed = self.outputs_failed is not None, None
-        rows = self._written(lambda: write_map(self.out, table, direction, origin, self.settings.tree_spacing_m))
+        rows = self._written(lambda: write_map(out, table, direction, origin, self.settings.tree_spacing_m))
         if rows is None:
             rows = rows_summary(table, direction, origin)
         cams = pose_table(self.pipe)
-        self._written(lambda: write_atomic(self.out / "poses.csv", poses_csv(cams)))
+        self._written(lambda: write_atomic(out / "poses.csv", poses_csv(cams)))
         if final:
-            self._written(lambda: write_atomic(self.out / "candidates.csv", candidates_csv(candidate_table(self.pipe))))
+            self._written(lambda: write_atomic(out / "candidates.csv", candidates_csv(candidate_table(self.pipe))))
         report = self.report(table, rows, final)
         rr = self._rerun()
         if rr is not None and self.pipe.arrivals.released >= 0:
@@ -268,7 +271,7 @@ class GroundNode:
                       points=poses.sparse_points() if poses is not None else None,
                       summary=summary_markdown(report, self._live),
                       trajectory_latlon=np.stack([cams["lat"], cams["lon"]], 1)[::5] if len(cams["frame"]) else None)
-        self._written(lambda: write_json(self.out / "report.json", report))
+        self._written(lambda: write_json(out / "report.json", report))
         if self._was_failing and self.outputs_failed is None:
             log.warning("the map files are written again")
         return report
@@ -291,13 +294,15 @@ class GroundNode:
         p = self.pipe
         st = p.status
         reg = p.poses.mapper.stats() if p.poses is not None else None
+        counters = p.counters
+        posed = max(1, sum(counters[j] for j in POSE_SOURCES))
         r = {
             "flight_id": p.flight_id, "drone_id": p.drone_id, "final": final,
             "apples": int(len(table["id"])), "rows": rows,
             "counting": p.apples.count.report(),
-            "frames": dict(p.counters), "gaps": p.arrivals.gaps[:100],
+            "frames": counters, "gaps": p.arrivals.gaps[:100],
             # what share of the mapped frames got each kind of pose
-            "pose_shares": {k: p.counters[k] / max(1, sum(p.counters[j] for j in POSE_SOURCES)) for k in POSE_SOURCES},
+            "pose_shares": {k: counters[k] / posed for k in POSE_SOURCES},
             "registration": {
                 "keyframes_processed": reg["keyframes_processed"] if reg else 0,
                 "registered": len(p.poses.model_pose) if p.poses else 0,
@@ -352,7 +357,8 @@ class GroundNode:
                         # how long frames waited on the ground, from their message's arrival to being mapped
                         **delay_stats(self.pipe.arrivals.frame_delays),
                         # the same, of the frames that came once the first model was made (no wait for it)
-                        **{f"{k}_after_first_model": v for k, v in delay_stats(self.pipe.arrivals.frame_delays_mapped).items()},
+                        **{f"{k}_after_first_model": v
+                           for k, v in delay_stats(self.pipe.arrivals.frame_delays_mapped).items()},
                         # from the first frame's arrival to the first model (frames before it wait for it)
                         "first_model_after_s": (p.arrivals.t_first_model - p.arrivals.t_first_frame
                                                 if p.arrivals.t_first_model and p.arrivals.t_first_frame else None),
@@ -390,15 +396,12 @@ class GroundNode:
     def _rescue(self) -> dict:
         """The map files could not be written where asked at the flight's end (a full disk): nothing computed is lost,
         they go to a folder of the system's temporary directory (often another disk), and the report says where."""
-        failed, asked = self.outputs_failed, self.out
+        failed = self.outputs_failed
         self.rescued_to = Path(tempfile.gettempdir()) / f"pomar-rescue-{self.pipe.flight_id or 'flight'}-{os.getpid()}"
-        self.out = self.rescued_to
-        try:
-            report = self.refresh(final=True)
-        finally:
-            self.out = asked
+        report = self.refresh(final=True, out=self.rescued_to)
         if self.outputs_failed is None:
-            log.warning("the map files could not be written to %s (%s): they are in %s", asked, failed, self.rescued_to)
+            log.warning("the map files could not be written to %s (%s): they are in %s", self.out, failed,
+                        self.rescued_to)
         self.outputs_failed = failed
         report["link"]["outputs_write_failed"] = failed
         return report
@@ -471,7 +474,7 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
     def contradicted(m: wire.StatusMessage) -> bool:
         """An end claim that says fewer frames were sent than arrived: counted, logged, and to be ignored (the flight
         then ends at the idle timeout)."""
-        have = node.pipe.counters["frames"] + node.pipe.counters["late_frames"]
+        have = node.pipe.arrivals.counters["frames"] + node.pipe.arrivals.counters["late_frames"]
         if have <= m.frames_processed:
             return False
         node.ignored_end_claims += 1
@@ -507,7 +510,7 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
             elif node.pipe.arrivals.pending:
                 node.step()  # frames may wait on the mapping process (its first model)
             if claim is not None:
-                have = node.pipe.counters["frames"] + node.pipe.counters["late_frames"]
+                have = node.pipe.arrivals.counters["frames"] + node.pipe.arrivals.counters["late_frames"]
                 said = claim[0].frames_processed
                 awaited = len(node.pipe.arrivals.kf_awaited)  # keyframes announced by their frames that did not come
                 if have == said and not awaited and now - max(claim[1], last_frame) >= end_quiet_s:

@@ -167,9 +167,9 @@ def floor_plane(points: np.ndarray, min_cells: int = 6) -> FloorPlane | None:
         return None
     key = np.floor(P[:, :2] / FLOOR_CELL_M).astype(np.int64)
     _, cell, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    cell = cell.reshape(-1)
-    samples = np.array([[*P[cell == k, :2].mean(0), np.percentile(P[cell == k, 2], 10)]
-                        for k in np.nonzero(count >= FLOOR_CELL_POINTS)[0]]).reshape(-1, 3)
+    by_cell = np.split(P[np.argsort(cell.reshape(-1), kind="stable")], np.cumsum(count)[:-1])
+    samples = np.array([[*c[:, :2].mean(0), np.percentile(c[:, 2], 10)] for c in by_cell
+                        if len(c) >= FLOOR_CELL_POINTS]).reshape(-1, 3)
     if len(samples) < min_cells:
         return None
     rng = np.random.default_rng(0)  # the same plane each run
