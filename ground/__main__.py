@@ -179,6 +179,11 @@ def _cmd_replay(args) -> int:
         print(f"onboard: {ob['frames_processed']} frames processed, {ob['frames_dropped']} dropped, detector "
               f"{ob['detector_latency_s']:.3f} s/frame, read-to-publish median {ob['read_to_publish_median_s']:.3f} s, "
               f"link {ob['link_bytes_per_s_at_video_fps'] / 1e6:.2f} MB/s at the video's frame rate")
+    size = rep.get("apple_size") or {}
+    if size.get("radius_px_median") is not None:
+        print(f"apples reached the detector at a radius of {size['radius_px_median']:.1f} px (median)"
+              + (f"; it finds them reliably from {size['min_supported_px']:.1f} px: {size['frames_below']} frames below"
+                 if size.get("min_supported_px") else ""))
     if "evaluation" in rep:
         print("against the flight's truth:")
         print(format_evaluation(rep["evaluation"]))

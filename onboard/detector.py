@@ -122,6 +122,8 @@ class OnnxDetector:
         #: the apple radius (px) the model detects best, where the optical axis meets the canopy (its metadata;
         #: None: the model does not say, and frames go at their own size)
         self.apple_radius_px = self.meta.get("apple_radius_px")
+        #: the smallest apple radius (px, as the model sees it) it finds reliably: its envelope (None: not said)
+        self.min_apple_radius_px = self.meta.get("min_apple_radius_px")
         if self.overlap * 2 >= self.tile_size:
             raise ValueError("overlap must be less than half the tile size")
 

@@ -113,7 +113,8 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
     the frame numbers are kept across a restart of the node (onboard.numbering); None: not kept."""
     cam = Camera.from_dict(camera)
     publisher.publish(wire.CameraMessage(flight_id, drone_id, camera, play_fps or 0.0, time.time(),
-                                         sent_keyframe_width(keyframe_width, cam.width), paced=True))
+                                         sent_keyframe_width(keyframe_width, cam.width), paced=True,
+                                         min_apple_radius_px=getattr(detector, "min_apple_radius_px", None) or 0.0))
     numbers = FrameNumbers(Path(state_dir) / f"{flight_id}-{drone_id}.json" if state_dir else None)
     frames = LiveFrames(camera_url, telemetry, cam.fx, clock_offset_s, telemetry_max_wait_s, play_fps, numbers)
     scaling = policy_for(detector, detector_scale)

@@ -163,7 +163,8 @@ class OnboardNode:
         scaling = policy_for(self.detector, self.s.detector_scale)  # the detector may come after check_inputs()
         self.pub.publish(wire.CameraMessage(meta.flight_id, meta.drone_id, cam.to_dict(), meta.fps, meta.video_start_utc,
                                             sent_keyframe_width(self.s.keyframe_width, cam.width),
-                                            paced=self.s.realtime))
+                                            paced=self.s.realtime,
+                                            min_apple_radius_px=getattr(self.detector, "min_apple_radius_px", None) or 0.0))
         frames = RecordedFrames(self.flight.video, t_frames, tel, self.s.every, meta.frame_count, meta.fps,
                                 not self.s.realtime)
         pacer = scaling.pacer() if self.s.realtime else None  # live: enlarge frames only while there is time

@@ -40,13 +40,14 @@ def _cmd_cameras(args) -> int:
 def _cmd_scale(args) -> int:
     import numpy as np
 
-    from pomar.apple_scale import ScalePolicy, expected_radius_px
+    from pomar.apple_scale import ScalePolicy, envelope_height_m, expected_radius_px
     from pomar.assemble import camera_for
 
-    target = args.model_radius_px
+    target, min_px = args.model_radius_px, None
     if args.model:
         try:
-            target = json.loads(Path(args.model).read_text()).get("apple_radius_px")
+            meta = json.loads(Path(args.model).read_text())
+            target, min_px = meta.get("apple_radius_px"), meta.get("min_apple_radius_px")
         except json.JSONDecodeError as e:
             print(f"error: {args.model}: not a model's metadata (not valid JSON: {e})", file=sys.stderr)
             return 2
@@ -61,7 +62,18 @@ def _cmd_scale(args) -> int:
         print(f"{args.height_m:g} m is too near the canopy to foresee the apples' size: frames go at their own size")
         return 0
     print(f"apple radius foreseen at {args.height_m:g} m, camera {args.tilt_deg:g} deg below the horizon: {r:.2f} px")
-    print(f"the onboard node's scale for a model of {target:g} px: {ScalePolicy(target_px=target).scale(r):.2f}")
+    policy = ScalePolicy(target_px=target)
+    scale = policy.scale(r)
+    print(f"the onboard node's scale for a model of {target:g} px: {scale:.2f}")
+    if min_px:
+        own = envelope_height_m(cam.fx, 90.0 - args.tilt_deg, min_px, 1.0)
+        top = envelope_height_m(cam.fx, 90.0 - args.tilt_deg, min_px, policy.max_scale)
+        inside = r * scale >= min_px
+        print(f"the apples reach the model at {r * scale:.1f} px; it finds them reliably from {min_px:g} px: "
+              + ("inside its envelope" if inside else "OUTSIDE its envelope: it would miss most apples"))
+        print(f"its envelope with this camera and tilt: up to {own:.1f} m above the take-off point with frames at their "
+              f"own size, up to {top:.1f} m enlarged {policy.max_scale:g}x (lock-step; live, only as far as the "
+              f"detector keeps the video's rate)")
     return 0
 
 

@@ -150,6 +150,14 @@ def telemetry_radius_px(fx: float, tel: dict) -> np.ndarray:
     return expected_radius_px(fx, tel["height"], off_nadir_deg(tel["q_gimbal"]))
 
 
+def envelope_height_m(fx: float, off_nadir: float, min_px: float, max_scale: float,
+                      canopy_mid_m: float = CANOPY_MID_M, apple_radius_m: float = APPLE_RADIUS_M) -> float:
+    """The highest flight (m above take-off) at which apples still reach a detector at ``min_px`` (the smallest radius
+    it finds reliably), frames enlarged by at most ``max_scale``: the top of the detector's envelope."""
+    a = np.radians(min(float(off_nadir), MAX_OFF_NADIR_DEG))
+    return float(canopy_mid_m + fx * max_scale * apple_radius_m / min_px * np.cos(a))
+
+
 def flight_telemetry(flight) -> dict[str, np.ndarray]:
     """Per frame of a flight directory (pomar.flight.FlightDir): its telemetry (``TelemetryLog.at``'s dict)."""
     from pomar.telemetry import read_log

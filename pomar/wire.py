@@ -385,12 +385,17 @@ class CameraMessage:
     #: True: frames come at the video's own pace, and the drone drops those it has no time for (live); False: every
     #: frame, as fast as they are taken (lock-step); None: not said. The ground takes its profile from it.
     paced: bool | None = None
+    #: The smallest apple radius (px, as the detector sees it) the drone's detector finds reliably: its model's
+    #: envelope (``min_apple_radius_px``); 0: not said. The ground counts the frames whose apples reached it smaller.
+    min_apple_radius_px: float = 0.0
 
     def encode(self) -> bytes:
         return msgpack.packb({"v": SCHEMA_VERSION, "type": "camera", "flight": self.flight_id, "drone": self.drone_id,
                               "camera": self.camera, "fps": self.fps, "start": self.video_start_unix,
                               "kfw": int(self.keyframe_width),
-                              **({} if self.paced is None else {"paced": bool(self.paced)})}, use_bin_type=True)
+                              **({} if self.paced is None else {"paced": bool(self.paced)}),
+                              **({"minr": float(self.min_apple_radius_px)} if self.min_apple_radius_px else {})},
+                             use_bin_type=True)
 
     @property
     def size(self) -> tuple[int, int]:
@@ -423,7 +428,8 @@ class CameraMessage:
             raise WireError(f"camera message: paced must be true or false, got {paced!r}", "malformed")
         return cls(_str("flight", d["flight"]), _str("drone", d["drone"]), dict(d["camera"]), fps,
                    _float("camera message: start", d.get("start", 0.0), 0.0, 2.0**33),
-                   _int("camera message: keyframe width", d.get("kfw", 0), 0, MAX_IMAGE_SIDE), paced)
+                   _int("camera message: keyframe width", d.get("kfw", 0), 0, MAX_IMAGE_SIDE), paced,
+                   _float("camera message: min apple radius", d.get("minr", 0.0), 0.0, 1000.0))
 
 
 _TYPES = {"frame": FrameMessage, "keyframe": KeyframeMessage, "status": StatusMessage, "camera": CameraMessage}

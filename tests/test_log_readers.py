@@ -269,6 +269,11 @@ def test_python_m_pomar_foresees_the_apples_size_as_the_onboard_node_does():
     target = json.loads(meta.read_text())["apple_radius_px"]
     assert f"{radius:.2f} px" in r.stdout and f"{ScalePolicy(target_px=target).scale(radius):.2f}" in r.stdout
     assert 0.25 < ScalePolicy(target_px=target).scale(radius) < 1.0  # a 4K frame from 12 m is shrunk
+    assert "inside its envelope" in r.stdout
+    # 60 m up, the apples are under the model's envelope even enlarged twice: said, not silent
+    r = subprocess.run([sys.executable, "-m", "pomar", "scale", "--camera", "phantom-4-pro", "--width", "3840",
+                        "--height-m", "60", "--tilt-deg", "60", "--model", str(meta)], capture_output=True, text=True)
+    assert r.returncode == 0 and "OUTSIDE its envelope" in r.stdout, r.stdout + r.stderr
 
 
 @needs_logs

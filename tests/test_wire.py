@@ -334,3 +334,16 @@ def test_a_camera_message_says_whether_the_stream_is_paced():
     d["paced"] = "yes"
     with pytest.raises(wire.WireError, match="paced"):
         wire.CameraMessage.decode(msgpack.packb(d))
+
+
+def test_a_camera_message_carries_the_detectors_smallest_reliable_apple():
+    cam = {"model": "PINHOLE", "width": 8, "height": 6, "params": [1, 1, 4, 3]}
+    assert wire.CameraMessage.decode(wire.CameraMessage("f", "d", cam, 10.0, min_apple_radius_px=3.0).encode()
+                                     ).min_apple_radius_px == 3.0
+    assert wire.CameraMessage.decode(wire.CameraMessage("f", "d", cam, 10.0).encode()).min_apple_radius_px == 0.0
+    import msgpack
+
+    d = msgpack.unpackb(wire.CameraMessage("f", "d", cam, 10.0, min_apple_radius_px=3.0).encode())
+    d["minr"] = -1.0
+    with pytest.raises(wire.WireError, match="min apple radius"):
+        wire.CameraMessage.decode(msgpack.packb(d))

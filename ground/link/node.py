@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ground.link.envelope import ApplesSeen
 from ground.link.journal import Journal, read_journal_report
 from ground.outputs.tables import (apple_table, candidate_table, candidates_csv, harvest_correlation, pose_table,
                                    poses_csv, read_harvest, rows_summary, write_atomic, write_json,
@@ -101,6 +102,7 @@ class GroundNode:
         self.t_start = time.monotonic()
         self.t_first_msg = None
         self.messages = 0
+        self.apples_seen = ApplesSeen()
         self.errors: list[str] = []
         self._fps_t: deque[float] = deque()  # when each frame of the last FPS_WINDOW_S was mapped (monotonic)
         self._first_mapped: float | None = None
@@ -132,6 +134,7 @@ class GroundNode:
         if self.t_first_msg is None:
             self.t_first_msg = time.monotonic()
         self.messages += 1
+        self.apples_seen.take(msg)
         try:
             events = self.pipe.feed(msg, step)
         except Exception as exc:  # never stop on one bad message: log it, keep the state
@@ -301,6 +304,8 @@ class GroundNode:
             "apples": int(len(table["id"])), "rows": rows,
             "counting": p.apples.count.report(),
             "frames": counters, "gaps": p.arrivals.gaps[:100],
+            # the apples' radius as the drone's detector saw them, and the frames under the smallest it finds reliably
+            "apple_size": self.apples_seen.report(),
             # what share of the mapped frames got each kind of pose
             "pose_shares": {k: counters[k] / posed for k in POSE_SOURCES},
             "registration": {

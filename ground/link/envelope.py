@@ -1,0 +1,58 @@
+"""The apples' size as the drone's detector saw them, frame by frame, against the smallest it finds reliably.
+
+    seen = ApplesSeen()
+    seen.take(msg)          # every message: the camera message gives fx and the detector's minimum, frames the rest
+    seen.report()           # median radius (px), the minimum, the frames below it
+
+A frame's apples reach the detector at the radius the telemetry foresees (height above take-off, the camera's angle
+off nadir, the lens: pomar.apple_scale) times the scale the frame was resized by. Below the detector's envelope (its
+model's ``min_apple_radius_px``, from its recall by size) most apples are missed: such frames are counted, and the log
+says so once, with what to change (fly lower, a longer lens).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from pomar import wire
+from pomar.apple_scale import expected_radius_px, off_nadir_deg
+from pomar.camera import Camera
+
+log = logging.getLogger(__name__)
+
+
+class ApplesSeen:
+    def __init__(self):
+        self.fx = float("nan")
+        self.min_px = 0.0  # the detector's smallest reliable apple radius; 0: the drone did not say
+        self.radii: list[float] = []  # per frame with a foreseeable size: the radius the detector saw (px)
+        self.below: list[int] = []  # frames whose apples reached the detector under min_px
+        self._warned = False
+
+    def take(self, msg) -> None:
+        if isinstance(msg, wire.CameraMessage):
+            self.fx = Camera.from_dict(msg.camera, source="camera message").fx  # the wire checked it already
+            self.min_px = float(msg.min_apple_radius_px or 0.0)
+        elif isinstance(msg, wire.FrameMessage) and np.isfinite(self.fx):
+            tel = msg.telemetry
+            r = float(np.asarray(expected_radius_px(self.fx, tel.height, off_nadir_deg(tel.q_gimbal))).reshape(-1)[0])
+            if not np.isfinite(r):
+                return
+            r *= float(msg.scale)
+            self.radii.append(r)
+            if self.min_px > 0 and r < self.min_px:
+                self.below.append(int(msg.frame))
+                if not self._warned:
+                    self._warned = True
+                    log.warning("frame %d: apples reach the detector at a radius of %.1f px, below the %.1f px it "
+                                "finds reliably: it misses most of them (fly lower, or use a longer lens)", msg.frame,
+                                r, self.min_px)
+
+    def report(self) -> dict:
+        r = np.asarray(self.radii, float)
+        return {"radius_px_median": float(np.median(r)) if len(r) else None,
+                "radius_px_min": float(r.min()) if len(r) else None,
+                "min_supported_px": self.min_px or None,
+                "frames_below": len(self.below), "first_frames_below": self.below[:20]}

@@ -1,0 +1,54 @@
+"""The apples' size as the drone's detector saw them (ground.link.envelope): frames under the detector's envelope are
+counted and said once; the shipped model states its envelope."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ground.link.envelope import ApplesSeen
+from pomar import wire
+from pomar.apple_scale import envelope_height_m, expected_radius_px
+from pomar.rotations import ned_euler_to_rotation, rotation_to_quat_wxyz
+
+CAM = {"model": "PINHOLE", "width": 1280, "height": 720, "params": [1372.0, 1372.0, 640.0, 360.0]}
+
+
+def _frame(i: int, height_m: float, scale: float) -> wire.FrameMessage:
+    q = tuple(rotation_to_quat_wxyz(ned_euler_to_rotation(0.0, -60.0, 0.0, degrees=True)))  # 30 deg off nadir
+    tel = wire.Telemetry(-28.5, -50.9, 900.0 + height_m, q, q, 3, 0.5, 0, height_m, 0.1)
+    return wire.FrameMessage("f", "d", i, 1e9 + i, tel, 1280, 720, scale=scale)
+
+
+def test_frames_whose_apples_reach_the_detector_under_its_envelope_are_counted_and_said_once(caplog):
+    seen = ApplesSeen()
+    seen.take(wire.CameraMessage("f", "d", CAM, 10.0, min_apple_radius_px=3.0))
+    with caplog.at_level(logging.WARNING, logger="ground.link.envelope"):
+        for i, (h, s) in enumerate([(12.0, 1.0), (12.0, 1.0), (20.0, 1.0), (20.0, 1.0), (20.0, 2.0)]):
+            seen.take(wire.decode(_frame(i, h, s).encode()))  # as it comes off the wire
+    rep = seen.report()
+    r12 = float(expected_radius_px(1372.0, 12.0, 30.0))
+    r20 = float(expected_radius_px(1372.0, 20.0, 30.0))
+    assert r20 < 3.0 < r12 and 2 * r20 >= 3.0
+    assert rep["frames_below"] == 2 and rep["first_frames_below"] == [2, 3]  # enlarged twice, frame 4 is inside
+    assert rep["min_supported_px"] == 3.0 and np.isclose(rep["radius_px_min"], r20)
+    assert len([m for m in caplog.messages if "below the 3.0 px" in m]) == 1
+    # the highest flight inside the envelope, at the frames' own size: apples exactly at the minimum there
+    top = envelope_height_m(1372.0, 30.0, 3.0, 1.0)
+    assert np.isclose(float(expected_radius_px(1372.0, top, 30.0)), 3.0)
+
+
+def test_a_drone_that_does_not_state_its_envelope_gets_sizes_but_no_flags():
+    seen = ApplesSeen()
+    seen.take(wire.CameraMessage("f", "d", CAM, 10.0))
+    seen.take(_frame(0, 40.0, 1.0))
+    rep = seen.report()
+    assert rep["frames_below"] == 0 and rep["min_supported_px"] is None and rep["radius_px_median"] > 0
+
+
+def test_the_shipped_model_states_its_envelope_below_its_working_size():
+    meta = json.loads((Path(__file__).resolve().parents[1] / "onboard/models/apple-detector.json").read_text())
+    assert 0 < meta["min_apple_radius_px"] < meta["apple_radius_px"]
