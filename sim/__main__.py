@@ -49,7 +49,8 @@ def _cmd_telemetry(args) -> int:
 
     changes = {k: v for k, v in (("gps_noise_m", args.gps_noise_m), ("gps_alt_noise_m", args.gps_alt_noise_m),
                                  ("attitude_noise_deg", args.attitude_noise_deg),
-                                 ("gimbal_noise_deg", args.gimbal_noise_deg)) if v is not None}
+                                 ("gimbal_noise_deg", args.gimbal_noise_deg), ("height_source", args.height_source))
+               if v is not None}
     print(json.dumps(rewrite_telemetry(args.flight_dir, args.out, **changes), indent=2))
     return 0
 
@@ -106,6 +107,8 @@ def main(argv=None) -> int:
     t.add_argument("--gps-alt-noise-m", type=float, help="vertical GPS error sigma (m)")
     t.add_argument("--attitude-noise-deg", type=float)
     t.add_argument("--gimbal-noise-deg", type=float)
+    t.add_argument("--height-source", choices=("gps", "baro"), help="where the autopilot's EKF takes its height from: "
+                   "the GPS's vertical error, or a barometer's drift (ArduPilot's default)")
     t.set_defaults(func=_cmd_telemetry)
     lg = sub.add_parser("logs", help="write the flight's telemetry as other drones log it, beside its .tlog: an "
                                      "ArduPilot DataFlash telemetry.bin and a DJI video.SRT (one subtitle a frame)")

@@ -120,6 +120,10 @@ class Telemetry:
     #: "CAMERA_FEEDBACK" (ArduPilot) or "CAMERA_TRIGGER" (PX4), one per video frame.
     capture_message: str = "CAMERA_FEEDBACK"
     system_id: int = 1
+    #: Where the autopilot's EKF takes its height from (GLOBAL_POSITION_INT's alt and relative_alt): "gps", the GPS's
+    #: vertical error (gps_alt_noise_m), as every flight rendered before this option; or "baro", ArduPilot's default
+    #: (EK3_SRC1_POSZ = 1): the true height plus a barometer's slow drift (sim.telemetry.BARO_DRIFT_M).
+    height_source: str = "gps"
 
 
 @dataclass
@@ -179,6 +183,7 @@ _CHECKS = [
     ("telemetry.position_rate_hz", lambda v: v > 0, "must be > 0"),
     ("telemetry.attitude_rate_hz", lambda v: v > 0, "must be > 0"),
     ("telemetry.gimbal_rate_hz", lambda v: v > 0, "must be > 0"),
+    ("telemetry.height_source", lambda v: v in ("gps", "baro"), "must be gps or baro"),
     ("telemetry.capture_message", lambda v: v in ("CAMERA_FEEDBACK", "CAMERA_TRIGGER"),
      "must be 'CAMERA_FEEDBACK' (ArduPilot) or 'CAMERA_TRIGGER' (PX4)"),
     ("render.video_crf", lambda v: 0 <= v <= 51, "must be in [0, 51]"),

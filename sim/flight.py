@@ -182,9 +182,10 @@ def rewrite_telemetry(flight_dir: str | Path, out_dir: str | Path, **telemetry) 
     from sim import config as sc
 
     data = json.loads(cfg_path.read_text())
+    known = list(sc.Telemetry.__dataclass_fields__)  # a flight rendered before a field was added lacks it
     for key, value in telemetry.items():
-        if key not in data["telemetry"]:
-            raise sc.ConfigError(f"telemetry.{key}: unknown (known: {', '.join(data['telemetry'])})")
+        if key not in known:
+            raise sc.ConfigError(f"telemetry.{key}: unknown (known: {', '.join(known)})")
         data["telemetry"][key] = value
     cfg = sc.from_dict(data, str(cfg_path))
     meta = json.loads((src / ff.FLIGHT).read_text())

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from pomar.rotations import quat_wxyz_to_rotation
+from sim.telemetry import BARO_DRIFT_M  # a barometer's drift: one definition, the EKF's and a DJI SRT's
 
 log = logging.getLogger(__name__)
 
@@ -152,8 +153,6 @@ SRT_LAYOUTS = {
 }
 
 
-#: A DJI barometer's height above take-off wanders this much over a flight (m; pomar.telemetry.srt assumes the same)
-BARO_DRIFT_M = 0.1
 
 
 def write_srt(tlog: Path, frame_count: int, fps: float, video_start_unix: float, out: Path,

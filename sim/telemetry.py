@@ -20,6 +20,10 @@ from pomar.rotations import ned_euler_to_rotation, rotation_to_quat_wxyz
 from sim.config import SimConfig
 from sim.trajectory import MARGIN_S, Trajectory, smooth_noise
 
+#: A barometer's height above take-off wanders this much over a flight (m): the EKF's with ``height_source = "baro"``,
+#: and a DJI SRT's (sim.logs; pomar.telemetry.srt assumes the same).
+BARO_DRIFT_M = 0.1
+
 log = logging.getLogger(__name__)
 
 AUTOPILOT_COMPONENT = 1
@@ -77,7 +81,11 @@ def write_tlog(cfg: SimConfig, traj: Trajectory, origin: Origin, start_unix: flo
 
     ts_pos = _times(tel.position_rate_hz, t0, t1, 0.5)
     sp = traj.sample(ts_pos)
-    geo_p = origin.to_geodetic(sp["centre"] + gps_error(ts_pos, 0.15))
+    err_p = gps_error(ts_pos, 0.15)
+    if tel.height_source == "baro":  # the EKF's height from the barometer; its own stream, the others' unchanged
+        err_p[:, 2] = smooth_noise(np.random.default_rng([cfg.seed, 38]), len(ts_pos), 20.0, BARO_DRIFT_M,
+                                   rate_hz=tel.position_rate_hz)
+    geo_p = origin.to_geodetic(sp["centre"] + err_p)
     vned = np.column_stack([sp["velocity"][:, 1], sp["velocity"][:, 0], -sp["velocity"][:, 2]])
     for i, tt in enumerate(ts_pos):
         hdg = int(round((sp["vehicle_rpy"][i, 2] % 360) * 100))

@@ -213,3 +213,23 @@ def test_ground_texture_lookup_is_remap_and_takes_textures_wider_than_opencv_all
     with pytest.raises(cv2.error):
         cv2.remap(wide, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
     assert (_remap_window(wide, mx, my) == (10, 20, 30)).all()
+
+
+def test_an_autopilot_that_takes_its_height_from_the_barometer(bundled_flight, tmp_path):
+    """``height_source = "baro"`` (ArduPilot's default): the tlog's heights above take-off are the truth's within a
+    barometer's drift, not the GPS's vertical error; its horizontal positions are the same, sample for sample."""
+    from ground.poses.telemetry_poses import frame_telemetry
+    from pomar.flight import FlightDir
+    from sim.flight import rewrite_telemetry
+    from sim.telemetry import BARO_DRIFT_M
+
+    rewrite_telemetry(bundled_flight.path, tmp_path / "baro", height_source="baro")
+    baro = FlightDir(tmp_path / "baro")
+    true_h = np.asarray(bundled_flight.truth_frames()["alt"], float) - bundled_flight.origin().alt
+    _, s_gps = frame_telemetry(bundled_flight)
+    _, s_baro = frame_telemetry(baro)
+    np.testing.assert_array_equal(s_baro["lat"], s_gps["lat"])
+    np.testing.assert_array_equal(s_baro["lon"], s_gps["lon"])
+    err_baro = np.abs(s_baro["height"] - true_h)
+    err_gps = np.abs(s_gps["height"] - true_h)
+    assert np.median(err_baro) < 4 * BARO_DRIFT_M < np.median(err_gps)
