@@ -69,6 +69,30 @@ def test_replay_end_to_end(replayed_test_flight):
     assert any(e.startswith("/world/tracks/") for e in ents)
 
 
+def test_the_candidates_are_labelled_as_the_score_counts_them(replayed_test_flight, tmp_path):
+    """label_candidates (what benchmarks/count_rule.py studies) agrees with evaluate_map: on the counted candidates
+    alone, those it labels countable are the map's true positives among the countable apples."""
+    import shutil
+
+    from ground.evaluation.scoring import evaluate_map, label_candidates
+
+    flight, out, _ = replayed_test_flight
+    with open(out / "candidates.csv", newline="") as f:
+        cand = list(csv.DictReader(f))
+    shutil.copy(out / "poses.csv", tmp_path / "poses.csv")
+    shutil.copy(out / "apples.csv", tmp_path / "apples.csv")
+    with open(tmp_path / "candidates.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(cand[0]), lineterminator="\n")
+        w.writeheader()
+        w.writerows(c for c in cand if c["left_out"] == "")
+    lab = label_candidates(flight, tmp_path)
+    ev = evaluate_map(flight, tmp_path)
+    assert len(lab["label"]) == ev["count"] and len(lab["countable"]) == ev["truth_count"]
+    assert int((lab["label"] == "countable").sum()) == round(ev["recall"] * ev["truth_count"]) > 0
+    assert int(lab["found"].sum()) == int((lab["label"] == "countable").sum())
+    assert (lab["views"] >= 3).all()
+
+
 def _wait_for(pred, timeout, what):
     t0 = time.monotonic()
     while time.monotonic() - t0 < timeout:

@@ -8,6 +8,7 @@ frames); a predicted apple matches a true one within MATCH_M, one to one.
   and trees;
 - :func:`evaluate_map`: a run's output folder (apples.csv, poses.csv) scored after taking away the georeferencing
   error (the map's *shape*), besides where GPS put it;
+- :func:`label_candidates`: what each apple a run's count was chosen from is in truth (the count's checks studied);
 - :func:`score_poses`: a run's camera poses against the true ones.
 """
 
@@ -234,6 +235,42 @@ def local_offsets(frames: np.ndarray, centres: np.ndarray, C_true: np.ndarray, w
 
 
 
+def map_shape_fit(flight: FlightDir, out: Path, cameras=None):
+    """The similarity that takes a run's cameras (poses.csv) onto the true ones, and which cameras it was fitted on:
+    those the map placed. A frame with a telemetry pose (GPS and gimbal alone, no image) sits where the GPS put it,
+    and its attitude, weighed as a mapped camera's, would turn the fit. ``cameras``: :func:`replay_cameras`'s, if
+    already read."""
+    frames, cams, R_ours = cameras if cameras is not None else replay_cameras(flight, out)
+    own = read_csv(out / "poses.csv", ["source"], str_columns=("source",))["source"] != "telemetry"
+    own = own if own.sum() >= 3 else np.ones(len(frames), bool)
+    return shape_fit(flight, frames[own], cams[own], R_ours[own]), own
+
+
+def label_candidates(flight: FlightDir, out: Path, min_visible: float = MIN_VISIBLE,
+                     match_m: float = MATCH_M) -> dict[str, np.ndarray]:
+    """What each apple a run's count was chosen from (candidates.csv, in its order) is in truth, on the map's shape
+    (:func:`map_shape_fit`): ``countable`` (matched to an apple of the definition), ``partial`` (matched to an apple
+    the definition does not count: too little of it seen in too few frames) or ``none`` (no apple within
+    ``match_m``); beside it the truth's ``apple_id`` (-1 for none) and, for every countable apple, whether any
+    candidate found it (``found``) and in how many frames it is countable (``views``)."""
+    import csv
+
+    with open(out / "candidates.csv", newline="") as f:
+        cands = list(csv.DictReader(f))
+    geo = np.array([[float(c[k]) for k in ("lat", "lon", "alt")] for c in cands], float).reshape(-1, 3)
+    X = map_shape_fit(flight, out)[0].similarity.apply(flight.origin().to_enu(*geo.T).reshape(-1, 3))
+    a = flight.truth_apples()
+    d = flight.truth_detections()
+    countable = countable_ids(d["apple_id"], d["visible_fraction"], min_visible)
+    pi, ti, _ = match(X, np.stack([a["x"], a["y"], a["z"]], 1), match_m)
+    apple_id = np.full(len(cands), -1)
+    apple_id[pi] = a["apple_id"][ti]
+    label = np.where(apple_id < 0, "none", np.where(np.isin(apple_id, countable), "countable", "partial"))
+    ids, views = np.unique(d["apple_id"][np.asarray(d["visible_fraction"], float) >= min_visible], return_counts=True)
+    return {"label": label, "apple_id": apple_id, "countable": countable,
+            "found": np.isin(countable, apple_id), "views": views[np.searchsorted(ids, countable)]}
+
+
 def evaluate_map(flight: FlightDir, out: Path, min_visible: float = MIN_VISIBLE, match_m: float = MATCH_M) -> dict:
     """Score the written apples.csv against the flight's truth (in the truth's ENU frame).
 
@@ -250,11 +287,7 @@ def evaluate_map(flight: FlightDir, out: Path, min_visible: float = MIN_VISIBLE,
     if len(frames) >= 3:
         R_true, t_true = flight.truth_poses()
         C_true = -np.einsum("nji,nj->ni", R_true, t_true)[frames]
-        # the map's shape is judged on the cameras the map placed: a frame with a telemetry pose (GPS and gimbal alone,
-        # no image) sits where the GPS put it, and its attitude, weighed as a mapped camera's, would turn the fit
-        own = read_csv(out / "poses.csv", ["source"], str_columns=("source",))["source"] != "telemetry"
-        own = own if own.sum() >= 3 else np.ones(len(frames), bool)
-        fit = shape_fit(flight, frames[own], cams[own], R_ours[own])
+        fit, own = map_shape_fit(flight, out, (frames, cams, R_ours))
         S = fit.similarity
         shape = score_map(flight, S.apply(apples), min_visible=min_visible, match_m=match_m)
         res = {k: shape[k] for k in keys}
