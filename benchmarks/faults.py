@@ -13,6 +13,9 @@ Faults:
 - ``cpu-hogs``: two busy processes beside the whole flight;
 - ``ground-killed``: the ground killed (SIGKILL) 8 s in and started again at once with the same command (it resumes
   from its journal and asks the drone for what it missed);
+- ``onboard-restarted``: the onboard node killed (SIGKILL) 8 s into the flight and started again at once with the same
+  command: its video is played as a camera that started with the flight (``--camera-started-at``), so the new node
+  takes up the frames taken from then on; those taken while no node ran are lost;
 - ``outage-2``, ``outage-8``: nothing reaches the ground for 2 or 8 s from 8 s in: the onboard node stopped with
   SIGSTOP, then let go. It then sends the frames it held, late; none are lost;
 - ``link-lost-8``: the link itself cut for 8 s from 8 s in: a TCP relay between the two processes closes every
@@ -51,11 +54,13 @@ from ground.replay import child_pids, free_port  # noqa: E402
 from pomar import wire  # noqa: E402
 from pomar.flight import FlightDir  # noqa: E402
 
-FAULTS = ("mapper-killed", "tracker-killed", "cpu-hogs", "outage-2", "outage-8", "ground-killed", "link-lost-8",
-          "disk-full", "keyframes-stop", "outage-30")
+FAULTS = ("mapper-killed", "tracker-killed", "cpu-hogs", "outage-2", "outage-8", "ground-killed", "onboard-restarted",
+          "link-lost-8", "disk-full", "keyframes-stop", "outage-30")
 FAULT_AT_S = 8.0
 LONG_FAULT_AT_S = 20.0  # outage-30, on the long flight
 DISK_MB = 8
+#: onboard-restarted: the camera starts this long after the node is launched (its model loaded, the ground connected)
+ONBOARD_START_S = 10.0
 
 
 class Relay:
@@ -162,11 +167,17 @@ def run(flight: FlightDir, out: Path, fault: str | None, recorded: Path | None =
                "--wait-for-ground", "30", "--linger", "3"] if recorded is not None else
               [sys.executable, "-m", "onboard", "run", str(flight.path), "--listen", endpoint,
                "--detector", "truth-replay", "--realtime", "--wait-for-ground", "30", "--linger", "3"])
+    camera_t0 = None
+    if fault == "onboard-restarted":
+        camera_t0 = time.time() + ONBOARD_START_S
+        source += ["--camera-started-at", f"{camera_t0:.3f}"]
     onboard = subprocess.Popen(source, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env, cwd=ROOT)
     err_path = out.parent / (out.name + ".err")
     ground_cmd = [sys.executable, "-m", "ground", "run", "--flight-id", flight.meta().flight_id, "--connect",
                   f"tcp/127.0.0.1:{relay.port}" if relay else endpoint, "--out", str(out), "--idle-timeout", "60"]
     at = LONG_FAULT_AT_S if fault == "outage-30" else FAULT_AT_S
+    if camera_t0 is not None:  # 8 s into the flight: its camera's time
+        at += ONBOARD_START_S
     with open(err_path, "w") as errf:
         ground = subprocess.Popen(ground_cmd + ["--fresh"], stdout=subprocess.DEVNULL, stderr=errf, env=env, cwd=ROOT)
         t0, done = time.monotonic(), fault in (None, "cpu-hogs", "disk-full", "keyframes-stop")
@@ -181,6 +192,12 @@ def run(flight: FlightDir, out: Path, fault: str | None, recorded: Path | None =
                     ground.kill()
                     ground.wait()
                     ground = subprocess.Popen(ground_cmd, stdout=subprocess.DEVNULL, stderr=errf, env=env, cwd=ROOT)
+                    done = True
+                elif fault == "onboard-restarted":
+                    onboard.kill()
+                    onboard.wait()
+                    onboard = subprocess.Popen(source, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env,
+                                               cwd=ROOT)
                     done = True
                 elif relay is not None:
                     relay.cut(float(fault.split("-")[-1]))

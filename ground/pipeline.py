@@ -120,7 +120,7 @@ class GroundPipeline:
         # live, the mapping process starts now: its imports would otherwise hold up the first model
         self._mapping_worker = MappingWorker() if self.s.mapping == "process" else None
         self._kf_for_event: dict[int, bytes] = {}  # images tracked, kept for their frame's event
-        self._counts = {"bad_keyframes": 0, "frames_without_pose": 0,
+        self._counts = {"bad_keyframes": 0, "frames_without_pose": 0, "onboard_restarts": 0,
                         "registered": 0, "tracked": 0, "interpolated": 0, "telemetry": 0}
         self.seconds = {"poses": 0.0, "association": 0.0, "corrections": 0.0}
         self._last_correction = -float("inf")
@@ -131,6 +131,7 @@ class GroundPipeline:
         """What came and what became of it: the arrivals' counts, then the poses' and the apples'."""
         c = self._counts
         return {**self.arrivals.counters, "bad_keyframes": c["bad_keyframes"],
+                "onboard_restarts": c["onboard_restarts"],
                 "frames_without_pose": c["frames_without_pose"], "detections": self.apples.detections,
                 **{k: c[k] for k in ("registered", "tracked", "interpolated", "telemetry")}}
 
@@ -143,8 +144,19 @@ class GroundPipeline:
         elif isinstance(msg, (wire.FrameMessage, wire.KeyframeMessage)):
             self.arrivals.take(msg)
         elif isinstance(msg, wire.StatusMessage):
-            self.status = msg
+            self._take_status(msg)
         return self.step() if step else []
+
+    def _take_status(self, msg: wire.StatusMessage) -> None:
+        """The drone's newest status (an older one, from its history, changes nothing). A status that starts at
+        another frame than the one before is a node started again mid-flight: said once per restart, and counted."""
+        if self.status is not None and msg.t < self.status.t:
+            return
+        if self.status is not None and msg.first_frame != self.status.first_frame:
+            self._counts["onboard_restarts"] += 1
+            log.warning("the drone's onboard node started again: it sends from frame %d on (frames not sent meanwhile "
+                        "are gaps); the flight goes on", msg.first_frame)
+        self.status = msg
 
     def _start(self, msg: wire.CameraMessage) -> None:
         """The camera message: the camera, and the profile the stream asks for."""

@@ -189,7 +189,7 @@ def _detector_options(r):
 
 #: The node's settings (onboard.node.NodeSettings) that are options; each option's name, default and help come from
 #: its field (pomar.settings). The camera's mount comes from pomar.telemetry.mount_arguments, shared with the ground.
-RUN_FIELDS = ["realtime", "every", "log", "clock_offset_s"]
+RUN_FIELDS = ["realtime", "every", "camera_started_at", "log", "clock_offset_s"]
 LINK_FIELDS = ["keyframe_every", "keyframe_every_s", "keyframe_every_m", "keyframe_width", "jpeg_quality"]
 SCALE_FIELDS = ["detector_scale"]
 MOUNT_FIELDS = ["camera_tilt_deg", "camera_yaw_deg"]

@@ -75,11 +75,13 @@ def publish_frames(frames, flight_id: str, drone_id: str, publisher, detector, s
     det_s = 0.0
     scales, latencies = [], []
     error = None
+    first = None  # the first frame this node sent (a node restarted mid-flight starts later)
 
     def status(state, message=""):
         elapsed = max(time.monotonic() - t0, 1e-9)
         publisher.publish(wire.StatusMessage(flight_id, drone_id, time.time(), frames.read, processed, frames.dropped,
-                                             processed / elapsed, det_s / max(processed, 1), state, message))
+                                             processed / elapsed, det_s / max(processed, 1), state, message,
+                                             first_frame=first if first is not None else 0))
 
     try:
         for c in frames:
@@ -98,6 +100,7 @@ def publish_frames(frames, flight_id: str, drone_id: str, publisher, detector, s
             due = keyframes.due(c.t_capture, tel.lat, tel.lon, tel.alt)
             publisher.publish(wire.FrameMessage(flight_id, drone_id, c.index, c.t_capture, tel, img.shape[1],
                                                 img.shape[0], boxes, scores, scale=scale, keyframe=due))
+            first = c.index if first is None else first
             if due:
                 publisher.publish(wire.KeyframeMessage(flight_id, drone_id, c.index,
                                                        encode_jpeg(img, keyframe_width, jpeg_quality)))
@@ -121,7 +124,8 @@ def publish_frames(frames, flight_id: str, drone_id: str, publisher, detector, s
     status("error" if error else "finished", str(error or ""))
     elapsed = time.monotonic() - t0
     return {"flight": flight_id, "frames_read": frames.read, "frames_processed": processed,
-            "frames_dropped": frames.dropped, "keyframes": kf, "detections": detections,
+            "frames_dropped": frames.dropped, "frames_skipped": getattr(frames, "skipped", 0), "keyframes": kf,
+            "detections": detections,
             "telemetry_flagged_frames": int(flagged), "seconds": elapsed, "frames_per_s": processed / max(elapsed, 1e-9),
             "detector_latency_s": det_s / max(processed, 1), "detector_scale": scale_summary(scales),
             "detector_scale_capped": pacer.capped if pacer is not None else 0,  # frames the pace kept smaller

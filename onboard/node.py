@@ -82,6 +82,9 @@ class NodeSettings:
     realtime: bool = False
     #: Process every Nth frame (lock-step).
     every: int = 1
+    #: With realtime: play the video as a camera that started at this unix time, skipping the frames whose time has
+    #: passed (a node restarted mid-flight takes up the frames its camera takes from then on). None: now.
+    camera_started_at: float | None = field(default=None, metadata={"type": float})
     #: Send every Nth processed frame as a JPEG keyframe (0 = none); or one of the next two; none of the three set:
     #: a keyframe every KeyframePolicy.DEFAULT_EVERY_S (0.2 s) of capture time, about 0.7 MB/s at 1280x720.
     keyframe_every: int | None = field(default=None, metadata={"type": int})
@@ -166,7 +169,7 @@ class OnboardNode:
                                             paced=self.s.realtime,
                                             min_apple_radius_px=getattr(self.detector, "min_apple_radius_px", None) or 0.0))
         frames = RecordedFrames(self.flight.video, t_frames, tel, self.s.every, meta.frame_count, meta.fps,
-                                not self.s.realtime)
+                                not self.s.realtime, started_at=self.s.camera_started_at)
         pacer = scaling.pacer() if self.s.realtime else None  # live: enlarge frames only while there is time
         policy = KeyframePolicy(self.s.keyframe_every, self.s.keyframe_every_s, self.s.keyframe_every_m)
         summary = publish_frames(frames, meta.flight_id, meta.drone_id, self.pub, self.detector, scaling, pacer, policy,
@@ -190,10 +193,10 @@ class RecordedFrames:
     once before the flight (``t_frames``, ``tel``: TelemetryLog.at's dict with ``expected_radius_px``)."""
 
     def __init__(self, video, t_frames: np.ndarray, tel: dict, every: int, frame_count: int, fps: float,
-                 lockstep: bool = True):
+                 lockstep: bool = True, started_at: float | None = None):
         self.t_frames, self.tel, self.every, self.fps = t_frames, tel, every, fps
         source = VideoSource(video, every, expected_frames=frame_count)
-        self._frames = source if lockstep else LatestFrame(source, fps=fps)
+        self._frames = source if lockstep else LatestFrame(source, fps=fps, started_at=started_at)
         self.lockstep = lockstep
         self._taken = 0
         self.error = None  # a failure is raised by the iteration itself (SourceError)
@@ -205,6 +208,11 @@ class RecordedFrames:
     @property
     def dropped(self) -> int:
         return 0 if self.lockstep else self._frames.dropped
+
+    @property
+    def skipped(self) -> int:
+        """Frames taken before the node started (``started_at``)."""
+        return 0 if self.lockstep else self._frames.skipped
 
     def __iter__(self):
         for i, img in self._frames:

@@ -84,10 +84,13 @@ class ImageFolderSource:
 
 class LatestFrame:
     """Reads a source in a thread at real time (``fps``, or as fast as it comes for a live camera) and
-    hands out only the newest frame. ``dropped`` counts the frames nobody took."""
+    hands out only the newest frame. ``dropped`` counts the frames nobody took. ``started_at`` (unix time, with
+    ``fps``): the source is a camera that started then; the frames whose time has passed are skipped (``skipped``),
+    not dropped: nobody was there to take them."""
 
-    def __init__(self, source, fps: float | None = None):
-        self.source, self.fps = source, fps
+    def __init__(self, source, fps: float | None = None, started_at: float | None = None):
+        self.source, self.fps, self.started_at = source, fps, started_at
+        self.skipped = 0
         self._latest = None
         self._cond = threading.Condition()
         self._done = False
@@ -99,10 +102,15 @@ class LatestFrame:
 
     def _run(self):
         t0 = time.monotonic()
+        if self.started_at is not None and self.fps:
+            t0 += self.started_at - time.time()
         try:
             for n, (i, img) in enumerate(self.source):
                 if self.fps:
                     delay = t0 + n / self.fps - time.monotonic()
+                    if delay < -1.0 / self.fps and self.started_at is not None:
+                        self.skipped += 1  # taken before this node was there
+                        continue
                     if delay > 0:
                         time.sleep(delay)
                 with self._cond:

@@ -348,6 +348,9 @@ class StatusMessage:
     detector_latency_s: float = 0.0
     state: str = "running"  # one of STATES
     message: str = ""
+    #: The first frame index this node sent: a node restarted mid-flight counts its frames from there (optional on the
+    #: wire; 0 where a sender does not say).
+    first_frame: int = 0
 
     def encode(self) -> bytes:
         d = {"v": SCHEMA_VERSION, "type": "status", **{k: getattr(self, k) for k in self.__dataclass_fields__}}
@@ -369,7 +372,8 @@ class StatusMessage:
                      for k in ("frames_read", "frames_processed", "frames_dropped")),
                    _float("status fps", d.get("fps", 0.0), 0.0, 1e6),
                    _float("status detector_latency_s", d.get("detector_latency_s", 0.0), 0.0, 1e6),
-                   state, _str("status message", d.get("message", ""), None, MAX_TEXT))
+                   state, _str("status message", d.get("message", ""), None, MAX_TEXT),
+                   _int("status first_frame", d.get("first_frame", 0), 0, 2**31 - 1))
 
 
 @dataclass

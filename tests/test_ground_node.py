@@ -427,6 +427,49 @@ def test_a_ground_does_not_end_the_flight_while_an_announced_keyframe_is_missing
                                                 for k in ("registered", "tracked", "interpolated", "telemetry"))
 
 
+def test_a_drone_whose_node_restarted_mid_flight_ends_the_flight_when_it_says(replay_test_flight, tmp_path):
+    """Over real zenoh: the onboard node dies after frame 9 and a new one takes up the flight at frame 12 (the frames
+    between were taken while none ran). The new node's 'finished' counts only its own frames, from the first it sent
+    (first_frame): the ground takes it as true and ends the flight at once, not at the idle timeout."""
+    from ground.replay import free_port
+    from pomar import transport, wire
+
+    msgs = _onboard_messages(replay_test_flight, keyframe_every=2)
+    lost = {10, 11}
+    first = msgs[0]
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    out = tmp_path / "ground"
+    ground = subprocess.Popen([sys.executable, "-m", "ground", "run", "--flight-id", first.flight_id, "--listen",
+                               endpoint, "--out", str(out), "--no-rrd", "--mapping", "inline", "--idle-timeout", "60",
+                               "--fresh"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                              env=dict(os.environ, PYTHONUNBUFFERED="1"))
+    session = transport.open_session(connect=[endpoint])
+    try:
+        pub = transport.FlightPublisher(session, first.flight_id, first.drone_id)
+        assert pub.wait_for_subscriber(60)
+        for m in msgs:
+            if getattr(m, "frame", -1) not in lost:
+                pub.publish(m)
+        after = sum(isinstance(m, wire.FrameMessage) and m.frame > max(lost) for m in msgs)
+        pub.publish(wire.StatusMessage(first.flight_id, first.drone_id, time.time() - 5, 10, 10))  # the old node's
+        t0 = time.monotonic()
+        pub.publish(wire.StatusMessage(first.flight_id, first.drone_id, time.time(), after, after, state="finished",
+                                       first_frame=max(lost) + 1))
+        _, err = ground.communicate(timeout=120)
+        took = time.monotonic() - t0
+    finally:
+        if ground.poll() is None:
+            ground.kill()
+            ground.wait()
+        session.close()
+    assert ground.returncode == 0, err[-3000:]
+    assert took < 30, (took, err[-2000:])  # the idle timeout is 60 s
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["final"] and rep["frames"]["frames"] == 20 - len(lost) and rep["frames"]["missing_frames"] == len(lost)
+    assert "ignored" not in err
+    assert rep["frames"]["onboard_restarts"] == 1 and "started again" in err
+
+
 def test_a_backlog_mapped_in_one_step_shows_its_progress_as_it_goes(replay_test_flight, tmp_path, caplog):
     """A lock-step replay hands the ground its stream in batches, and one step maps a whole batch (minutes on a long
     flight): its frames reach the log, the map files and the progress line as they are released, not at its end."""

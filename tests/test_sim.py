@@ -233,3 +233,11 @@ def test_an_autopilot_that_takes_its_height_from_the_barometer(bundled_flight, t
     err_baro = np.abs(s_baro["height"] - true_h)
     err_gps = np.abs(s_gps["height"] - true_h)
     assert np.median(err_baro) < 4 * BARO_DRIFT_M < np.median(err_gps)
+    # one drone, one barometer: a DJI SRT written for this flight carries the same heights as its tlog
+    from pomar.telemetry import read_log
+    from sim.__main__ import main as sim_main
+
+    assert sim_main(["logs", str(baro.path), "--out", str(tmp_path / "dji")]) == 0
+    srt = read_log(tmp_path / "dji" / "video.SRT")
+    h_srt = srt.height_above_home(srt.position.values[:, 2])
+    np.testing.assert_allclose(h_srt, s_baro["height"][:len(h_srt)], atol=0.002)

@@ -28,6 +28,21 @@ def test_realtime_takes_the_newest_frame_and_counts_drops(small_flight):
     assert latest.dropped > 0 and len(taken) + latest.dropped == n
 
 
+def test_a_camera_that_started_before_the_node_gives_the_frames_from_now(small_flight):
+    """A node restarted mid-flight (--camera-started-at): the frames taken before it was there are skipped, not
+    dropped, and the first it gets is the one its camera takes now."""
+    n = small_flight.meta().frame_count
+    fps = 20.0
+    latest = LatestFrame(VideoSource(small_flight.video), fps=fps, started_at=time.time() - 0.5)
+    taken = [i for i, _ in latest]
+    assert 6 <= taken[0] <= 14 and latest.skipped == taken[0]  # 10 frames in 0.5 s at 20 fps, give or take
+    assert taken[-1] == n - 1 and latest.read + latest.skipped == n
+    later = LatestFrame(VideoSource(small_flight.video), fps=fps, started_at=time.time() + 0.3)  # not yet started
+    t0 = time.monotonic()
+    first = next(iter(later))[0]
+    assert first == 0 and time.monotonic() - t0 >= 0.25 and later.skipped == 0
+
+
 def test_image_folder(tmp_path):
     for k in (2, 0, 1):
         cv2.imwrite(str(tmp_path / f"img_{k:03d}.png"), np.full((8, 8, 3), k * 50, np.uint8))

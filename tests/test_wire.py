@@ -56,7 +56,12 @@ def test_telemetry_of_older_nodes_without_a_height_still_decodes():
     k = wire.KeyframeMessage("f", "d", 4, jpeg(64, 48))
     assert wire.decode(k.encode()) == k and k.size == (64, 48)
     s = wire.StatusMessage("f", "d", 12.5, frames_read=10, frames_processed=8, frames_dropped=2, fps=3.0)
+    assert wire.decode(s.encode()) == s and s.first_frame == 0
+    s.first_frame = 120  # a node restarted mid-flight
     assert wire.decode(s.encode()) == s
+    older = msgpack.unpackb(s.encode(), raw=False)
+    del older["first_frame"]  # a node from before the first frame was said
+    assert wire.decode(msgpack.packb(older, use_bin_type=True)).first_frame == 0
     c = wire.CameraMessage("f", "d", {"model": "PINHOLE", "width": 8, "height": 6, "params": [1, 1, 4, 3]}, 10.0, 5.0)
     assert wire.decode(c.encode()) == c and c.keyframe_width == 0
     c.keyframe_width = 6

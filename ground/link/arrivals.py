@@ -37,6 +37,7 @@ class Arrivals:
         self.kf_awaited: set[int] = set()  # keyframes their frame messages announced that have not come yet
         self.counters = {"frames": 0, "keyframes": 0, "late_frames": 0, "gaps": 0, "missing_frames": 0}
         self.frame_times: dict[int, float] = {}  # frame -> capture time
+        self._late: list[int] = []  # the frames that came after a later one was released
         self.newest_t = float("-inf")  # the latest capture time of any frame received
         self._newest_frame = -1  # the highest frame index received
         self._arrived: dict[int, float] = {}  # frame -> when its message came (monotonic clock)
@@ -52,6 +53,13 @@ class Arrivals:
         self.frame_delays: list[float] = []  # per released frame: seconds from its message's arrival to its release
         self.frame_delays_mapped: list[float] = []  # ... of the frames that arrived once the first model existed
 
+    def arrived_from(self, first: int = 0) -> int:
+        """Frame messages taken (late ones too) of index ``first`` or more: what a sender that started at ``first``
+        (a node restarted mid-flight) should have seen arrive."""
+        if first <= 0:
+            return self.counters["frames"] + self.counters["late_frames"]
+        return sum(f >= first for f in self.frame_times) + sum(f >= first for f in self._late)
+
     # -- in
     def take(self, msg: wire.FrameMessage | wire.KeyframeMessage) -> None:
         if isinstance(msg, wire.KeyframeMessage):
@@ -60,6 +68,7 @@ class Arrivals:
         if msg.frame <= self.released or msg.frame in self.pending:
             if msg.frame <= self.released:
                 self.counters["late_frames"] += 1
+                self._late.append(msg.frame)
                 log.warning("frame %d arrived after frame %d was processed: dropped", msg.frame, self.released)
             return
         self.pending[msg.frame] = msg

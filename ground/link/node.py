@@ -437,7 +437,8 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
     Only what :class:`pomar.wire.StreamFilter` lets in reaches the pipeline: this flight, its drones
     (``drone_ids``; default the first heard), valid messages; the rest is counted by reason in report.json
     (``rejected``) and the rerun log. A "finished" (or "error") status ends the flight only when exactly the
-    frames it says were sent have arrived and no frame came for end_quiet_s: a drone still flying sends
+    frames it says were sent (from the first frame it says it sent: a node restarted mid-flight counts from there)
+    have arrived and no frame came for end_quiet_s: a drone still flying sends
     more, which contradicts it; it is then logged and ignored, and the flight ends at the idle timeout.
     """
     from pomar import transport
@@ -479,7 +480,7 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
     def contradicted(m: wire.StatusMessage) -> bool:
         """An end claim that says fewer frames were sent than arrived: counted, logged, and to be ignored (the flight
         then ends at the idle timeout)."""
-        have = node.pipe.arrivals.counters["frames"] + node.pipe.arrivals.counters["late_frames"]
+        have = node.pipe.arrivals.arrived_from(m.first_frame)
         if have <= m.frames_processed:
             return False
         node.ignored_end_claims += 1
@@ -515,7 +516,7 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
             elif node.pipe.arrivals.pending:
                 node.step()  # frames may wait on the mapping process (its first model)
             if claim is not None:
-                have = node.pipe.arrivals.counters["frames"] + node.pipe.arrivals.counters["late_frames"]
+                have = node.pipe.arrivals.arrived_from(claim[0].first_frame)
                 said = claim[0].frames_processed
                 awaited = len(node.pipe.arrivals.kf_awaited)  # keyframes announced by their frames that did not come
                 if have == said and not awaited and now - max(claim[1], last_frame) >= end_quiet_s:
