@@ -8,7 +8,11 @@ For each replay, every apple the count was chosen from (candidates.csv) is label
 shape (ground.evaluation.scoring.label_candidates): countable, partial (a true apple the definition does not count)
 or none. The table gives the countable apples the replay counted, those the checks left out, those no candidate
 found (and the median of their countable views), and the partial and false apples counted: a count error is what is
-left of these.
+left of these. Of the countable apples no candidate found, ``strong 3+`` had a detection scored at the count's
+confirm_score or more (a box centre within the apple's radius, at least 2 px) in 3 or more of their countable views
+(the stream's journal.bin): the ground lost or misplaced those (below the table: the angle their strong views
+meet at, from the true cameras, and how many lie at the flight's ends); the detector, the rest. ``share``: the share of those apples' countable views
+in which the detector found them so.
 
 Then a logistic rule on the candidates' features (share of the expected views detected, strong views among them,
 strong views per expected view, radius against the flight's median, strong views, the parallax check), with a
@@ -29,6 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ground.evaluation.scoring import label_candidates  # noqa: E402
+from pomar.countable import MIN_VISIBLE  # noqa: E402
 from pomar.flight import FlightDir, FlightFormatError  # noqa: E402
 
 FEATURES = ["share of expected views", "strong / views", "strong / expected", "radius / median", "log strong",
@@ -48,6 +53,39 @@ def features(cands: list[dict]) -> np.ndarray:
     return np.column_stack([np.ones(len(cands)), np.clip(obs / np.maximum(expected, 1), 0, 1.5),
                             strong / np.maximum(obs, 1), np.clip(strong / np.maximum(expected, 1), 0, 1.5),
                             np.minimum(rr, 1.5), np.log(np.maximum(strong, 1)), narrow])
+
+
+def strong_views(flight: FlightDir, journal: Path, apple_ids: np.ndarray, score: float) -> list[list[int]]:
+    """Per apple (``apple_ids``): the frames of its countable views (at least MIN_VISIBLE visible) in which the stream
+    carries a detection scored ``score`` or more whose box centre lies within the apple's radius (at least 2 px)."""
+    from ground.link.journal import read_journal
+    from pomar import wire
+    from pomar.countable import visible
+
+    boxes = {}
+    for payload in read_journal(journal):
+        m = wire.decode(payload)
+        if isinstance(m, wire.FrameMessage):
+            b = np.asarray(m.boxes, float).reshape(-1, 4)[np.asarray(m.scores, float) >= score]
+            boxes[m.frame] = np.column_stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2])
+    d = flight.truth_detections()
+    want = visible(d["visible_fraction"]) & np.isin(d["apple_id"], apple_ids)
+    frames: dict[int, list[int]] = {int(a): [] for a in apple_ids}
+    for f, a, u, v, r in zip(*(np.asarray(d[k])[want] for k in ("frame", "apple_id", "u", "v", "r_px"))):
+        c = boxes.get(int(f))
+        if c is not None and len(c) and np.hypot(c[:, 0] - u, c[:, 1] - v).min() <= max(r, 2.0):
+            frames[int(a)].append(int(f))
+    return [frames[int(a)] for a in apple_ids]
+
+
+def parallax_deg(flight: FlightDir, apple_id: int, frames: list[int]) -> float:
+    """The angle (deg) at the true apple between the true camera centres of the first and last of these frames."""
+    R, t = flight.truth_poses()
+    a = flight.truth_apples()
+    k = int(np.nonzero(np.asarray(a["apple_id"]) == apple_id)[0][0])
+    X = np.array([a["x"][k], a["y"][k], a["z"][k]], float)
+    u, v = (-R[f].T @ t[f] - X for f in (min(frames), max(frames)))
+    return float(np.degrees(np.arccos(np.clip(u @ v / (np.linalg.norm(u) * np.linalg.norm(v)), -1.0, 1.0))))
 
 
 def fit_logistic(X: np.ndarray, y: np.ndarray, l2: float = 1e-2, iterations: int = 50) -> np.ndarray:
@@ -82,9 +120,13 @@ def main(argv=None) -> int:
     if len(a.replay) < 3:
         print("error: --replay: give at least 3 (a rule is fitted on all but one)", file=sys.stderr)
         return 2
-    data = {}
+    data, partial = {}, []
+    lost_parallax, lost_at_ends = [], 0  # the countable apples detected strongly 3+ times that no candidate found
+    from ground.apples.counting import CountingSettings
+
+    confirm = CountingSettings().confirm_score
     print(f"{'flight':<14} {'countable':>9} {'counted':>7} {'checks':>6} {'unfound':>7} {'(views)':>7} "
-          f"{'partial':>7} {'false':>5} {'count':>5} {'err %':>6}")
+          f"{'strong 3+':>9} {'share':>5} {'partial':>7} {'false':>5} {'count':>5} {'err %':>6}")
     for out, path in a.replay:
         with open(out / "candidates.csv", newline="") as f:
             cands = list(csv.DictReader(f))
@@ -92,12 +134,36 @@ def main(argv=None) -> int:
         counted = np.array([c["left_out"] == "" for c in cands], bool)
         L, n = lab["label"], len(lab["countable"])
         unfound = lab["views"][~lab["found"]]
+        fl, ids = FlightDir(path), lab["countable"][~lab["found"]]
+        views = strong_views(fl, out / "journal.bin", ids, confirm) if (out / "journal.bin").is_file() else []
+        strong = np.array([len(v) for v in views], int)
+        lost = strong >= 3
+        share = strong.sum() / max(unfound.sum(), 1) if len(strong) else float("nan")
+        n_frames = fl.meta().frame_count
+        for a, v in zip(ids, views):
+            if len(v) >= 3:
+                lost_parallax.append(parallax_deg(fl, int(a), v))
+                lost_at_ends += min(v) < 0.1 * n_frames or max(v) > 0.9 * n_frames
         print(f"{out.name:<14} {n:>9} {int((counted & (L == 'countable')).sum()):>7} "
               f"{int((~counted & (L == 'countable')).sum()):>6} {len(unfound):>7} "
-              f"{float(np.median(unfound)) if len(unfound) else float('nan'):>7.0f} "
+              f"{float(np.median(unfound)) if len(unfound) else float('nan'):>7.0f} {int(lost.sum()):>9} {share:>5.2f} "
               f"{int((counted & (L == 'partial')).sum()):>7} {int((counted & (L == 'none')).sum()):>5} "
               f"{int(counted.sum()):>5} {100.0 * (counted.sum() - n) / n:>+6.1f}", flush=True)
         data[out.name] = (features(cands), (L == "countable").astype(float), n, 100.0 * (counted.sum() - n) / n)
+        partial += [(FlightDir(path), a) for a in lab["apple_id"][counted & (L == "partial")]]
+    if lost_parallax:
+        print(f"\ndetected strongly 3+ times, no candidate: {len(lost_parallax)}; their strong views meet at a median "
+              f"{np.median(lost_parallax):.1f} deg (10th-90th percentile {np.percentile(lost_parallax, 10):.1f}-"
+              f"{np.percentile(lost_parallax, 90):.1f}); {lost_at_ends} in the flight's first or last tenth")
+    best, seen30 = [], []
+    for flight, a in partial:  # how visible the partial apples counted are at best, and in how many frames 30 %
+        d = flight.truth_detections()
+        v = np.asarray(d["visible_fraction"], float)[np.asarray(d["apple_id"]) == a]
+        best.append(v.max() if len(v) else np.nan)
+        seen30.append(int((v >= 0.3).sum()))
+    best = np.array(best)
+    print(f"\npartial apples counted: {len(best)}; never {MIN_VISIBLE:.0%} visible: {int((best < MIN_VISIBLE).sum())}; "
+          f"at best a median {np.nanmedian(best):.0%} visible; 30 % or more in a median {np.median(seen30):.0f} frames")
     print(f"\nleave one flight out: a logistic rule on {', '.join(FEATURES)}")
     print(f"{'flight':<14} {'checks %':>8} {'rule %':>7} {'threshold':>9}")
     thresholds = np.linspace(0.05, 0.95, 91)
