@@ -8,7 +8,9 @@ For each replay, every apple the count was chosen from (candidates.csv) is label
 shape (ground.evaluation.scoring.label_candidates): countable, partial (a true apple the definition does not count)
 or none. The table gives the countable apples the replay counted, those the checks left out, those no candidate
 found (and the median of their countable views), and the partial and false apples counted: a count error is what is
-left of these. Of the countable apples no candidate found, ``strong 3+`` had a detection scored at the count's
+left of these. ``misp``: candidates counted / left out that no apple lies within 0.10 m of but that lie on a real
+apple's rays (placed off in depth); ``on ray``: the countable apples no candidate found that such a one lies on. Of
+the countable apples no candidate found, ``strong 3+`` had a detection scored at the count's
 confirm_score or more (a box centre within the apple's radius, at least 2 px) in 3 or more of their countable views
 (the stream's journal.bin): the ground lost or misplaced those (below the table: the angle their strong views
 meet at, from the true cameras, and how many lie at the flight's ends); the detector, the rest. ``share``: the share of those apples' countable views
@@ -122,11 +124,12 @@ def main(argv=None) -> int:
         return 2
     data, partial = {}, []
     lost_parallax, lost_at_ends = [], 0  # the countable apples detected strongly 3+ times that no candidate found
+    found_parallax = []  # ... and those a candidate found
     from ground.apples.counting import CountingSettings
 
     confirm = CountingSettings().confirm_score
-    print(f"{'flight':<14} {'countable':>9} {'counted':>7} {'checks':>6} {'unfound':>7} {'(views)':>7} "
-          f"{'strong 3+':>9} {'share':>5} {'partial':>7} {'false':>5} {'count':>5} {'err %':>6}")
+    print(f"{'flight':<14} {'countable':>9} {'counted':>7} {'checks':>6} {'unfound':>7} {'(views)':>7} {'on ray':>6} "
+          f"{'strong 3+':>9} {'share':>5} {'partial':>7} {'misp':>9} {'false':>5} {'count':>5} {'err %':>6}")
     for out, path in a.replay:
         with open(out / "candidates.csv", newline="") as f:
             cands = list(csv.DictReader(f))
@@ -135,8 +138,12 @@ def main(argv=None) -> int:
         L, n = lab["label"], len(lab["countable"])
         unfound = lab["views"][~lab["found"]]
         fl, ids = FlightDir(path), lab["countable"][~lab["found"]]
-        views = strong_views(fl, out / "journal.bin", ids, confirm) if (out / "journal.bin").is_file() else []
+        every = (strong_views(fl, out / "journal.bin", lab["countable"], confirm)
+                 if (out / "journal.bin").is_file() else [[] for _ in lab["countable"]])
+        views = [v for v, f in zip(every, lab["found"]) if not f]
         strong = np.array([len(v) for v in views], int)
+        found_parallax += [parallax_deg(fl, int(a), v) for a, v, f in zip(lab["countable"], every, lab["found"])
+                           if f and len(v) >= 3]
         lost = strong >= 3
         share = strong.sum() / max(unfound.sum(), 1) if len(strong) else float("nan")
         n_frames = fl.meta().frame_count
@@ -144,17 +151,21 @@ def main(argv=None) -> int:
             if len(v) >= 3:
                 lost_parallax.append(parallax_deg(fl, int(a), v))
                 lost_at_ends += min(v) < 0.1 * n_frames or max(v) > 0.9 * n_frames
+        on_ray = int(np.isin(ids, lab["ray_apple"]).sum())
         print(f"{out.name:<14} {n:>9} {int((counted & (L == 'countable')).sum()):>7} "
               f"{int((~counted & (L == 'countable')).sum()):>6} {len(unfound):>7} "
-              f"{float(np.median(unfound)) if len(unfound) else float('nan'):>7.0f} {int(lost.sum()):>9} {share:>5.2f} "
-              f"{int((counted & (L == 'partial')).sum()):>7} {int((counted & (L == 'none')).sum()):>5} "
-              f"{int(counted.sum()):>5} {100.0 * (counted.sum() - n) / n:>+6.1f}", flush=True)
+              f"{float(np.median(unfound)) if len(unfound) else float('nan'):>7.0f} {on_ray:>6} {int(lost.sum()):>9} "
+              f"{share:>5.2f} {int((counted & (L == 'partial')).sum()):>7} "
+              f"{int((counted & (L == 'misplaced')).sum()):>4}/{int((~counted & (L == 'misplaced')).sum()):<4} "
+              f"{int((counted & (L == 'none')).sum()):>5} {int(counted.sum()):>5} {100.0 * (counted.sum() - n) / n:>+6.1f}",
+              flush=True)
         data[out.name] = (features(cands), (L == "countable").astype(float), n, 100.0 * (counted.sum() - n) / n)
         partial += [(FlightDir(path), a) for a in lab["apple_id"][counted & (L == "partial")]]
     if lost_parallax:
         print(f"\ndetected strongly 3+ times, no candidate: {len(lost_parallax)}; their strong views meet at a median "
               f"{np.median(lost_parallax):.1f} deg (10th-90th percentile {np.percentile(lost_parallax, 10):.1f}-"
-              f"{np.percentile(lost_parallax, 90):.1f}); {lost_at_ends} in the flight's first or last tenth")
+              f"{np.percentile(lost_parallax, 90):.1f}); {lost_at_ends} in the flight's first or last tenth; "
+              f"those a candidate found, a median {np.median(found_parallax):.1f} deg")
     best, seen30 = [], []
     for flight, a in partial:  # how visible the partial apples counted are at best, and in how many frames 30 %
         d = flight.truth_detections()

@@ -91,6 +91,10 @@ def test_the_candidates_are_labelled_as_the_score_counts_them(replayed_test_flig
     assert int((lab["label"] == "countable").sum()) == round(ev["recall"] * ev["truth_count"]) > 0
     assert int(lab["found"].sum()) == int((lab["label"] == "countable").sum())
     assert (lab["views"] >= 3).all()
+    assert set(lab["label"]) <= {"countable", "partial", "misplaced", "none"}
+    misplaced = lab["label"] == "misplaced"
+    assert (lab["ray_apple"][misplaced] >= 0).all() and (lab["apple_id"][misplaced] == -1).all()
+    assert (lab["ray_apple"][~misplaced] == -1).all()
 
 
 def _wait_for(pred, timeout, what):

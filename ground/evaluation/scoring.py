@@ -250,9 +250,11 @@ def label_candidates(flight: FlightDir, out: Path, min_visible: float = MIN_VISI
                      match_m: float = MATCH_M) -> dict[str, np.ndarray]:
     """What each apple a run's count was chosen from (candidates.csv, in its order) is in truth, on the map's shape
     (:func:`map_shape_fit`): ``countable`` (matched to an apple of the definition), ``partial`` (matched to an apple
-    the definition does not count: too little of it seen in too few frames) or ``none`` (no apple within
-    ``match_m``); beside it the truth's ``apple_id`` (-1 for none) and, for every countable apple, whether any
-    candidate found it (``found``) and in how many frames it is countable (``views``)."""
+    the definition does not count: too little of it seen in too few frames), ``misplaced`` (no apple within
+    ``match_m``, but in the middle frame of its views it projects onto one the truth sees there, within that apple's
+    radius: a real apple placed off along its rays) or ``none``; beside it the truth's ``apple_id`` of a match (-1
+    otherwise) and ``ray_apple``, the apple a misplaced one lies on (-1 otherwise), and, for every countable apple,
+    whether any candidate matched it (``found``) and in how many frames it is countable (``views``)."""
     import csv
 
     with open(out / "candidates.csv", newline="") as f:
@@ -266,8 +268,22 @@ def label_candidates(flight: FlightDir, out: Path, min_visible: float = MIN_VISI
     apple_id = np.full(len(cands), -1)
     apple_id[pi] = a["apple_id"][ti]
     label = np.where(apple_id < 0, "none", np.where(np.isin(apple_id, countable), "countable", "partial"))
+    ray_apple = np.full(len(cands), -1)
+    R, t = flight.truth_poses()
+    cam = flight.camera()
+    for k in np.nonzero(apple_id < 0)[0]:
+        f = (int(cands[k]["first_frame"]) + int(cands[k]["last_frame"])) // 2
+        there = np.asarray(d["frame"]) == f
+        if f >= len(R) or not there.any():
+            continue
+        uv, z = cam.project(X[k][None], R[f], t[f])
+        gap = np.hypot(np.asarray(d["u"])[there] - uv[0, 0], np.asarray(d["v"])[there] - uv[0, 1])
+        j = int(np.argmin(gap))
+        if z[0] > 0 and gap[j] <= max(float(np.asarray(d["r_px"])[there][j]), 2.0):
+            ray_apple[k] = int(np.asarray(d["apple_id"])[there][j])
+            label[k] = "misplaced"
     ids, views = np.unique(d["apple_id"][np.asarray(d["visible_fraction"], float) >= min_visible], return_counts=True)
-    return {"label": label, "apple_id": apple_id, "countable": countable,
+    return {"label": label, "apple_id": apple_id, "ray_apple": ray_apple, "countable": countable,
             "found": np.isin(countable, apple_id), "views": views[np.searchsorted(ids, countable)]}
 
 
