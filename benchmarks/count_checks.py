@@ -31,13 +31,13 @@ from pomar.flight import FlightDir, FlightFormatError  # noqa: E402
 APPLE_COLUMNS = ["id", "x", "y", "z", "lat", "lon", "alt", "first_frame", "last_frame"]
 
 
-def kept(cands: list[dict], size: float, views: float) -> list[dict]:
-    """The candidates these thresholds count (the parallax check as the replay decided it)."""
+def kept(cands: list[dict], size: float, views: float, parallax: bool = True) -> list[dict]:
+    """The candidates these thresholds count (the parallax check as the replay decided it, or off)."""
     r = np.array([float(c["radius_m"]) for c in cands])
     med = np.nanmedian(r) if np.isfinite(r).any() else np.nan
     out = []
     for c, ri in zip(cands, r):
-        if c["left_out"] == "narrow":
+        if c["left_out"] == "narrow" and parallax:
             continue
         if size > 0 and np.isfinite(ri) and ri < size * med:
             continue
@@ -54,6 +54,9 @@ def main(argv=None) -> int:
     ap.add_argument("flights", type=Path, nargs="+", help="the flights replayed there (their replay: RUN/NAME)")
     ap.add_argument("--size", type=float, nargs="+", default=[0.0, 0.6, 0.7, 0.8])
     ap.add_argument("--views", type=float, nargs="+", default=[0.0, 0.1, 0.15, 0.2])
+    ap.add_argument("--no-parallax", action="store_true",
+                    help="count the apples the parallax check left out too (their size judged as the others'; their "
+                         "expected views were never computed)")
     ap.add_argument("--min-visible", type=float, default=MIN_VISIBLE,
                     help="score against apples this visible (default: pomar.countable's definition)")
     a = ap.parse_args(argv)
@@ -81,7 +84,7 @@ def main(argv=None) -> int:
                 with open(run / "apples.csv", "w", newline="") as f:
                     w = csv.DictWriter(f, fieldnames=APPLE_COLUMNS, extrasaction="ignore", lineterminator="\n")
                     w.writeheader()
-                    w.writerows(kept(cands, size, views))
+                    w.writerows(kept(cands, size, views, parallax=not a.no_parallax))
                 ev = evaluate_map(flight, run, min_visible=a.min_visible)
                 print(f"{name:<14} {size:>5.2f} {views:>5.2f} {ev['f1']:>6.3f} {ev['count']:>6} {ev['truth_count']:>6} "
                       f"{ev['count_error_pct']:>+7.1f} {ev['worst_row_error_pct']:>9.1f}", flush=True)
