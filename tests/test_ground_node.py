@@ -3,6 +3,7 @@ the outputs and the .rrd read back; a ground killed mid-flight resumes and ends 
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import os
@@ -384,26 +385,42 @@ def test_lock_step_waits_for_the_keyframes_the_frames_announce_when_the_link_bri
     assert a0.keys() == a1.keys() and len(a0) > 0 and all(np.array_equal(a0[i], a1[i]) for i in a0)
 
 
-def test_a_ground_does_not_end_the_flight_while_an_announced_keyframe_is_missing(replay_test_flight, tmp_path):
-    """Over real zenoh: the drone says the flight is finished with every frame sent, but the first keyframe its frame
-    message announced has not come (a history that missed it). The ground does not end at the usual quiet second:
-    it waits (asking for the history again), and the keyframe, sent 2.5 s later, is mapped."""
+@contextlib.contextmanager
+def _listening_ground(first, out, idle_timeout_s: float):
+    """A ``ground run`` process listening on a free loopback port (mapping inline, no recording), and a publisher of
+    ``first``'s flight and drone connected to it: (process, publisher). The process is killed if still running, and
+    the session closed, when the block ends."""
     from ground.replay import free_port
-    from pomar import transport, wire
+    from pomar import transport
 
-    msgs = _onboard_messages(replay_test_flight, keyframe_every=2)
-    held = next(m for m in msgs if isinstance(m, wire.KeyframeMessage) and m.frame == 0)
-    first = msgs[0]
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    out = tmp_path / "ground"
     ground = subprocess.Popen([sys.executable, "-m", "ground", "run", "--flight-id", first.flight_id, "--listen",
-                               endpoint, "--out", str(out), "--no-rrd", "--mapping", "inline", "--idle-timeout", "30",
-                               "--fresh"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                              env=dict(os.environ, PYTHONUNBUFFERED="1"))
+                               endpoint, "--out", str(out), "--no-rrd", "--mapping", "inline", "--idle-timeout",
+                               str(idle_timeout_s), "--fresh"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                              text=True, env=dict(os.environ, PYTHONUNBUFFERED="1"))
     session = transport.open_session(connect=[endpoint])
     try:
         pub = transport.FlightPublisher(session, first.flight_id, first.drone_id)
         assert pub.wait_for_subscriber(60)
+        yield ground, pub
+    finally:
+        if ground.poll() is None:
+            ground.kill()
+            ground.wait()
+        session.close()
+
+
+def test_a_ground_does_not_end_the_flight_while_an_announced_keyframe_is_missing(replay_test_flight, tmp_path):
+    """Over real zenoh: the drone says the flight is finished with every frame sent, but the first keyframe its frame
+    message announced has not come (a history that missed it). The ground does not end at the usual quiet second:
+    it waits (asking for the history again), and the keyframe, sent 2.5 s later, is mapped."""
+    from pomar import wire
+
+    msgs = _onboard_messages(replay_test_flight, keyframe_every=2)
+    held = next(m for m in msgs if isinstance(m, wire.KeyframeMessage) and m.frame == 0)
+    first = msgs[0]
+    out = tmp_path / "ground"
+    with _listening_ground(first, out, idle_timeout_s=30) as (ground, pub):
         for m in msgs:
             if m is not held:
                 pub.publish(m)
@@ -413,11 +430,6 @@ def test_a_ground_does_not_end_the_flight_while_an_announced_keyframe_is_missing
         assert ground.poll() is None  # still waiting for keyframe 0
         pub.publish(held)
         _, err = ground.communicate(timeout=120)
-    finally:
-        if ground.poll() is None:
-            ground.kill()
-            ground.wait()
-        session.close()
     assert ground.returncode == 0, err[-3000:]
     rep = json.loads((out / "report.json").read_text())
     assert rep["frames"]["keyframes"] == sum(isinstance(m, wire.KeyframeMessage) for m in msgs) == 10
@@ -435,22 +447,13 @@ def test_a_drone_whose_node_restarted_mid_flight_ends_the_flight_when_it_says(re
     """Over real zenoh: the onboard node dies after frame 9 and a new one takes up the flight at frame 12 (the frames
     between were taken while none ran). The new node's 'finished' counts only its own frames, from the first it sent
     (first_frame): the ground takes it as true and ends the flight at once, not at the idle timeout."""
-    from ground.replay import free_port
-    from pomar import transport, wire
+    from pomar import wire
 
     msgs = _onboard_messages(replay_test_flight, keyframe_every=2)
     lost = {10, 11}
     first = msgs[0]
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
     out = tmp_path / "ground"
-    ground = subprocess.Popen([sys.executable, "-m", "ground", "run", "--flight-id", first.flight_id, "--listen",
-                               endpoint, "--out", str(out), "--no-rrd", "--mapping", "inline", "--idle-timeout", "60",
-                               "--fresh"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                              env=dict(os.environ, PYTHONUNBUFFERED="1"))
-    session = transport.open_session(connect=[endpoint])
-    try:
-        pub = transport.FlightPublisher(session, first.flight_id, first.drone_id)
-        assert pub.wait_for_subscriber(60)
+    with _listening_ground(first, out, idle_timeout_s=60) as (ground, pub):
         for m in msgs:
             if getattr(m, "frame", -1) not in lost:
                 pub.publish(m)
@@ -461,11 +464,6 @@ def test_a_drone_whose_node_restarted_mid_flight_ends_the_flight_when_it_says(re
                                        first_frame=max(lost) + 1))
         _, err = ground.communicate(timeout=120)
         took = time.monotonic() - t0
-    finally:
-        if ground.poll() is None:
-            ground.kill()
-            ground.wait()
-        session.close()
     assert ground.returncode == 0, err[-3000:]
     assert took < 30, (took, err[-2000:])  # the idle timeout is 60 s
     rep = json.loads((out / "report.json").read_text())
