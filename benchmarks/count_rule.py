@@ -10,11 +10,11 @@ or none. The table gives the countable apples the replay counted, those the chec
 found (and the median of their countable views), and the partial and false apples counted: a count error is what is
 left of these. ``misp``: candidates counted / left out that no apple lies within 0.10 m of but that lie on a real
 apple's rays (placed off in depth); ``on ray``: the countable apples no candidate found that such a one lies on. Of
-the countable apples no candidate found, ``strong 3+`` had a detection scored at the count's
-confirm_score or more (a box centre within the apple's radius, at least 2 px) in 3 or more of their countable views
-(the stream's journal.bin): the ground lost or misplaced those (below the table: the angle their strong views
-meet at, from the true cameras, and how many lie at the flight's ends); the detector, the rest. ``share``: the share of those apples' countable views
-in which the detector found them so.
+the countable apples no candidate found, ``strong 3+`` had a detection scored at the count's confirm_score or more (a
+box centre within the apple's radius, at least 2 px) in 3 or more of their countable views (the stream's
+journal.bin): the ground lost or misplaced those (below the table: the angle their strong views meet at, from the
+true cameras, and how many lie at the flight's ends); the detector, the rest. ``share``: the share of those apples'
+countable views in which the detector found them so.
 
 Then a logistic rule on the candidates' features (share of the expected views detected, strong views among them,
 strong views per expected view, radius against the flight's median, strong views, the parallax check), with a
@@ -80,12 +80,9 @@ def strong_views(flight: FlightDir, journal: Path, apple_ids: np.ndarray, score:
     return [frames[int(a)] for a in apple_ids]
 
 
-def parallax_deg(flight: FlightDir, apple_id: int, frames: list[int]) -> float:
-    """The angle (deg) at the true apple between the true camera centres of the first and last of these frames."""
-    R, t = flight.truth_poses()
-    a = flight.truth_apples()
-    k = int(np.nonzero(np.asarray(a["apple_id"]) == apple_id)[0][0])
-    X = np.array([a["x"][k], a["y"][k], a["z"][k]], float)
+def parallax_deg(R: np.ndarray, t: np.ndarray, X: np.ndarray, frames: list[int]) -> float:
+    """The angle (deg) at the true apple ``X`` between the true camera centres (``R``, ``t``: the flight's truth poses)
+    of the first and last of these frames."""
     u, v = (-R[f].T @ t[f] - X for f in (min(frames), max(frames)))
     return float(np.degrees(np.arccos(np.clip(u @ v / (np.linalg.norm(u) * np.linalg.norm(v)), -1.0, 1.0))))
 
@@ -142,22 +139,26 @@ def main(argv=None) -> int:
                  if (out / "journal.bin").is_file() else [[] for _ in lab["countable"]])
         views = [v for v, f in zip(every, lab["found"]) if not f]
         strong = np.array([len(v) for v in views], int)
-        found_parallax += [parallax_deg(fl, int(a), v) for a, v, f in zip(lab["countable"], every, lab["found"])
-                           if f and len(v) >= 3]
         lost = strong >= 3
         share = strong.sum() / max(unfound.sum(), 1) if len(strong) else float("nan")
         n_frames = fl.meta().frame_count
+        R, t = fl.truth_poses()
+        ta = fl.truth_apples()
+        where = {int(i): np.array([x, y, z]) for i, x, y, z in zip(ta["apple_id"], ta["x"], ta["y"], ta["z"])}
         for a, v in zip(ids, views):
             if len(v) >= 3:
-                lost_parallax.append(parallax_deg(fl, int(a), v))
+                lost_parallax.append(parallax_deg(R, t, where[int(a)], v))
                 lost_at_ends += min(v) < 0.1 * n_frames or max(v) > 0.9 * n_frames
+        found_parallax += [parallax_deg(R, t, where[int(a)], v)
+                           for a, v, f in zip(lab["countable"], every, lab["found"]) if f and len(v) >= 3]
         on_ray = int(np.isin(ids, lab["ray_apple"]).sum())
         print(f"{out.name:<14} {n:>9} {int((counted & (L == 'countable')).sum()):>7} "
               f"{int((~counted & (L == 'countable')).sum()):>6} {len(unfound):>7} "
               f"{float(np.median(unfound)) if len(unfound) else float('nan'):>7.0f} {on_ray:>6} {int(lost.sum()):>9} "
               f"{share:>5.2f} {int((counted & (L == 'partial')).sum()):>7} "
               f"{int((counted & (L == 'misplaced')).sum()):>4}/{int((~counted & (L == 'misplaced')).sum()):<4} "
-              f"{int((counted & (L == 'none')).sum()):>5} {int(counted.sum()):>5} {100.0 * (counted.sum() - n) / n:>+6.1f}",
+              f"{int((counted & (L == 'none')).sum()):>5} {int(counted.sum()):>5} "
+              f"{100.0 * (counted.sum() - n) / n:>+6.1f}",
               flush=True)
         data[out.name] = (features(cands), (L == "countable").astype(float), n, 100.0 * (counted.sum() - n) / n)
         partial += [(FlightDir(path), a) for a in lab["apple_id"][counted & (L == "partial")]]

@@ -55,21 +55,13 @@ def _cmd_telemetry(args) -> int:
     return 0
 
 
-def _height_source(fd) -> str:
-    """Where a rendered flight's tlog takes its height from (sim_config.json's telemetry.height_source; gps before the
-    option existed)."""
-    import json
-
-    p = fd.path / "sim_config.json"
-    return json.loads(p.read_text()).get("telemetry", {}).get("height_source", "gps") if p.is_file() else "gps"
-
-
 def _cmd_logs(args) -> int:
     from pathlib import Path
 
     import numpy as np
 
     from pomar.flight import FlightDir
+    from sim.config import rendered_config
     from sim.logs import write_dataflash, write_srt
 
     fd = FlightDir(args.flight_dir)
@@ -80,7 +72,7 @@ def _cmd_logs(args) -> int:
     truth = None
     # the height above take-off as a DJI barometer gives it: the truth's, drifting a little; where the tlog's height is
     # already the barometer's (height_source baro), that one: one drone, one barometer, whichever log records it
-    if fd.has_truth and _height_source(fd) != "baro":
+    if fd.has_truth and rendered_config(fd.path).telemetry.height_source != "baro":
         fr = fd.truth_frames()
         truth = (np.asarray(fr["t_unix"], float), np.asarray(fr["alt"], float) - fd.origin().alt)
     n = write_srt(fd.tlog, meta.frame_count, meta.fps, meta.video_start_utc, out / "video.SRT",

@@ -259,6 +259,15 @@ def from_dict(data: dict, source: str = "<config>") -> SimConfig:
     return cfg
 
 
+def rendered_config(flight_dir: str | Path) -> SimConfig:
+    """The config a flight was rendered with (its sim_config.json); the defaults where a field came later than the
+    render, or where the flight is not a simulated one (no sim_config.json)."""
+    import json
+
+    p = Path(flight_dir) / "sim_config.json"
+    return from_dict(json.loads(p.read_text()), str(p)) if p.is_file() else SimConfig()
+
+
 def parse_utc(text: str) -> float:
     from datetime import datetime, timezone
 

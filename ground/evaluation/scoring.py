@@ -271,16 +271,16 @@ def label_candidates(flight: FlightDir, out: Path, min_visible: float = MIN_VISI
     ray_apple = np.full(len(cands), -1)
     R, t = flight.truth_poses()
     cam = flight.camera()
+    d_frame, d_id, d_u, d_v, d_r = (np.asarray(d[k]) for k in ("frame", "apple_id", "u", "v", "r_px"))
     for k in np.nonzero(apple_id < 0)[0]:
         f = (int(cands[k]["first_frame"]) + int(cands[k]["last_frame"])) // 2
-        there = np.asarray(d["frame"]) == f
-        if f >= len(R) or not there.any():
+        there = np.nonzero(d_frame == f)[0]
+        if f >= len(R) or not len(there):
             continue
         uv, z = cam.project(X[k][None], R[f], t[f])
-        gap = np.hypot(np.asarray(d["u"])[there] - uv[0, 0], np.asarray(d["v"])[there] - uv[0, 1])
-        j = int(np.argmin(gap))
-        if z[0] > 0 and gap[j] <= max(float(np.asarray(d["r_px"])[there][j]), 2.0):
-            ray_apple[k] = int(np.asarray(d["apple_id"])[there][j])
+        j = there[int(np.argmin(np.hypot(d_u[there] - uv[0, 0], d_v[there] - uv[0, 1])))]
+        if z[0] > 0 and np.hypot(d_u[j] - uv[0, 0], d_v[j] - uv[0, 1]) <= max(float(d_r[j]), 2.0):
+            ray_apple[k] = int(d_id[j])
             label[k] = "misplaced"
     ids, views = np.unique(d["apple_id"][np.asarray(d["visible_fraction"], float) >= min_visible], return_counts=True)
     return {"label": label, "apple_id": apple_id, "ray_apple": ray_apple, "countable": countable,
