@@ -35,7 +35,7 @@ def stage_seconds(pipe: GroundPipeline) -> list[float]:
     if stages:
         st = np.asarray(stages, float).reshape(-1, 3).sum(0)
     return [pipe.seconds["association"], pipe.seconds["corrections"], pipe.seconds["poses"],
-            poses.seconds["tracking"] if poses is not None else 0.0, *st.tolist(), len(stages)]
+            poses.tracking.seconds["tracking"] if poses is not None else 0.0, *st.tolist(), len(stages)]
 
 
 def main() -> None:

@@ -71,7 +71,7 @@ class GroundSettings:
     #: The map's drift along the flight, corrected from the GPS: each camera is moved by the GPS's disagreement with
     #: the map, a line fitted over the registered keyframes within about this much flight (Gaussian sigma, s), and each
     #: apple by its views' mean; 0 = one similarity for the whole map. Wider than the GPS error's wander (tens of
-    #: seconds), so that it stays out of the map's shape; and only where the map drifted (LivePoses.drift_correction).
+    #: seconds), so that it stays out of the map's shape; and only where the map drifted (AssociationFrame.drift_correction).
     drift_sigma_s: float = 60.0
 
 
@@ -214,7 +214,7 @@ class GroundPipeline:
         # bring them late): the images are tracked and mapped in the same order whatever the link did
         for f, jpeg in arrivals.images(final, wait_for_announced=self.s.mapping == "inline"):
             t0 = time.perf_counter()
-            if self.poses.add_jpeg(f, jpeg, arrivals.frame_times.get(f, float("nan"))):
+            if self.poses.tracking.add_jpeg(f, jpeg, arrivals.frame_times.get(f, float("nan"))):
                 self.seconds["poses"] += time.perf_counter() - t0
                 arrivals.image_done()  # the wait is counted from when the poses are free again
                 self._kf_for_event[f] = jpeg
@@ -248,7 +248,7 @@ class GroundPipeline:
             else:
                 self._counts[pose.source] += 1
                 t0 = time.perf_counter()
-                new = self.apples.add(msg, pose, self.arrivals.steps, poses.metres_per_unit())
+                new = self.apples.add(msg, pose, self.arrivals.steps, poses.assoc.metres_per_unit())
                 self.seconds["association"] += time.perf_counter() - t0
             events.append(FrameEvent(f, msg.t_capture, pose, msg, new, self._kf_for_event.pop(f, None)))
             for k in [k for k in self._kf_for_event if k < f]:
@@ -278,7 +278,7 @@ class GroundPipeline:
         new = self.poses.corrected(fed.poses, frames)
         if not new:
             return
-        changed, merged = self.apples.repose(new, self.arrivals.steps, self.poses.metres_per_unit())
+        changed, merged = self.apples.repose(new, self.arrivals.steps, self.poses.assoc.metres_per_unit())
         self.seconds["corrections"] += time.perf_counter() - t0
         c = self.corrections
         c["rounds"] += 1
@@ -297,10 +297,10 @@ class GroundPipeline:
         if hurry:
             self.arrivals.drop_images()
             if self.poses is not None:
-                self.poses.drop_waiting()
+                self.poses.tracking.drop_waiting()
         elif self.poses is not None:
             events += self.step(on_events=on_events)
-            self.poses.settle()
+            self.poses.tracking.settle()
         if self.camera is not None:
             events += self.step(final=True, on_events=on_events)
         if self.poses is not None:
@@ -322,5 +322,5 @@ class GroundPipeline:
             self.poses.mapper.wait(timeout_s)
 
     def metres_per_unit(self) -> float:
-        """:meth:`LivePoses.metres_per_unit` (1 before the poses exist)."""
-        return self.poses.metres_per_unit() if self.poses is not None else 1.0
+        """:meth:`AssociationFrame.metres_per_unit` (1 before the poses exist)."""
+        return self.poses.assoc.metres_per_unit() if self.poses is not None else 1.0

@@ -6,7 +6,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ground.poses.live import LivePoses, Pose
-from ground.poses.mapping import KeyframeTelemetry
+from ground.poses.telemetry_poses import KeyframeTelemetry
 from pomar.align import IDENTITY
 from pomar.camera import Camera
 
@@ -19,7 +19,7 @@ def _pose(frame: int, R: np.ndarray, c, source: str = "tracked") -> Pose:
 def test_frames_follow_the_keyframes_the_mapper_moved(tmp_path):
     lp = LivePoses(Camera.from_fov(1280, 720, 50.0), tmp_path)
     try:
-        lp.frozen = IDENTITY  # model frame = association frame
+        lp.assoc.frozen = IDENTITY  # model frame = association frame
         R0 = np.eye(3)
         given = {f: _pose(f, R0, (0.1 * f, 0.0, 10.0), "telemetry" if f == 12 else "tracked") for f in range(0, 101)}
         # the mapper has since moved keyframe 10 by 2 cm and keyframe 20 by 6 cm and 0.2 degrees
@@ -48,12 +48,12 @@ def test_frames_follow_the_keyframes_the_mapper_moved(tmp_path):
 
 
 def test_drift_correction_applies_only_where_the_map_drifted_beyond_the_gps_wander(tmp_path):
-    """The gate of LivePoses.drift_correction: a map rigid within the GPS's stated accuracy is left as it is (what a
+    """The gate of AssociationFrame.drift_correction: a map rigid within the GPS's stated accuracy is left as it is (what a
     correction would follow there is the GPS error's wander); a map that bent away from the GPS is taken back to it."""
     lp = LivePoses(Camera.from_fov(1280, 720, 50.0), tmp_path)
     try:
         rng = np.random.default_rng(5)
-        lp.frozen = IDENTITY
+        lp.assoc.frozen = IDENTITY
         lp.mapper.fit = IDENTITY  # model frame = ENU
         kf = np.arange(0, 3000, 2)
         truth = np.stack([0.3 * kf, np.zeros(len(kf)), np.full(len(kf), 10.0)], 1)
@@ -67,16 +67,16 @@ def test_drift_correction_applies_only_where_the_map_drifted_beyond_the_gps_wand
                                                    0.5)
 
         gps(np.zeros((len(kf), 3)))  # rigid map, 0.5-m GPS noise stated as 0.5 m
-        assert not lp.drift_correction(q, 60.0).any()
-        assert not lp.drift_corrected and lp.drift_m < lp.DRIFT_MIN_GPS_SIGMAS * 0.5, lp.drift_m
+        assert not lp.assoc.drift_correction(q, 60.0).any()
+        assert not lp.assoc.drift_corrected and lp.assoc.drift_m < lp.assoc.DRIFT_MIN_GPS_SIGMAS * 0.5, lp.assoc.drift_m
 
         bend = np.stack([np.zeros(len(kf)), 15 * (1 - kf / 3000) ** 2, np.zeros(len(kf))], 1)
         gps(bend)  # the map's start lies 15 m from the GPS, its end on it
-        off = lp.drift_correction(q, 60.0)
-        assert lp.drift_corrected and lp.drift_m > 10, lp.drift_m
+        off = lp.assoc.drift_correction(q, 60.0)
+        assert lp.assoc.drift_corrected and lp.assoc.drift_m > 10, lp.assoc.drift_m
         want = np.stack([np.zeros(len(q)), 15 * (1 - q / 3000) ** 2, np.zeros(len(q))], 1)
         err = np.linalg.norm(off - want, axis=1)
         assert np.median(err) < 0.15 and err.max() < 0.5, (np.median(err), err.max())
-        assert not lp.drift_correction(q, 0.0).any()  # switched off
+        assert not lp.assoc.drift_correction(q, 0.0).any()  # switched off
     finally:
         lp.close()

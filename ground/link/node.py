@@ -193,7 +193,7 @@ class GroundNode:
             if rr is not None:
                 rr.fps = self.pipe.fps
                 rejected = self.stream.rejected if self.stream else {}
-                to_enu = self.pipe.poses.assoc_to_enu() if self.pipe.poses is not None else None
+                to_enu = self.pipe.poses.assoc.assoc_to_enu() if self.pipe.poses is not None else None
                 rr.frame(e, self.pipe.camera, {
                     "rate/ground": fps, "rate/drone": drone_fps,
                     "delay/behind_drone_s": behind, "delay/ground_latency_s": latency,
@@ -323,8 +323,8 @@ class GroundNode:
                 "reanchored": reg["reanchored"] if reg else 0,
                 "rejoined": reg["rejoined"] if reg else 0,
                 # the map's drift from the GPS along the flight, and whether the outputs were corrected for it
-                "drift_m": p.poses.drift_m if p.poses else 0.0,
-                "drift_corrected": p.poses.drift_corrected if p.poses else False,
+                "drift_m": p.poses.assoc.drift_m if p.poses else 0.0,
+                "drift_corrected": p.poses.assoc.drift_corrected if p.poses else False,
                 "seconds_per_keyframe_median": float(np.median(reg["seconds"])) if reg and reg["seconds"] else None,
                 "stage_seconds_median": reg["stage_seconds_median"] if reg else None,
                 "mapping": p.s.mapping,  # as the stream asked for it (or as set)
@@ -337,14 +337,14 @@ class GroundNode:
                 "georeference_scale_from": reg.get("scale_from", "positions") if reg else None,
                 "origin": p.poses.origin.as_dict() if p.poses and p.poses.origin else None,
             },
-            "tracking": {"tracked": p.poses.tracker.tracked if p.poses else 0,
+            "tracking": {"tracked": p.poses.tracking.tracker.tracked if p.poses else 0,
                          # frames that tracking could not place, even after the mapper had mapped them (flagged)
-                         "failed": len(p.poses.tracking_failed) if p.poses else 0,
+                         "failed": len(p.poses.tracking.failed_frames) if p.poses else 0,
                          # frames tracked once the mapper, handed them when tracking failed, had mapped them
-                         "retried_after_mapping": p.poses.retried if p.poses else 0,
+                         "retried_after_mapping": p.poses.tracking.retried if p.poses else 0,
                          # times the frames waited for a busy mapper to take a keyframe (mapping behind the flight)
-                         "waits_for_mapper": p.poses.waits_for_mapper if p.poses else 0,
-                         "failed_frames": p.poses.tracking_failed[-100:] if p.poses else []},
+                         "waits_for_mapper": p.poses.tracking.waits_for_mapper if p.poses else 0,
+                         "failed_frames": p.poses.tracking.failed_frames[-100:] if p.poses else []},
             # poses given earlier, corrected as the mapper moved the keyframes about them; the apples triangulated again
             "corrections": dict(p.corrections),
             "association": {"params": vars(self.settings.association).copy(), "stats": dict(p.apples.assoc.stats),
@@ -353,8 +353,8 @@ class GroundNode:
                             "metres_per_unit": p.metres_per_unit()},
             "timings": {"wall_seconds": time.monotonic() - self.t_start,
                         "pose_seconds": p.seconds["poses"],
-                        "tracking_seconds": p.poses.seconds["tracking"] if p.poses else 0.0,
-                        "inline_mapping_seconds": p.poses.seconds["mapping_inline"] if p.poses else 0.0,
+                        "tracking_seconds": p.poses.tracking.seconds["tracking"] if p.poses else 0.0,
+                        "inline_mapping_seconds": p.poses.tracking.seconds["mapping_inline"] if p.poses else 0.0,
                         "mapping_seconds": float(sum(reg["seconds"])) if reg else 0.0,
                         "association_seconds": p.seconds["association"],
                         "correction_seconds": p.seconds["corrections"],

@@ -39,8 +39,8 @@ def apples_enu(pipe, A: list) -> np.ndarray:
         return X
     seen = [[pipe.apples.frames.frame[o.frame] for o in a.observations] for a in A]
     frames = np.unique(np.concatenate(seen))
-    off = dict(zip(frames.tolist(), pipe.poses.drift_correction(frames, _drift_sigma_frames(pipe))))
-    return pipe.poses.to_enu(X) + np.array([np.mean([off[f] for f in fs], 0) for fs in seen])
+    off = dict(zip(frames.tolist(), pipe.poses.assoc.drift_correction(frames, _drift_sigma_frames(pipe))))
+    return pipe.poses.assoc.to_enu(X) + np.array([np.mean([off[f] for f in fs], 0) for fs in seen])
 
 
 def _geodetic(pipe, enu: np.ndarray) -> np.ndarray:
@@ -93,8 +93,8 @@ def pose_table(pipe) -> dict[str, np.ndarray]:
     if not P or pipe.poses is None:
         return {k: np.zeros(0) for k in ("frame", "t_unix", "source", "x", "y", "z", "lat", "lon", "alt",
                                          "qw", "qx", "qy", "qz", "sigma_m")}
-    S = pipe.poses.assoc_to_enu()
-    C = S.apply(np.array([p.centre for p in P])) + pipe.poses.drift_correction(frames, _drift_sigma_frames(pipe))
+    S = pipe.poses.assoc.assoc_to_enu()
+    C = S.apply(np.array([p.centre for p in P])) + pipe.poses.assoc.drift_correction(frames, _drift_sigma_frames(pipe))
     R = np.array([p.R for p in P]) @ S.R.T  # ENU-to-camera
     q = Rotation.from_matrix(R).as_quat()  # xyzw
     geo = np.asarray(pipe.poses.origin.to_geodetic(C)).reshape(-1, 3) if pipe.poses.origin else np.full(C.shape, np.nan)

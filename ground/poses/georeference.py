@@ -14,12 +14,16 @@ and s (closed form), from a start on positions alone.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
-from pomar.align import Similarity
+from pomar.align import IDENTITY, Similarity, compose, inverse
+
+log = logging.getLogger(__name__)
 
 
 def _procrustes(H: np.ndarray) -> np.ndarray:
@@ -140,6 +144,139 @@ def drift_offsets(kf_frames: np.ndarray, residuals: np.ndarray, weights: np.ndar
         out[qi] = np.where(line[:, None], (s2[:, None] * t0 - s1[:, None] * t1) / np.where(line, det, 1.0)[:, None],
                            t0 / np.maximum(s0, 1e-300)[:, None])
     return out
+
+
+@dataclass
+class Pose:
+    """A frame's camera in the association frame, with where it came from and how far it can be trusted."""
+
+    frame: int
+    R: np.ndarray  # association-frame-to-camera rotation
+    t: np.ndarray
+    source: str  # registered | tracked | interpolated | telemetry
+    sigma_m: float
+    sigma_deg: float
+
+    @property
+    def centre(self) -> np.ndarray:
+        return -self.R.T @ self.t
+
+
+class AssociationFrame:
+    """The frame the association works in: the model's coordinates taken through the first good georeferencing fit,
+    then frozen (the frames in the association's window stay consistent while later fits move a little); ENU itself
+    while there is no model. Reads the mapper's fit and registered keyframes (``model_pose``), and the frames'
+    telemetry (frame -> KeyframeTelemetry) for the drift correction."""
+
+    #: The drift correction applies once the map has drifted this many times the GPS's stated accuracy (the spread
+    #: of the corrections along the flight): below, what it would follow is mostly the GPS error's own wander.
+    DRIFT_MIN_GPS_SIGMAS = 4.0
+
+    def __init__(self, mapper, telemetry: dict):
+        self.mapper = mapper
+        self.tel = telemetry
+        self.frozen: Similarity | None = None  # model -> association frame (a fit frozen), or None
+        self.assoc_from_enu: Similarity | None = None  # set when the association frame is ENU itself
+        self.drift_m = 0.0  # how far the drift corrections spread along the flight (m), see drift_correction
+        self.drift_corrected = False
+        self._key: tuple | None = None  # what the similarities below were composed from
+        self._cached: tuple[Similarity | None, Similarity] = (None, IDENTITY)
+
+    @property
+    def fixed(self) -> bool:
+        """Whether the association frame has been fixed (by a fit, or as ENU)."""
+        return self.frozen is not None or self.assoc_from_enu is not None
+
+    def fix(self) -> None:
+        """Fix the association frame, once: the mapper's fit if there is one, else ENU."""
+        if self.fixed:
+            return
+        fit = self.mapper.fit
+        if fit is not None:
+            self.frozen = fit
+            log.info("association frame fixed by georeferencing %d registered keyframes (GPS residual %.2f m)",
+                     len(self.mapper.model_pose), self.mapper.fit_residual_m)
+        else:
+            self.assoc_from_enu = IDENTITY
+            log.warning("no registered model yet: the association runs on telemetry poses in ENU")
+
+    def _similarities(self) -> tuple[Similarity | None, Similarity]:
+        """(model -> association frame, None before a fit; association frame -> ENU), composed again only when the
+        mapper's fit or the frame changed: every frame's pose and every table row reads them."""
+        key = (self.mapper.fit, self.frozen, self.assoc_from_enu)
+        if self._key is None or any(a is not b for a, b in zip(key, self._key)):
+            fit, frozen, from_enu = key
+            if frozen is not None:
+                m2a, a2e = frozen, compose(fit, inverse(frozen))
+            else:
+                m2a = compose(from_enu, fit) if fit is not None and from_enu is not None else None
+                a2e = inverse(from_enu) if from_enu is not None else IDENTITY
+            self._key, self._cached = key, (m2a, a2e)
+        return self._cached
+
+    def model_to_assoc(self) -> Similarity | None:
+        return self._similarities()[0]
+
+    def assoc_to_enu(self) -> Similarity:
+        return self._similarities()[1]
+
+    def metres_per_unit(self) -> float:
+        """The association frame's unit in metres, as the map's georeference knows it now: the frame was fixed by
+        the first fit, from a few keyframes' GPS, and the later fits scale it (tens of percent with a DJI log's)."""
+        return float(self.assoc_to_enu().scale)
+
+    def to_enu(self, X: np.ndarray) -> np.ndarray:
+        return self.assoc_to_enu().apply(np.asarray(X, float).reshape(-1, 3))
+
+    def frame_pose(self, frame: int, own, between, tel, camera, sigma_att_deg: float) -> Pose | None:
+        """The frame's pose in the association frame from the best source it has: its own model pose (R, t, source:
+        registered or tracked), else one interpolated between the model poses of its nearest posed frames (``between``:
+        a, (R, t) at a, b, (R, t) at b; rotation by slerp, centre linearly), else its telemetry (``tel``, a
+        KeyframeTelemetry: GPS and gimbal, through ``camera``'s mount). The model's poses count once the model is
+        georeferenced; the association frame is fixed at the first frame posed. None without a model pose or position
+        telemetry."""
+        self.fix()
+        m2a, a2e = self._similarities()
+        if m2a is not None and own is not None:
+            R, t = georeference_poses(own[0][None], own[1][None], m2a)
+            return Pose(frame, R[0], t[0], own[2], 0.01 if own[2] == "registered" else 0.015, 0.05)
+        if m2a is not None and between is not None:
+            a, pa, b, pb = between
+            R2, t2 = georeference_poses(np.array([pa[0], pb[0]]), np.array([pa[1], pb[1]]), m2a)
+            C = -np.einsum("nji,nj->ni", R2, t2)
+            w = (frame - a) / (b - a)
+            R = Slerp([0.0, 1.0], Rotation.from_matrix(R2))([w]).as_matrix()[0]
+            c = (1 - w) * C[0] + w * C[1]
+            return Pose(frame, R, -R @ c, "interpolated", 0.02, 0.1)
+        log.debug("frame %d: telemetry pose (model georeferenced: %s)", frame, m2a is not None)
+        if tel is None or not np.isfinite(tel.enu).all():
+            return None
+        R_enu, t_enu = tel.camera_pose(camera)
+        R, t = georeference_poses(R_enu[None], t_enu[None], inverse(a2e))
+        return Pose(frame, R[0], t[0], "telemetry", tel.h_acc, sigma_att_deg)
+
+    def drift_correction(self, frames, sigma_frames: float) -> np.ndarray:
+        """ENU offsets (n, 3) to add at these frames to what :meth:`to_enu` gives: where the GPS of the registered
+        keyframes around them (Gaussian, ``sigma_frames``) disagrees with the map after its one similarity
+        (:func:`drift_offsets`). Zero without a model, with ``sigma_frames`` 0, or while the corrections spread less
+        than DRIFT_MIN_GPS_SIGMAS x the GPS accuracy along the flight (``drift_m``)."""
+        zeros = np.zeros((len(np.atleast_1d(frames)), 3))
+        S = self.mapper.fit
+        if S is None or self.frozen is None or not sigma_frames > 0:
+            return zeros
+        model_pose = self.mapper.model_pose
+        kf = np.array([f for f in model_pose if f in self.tel and np.isfinite(self.tel[f].enu).all()], int)
+        if len(kf) < 3:
+            return zeros
+        R = np.array([model_pose[f][0] for f in kf])
+        t = np.array([model_pose[f][1] for f in kf])
+        res = np.array([self.tel[f].enu for f in kf]) - S.apply(-np.einsum("nji,nj->ni", R, t))
+        sigma = np.array([self.tel[f].h_acc for f in kf])
+        w = 1.0 / sigma**2
+        at_kf = drift_offsets(kf, res, w, kf, sigma_frames)
+        self.drift_m = float(np.linalg.norm(at_kf - np.average(at_kf, axis=0, weights=w), axis=1).max())
+        self.drift_corrected = self.drift_m >= self.DRIFT_MIN_GPS_SIGMAS * float(np.median(sigma))
+        return drift_offsets(kf, res, w, frames, sigma_frames) if self.drift_corrected else zeros
 
 
 class FloorPlane(NamedTuple):

@@ -25,40 +25,19 @@ import queue
 import threading
 import time
 from pathlib import Path
-from typing import NamedTuple
 
 import cv2
 import numpy as np
 
 from ground.poses.georeference import fit_similarity, floor_plane, georeference_poses
-from ground.poses.telemetry_poses import camera_rotations
+from ground.poses.telemetry_poses import KeyframeTelemetry, camera_rotations
 from ground.poses.registration import IncrementalRegistrar, RegistrationSettings, Submodel
 from ground.poses.restart import align_models, move_pose, move_reference
 from ground.poses.tracking import Reference
 from pomar.align import Similarity, compose, inverse
 from pomar.camera import Camera
-from pomar.telemetry.base import UNSTATED_H_ACC_M
 
 log = logging.getLogger(__name__)
-
-class KeyframeTelemetry(NamedTuple):
-    """A keyframe's telemetry as the mapper uses it (NaN where unknown)."""
-
-    enu: np.ndarray  # position, ENU (m)
-    q_gimbal: np.ndarray  # camera attitude, wxyz, NED
-    h_acc_stated: float  # horizontal accuracy as the log states it (m)
-    height: float = float("nan")  # above the take-off point (m)
-    height_acc: float = float("nan")  # its accuracy (m)
-    heading_known: bool = True  # False: the camera's heading is the track's (a fixed mount, no attitude in the log)
-
-    @property
-    def h_acc(self) -> float:
-        """The position's accuracy: the log's, else UNSTATED_H_ACC_M."""
-        return self.h_acc_stated if self.h_acc_stated > 0 else UNSTATED_H_ACC_M
-
-    @classmethod
-    def unknown(cls) -> "KeyframeTelemetry":
-        return cls(np.full(3, np.nan), np.full(4, np.nan), float("nan"))
 
 
 class Mapper:

@@ -6,6 +6,8 @@ to-camera poses whose error is the telemetry's (GPS metres, attitude fractions o
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from pomar.telemetry.tlog import read_tlog
@@ -13,6 +15,32 @@ from pomar.camera import Camera
 from pomar.flight import FlightDir
 from pomar.geo import Origin
 from pomar.rotations import camera_from_gimbal_attitude, quat_wxyz_to_rotation
+from pomar.telemetry.base import UNSTATED_H_ACC_M
+
+
+class KeyframeTelemetry(NamedTuple):
+    """A keyframe's telemetry as the mapper uses it (NaN where unknown)."""
+
+    enu: np.ndarray  # position, ENU (m)
+    q_gimbal: np.ndarray  # camera attitude, wxyz, NED
+    h_acc_stated: float  # horizontal accuracy as the log states it (m)
+    height: float = float("nan")  # above the take-off point (m)
+    height_acc: float = float("nan")  # its accuracy (m)
+    heading_known: bool = True  # False: the camera's heading is the track's (a fixed mount, no attitude in the log)
+
+    @property
+    def h_acc(self) -> float:
+        """The position's accuracy: the log's, else UNSTATED_H_ACC_M."""
+        return self.h_acc_stated if self.h_acc_stated > 0 else UNSTATED_H_ACC_M
+
+    @classmethod
+    def unknown(cls) -> "KeyframeTelemetry":
+        return cls(np.full(3, np.nan), np.full(4, np.nan), float("nan"))
+
+    def camera_pose(self, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+        """The camera's world(ENU)-to-camera pose (R, t) from this telemetry alone."""
+        R = camera_rotations(self.q_gimbal[None], camera)[0]
+        return R, -R @ self.enu
 
 
 def frame_telemetry(flight: FlightDir, clock_offset_s: float = 0.0) -> tuple[np.ndarray, dict]:

@@ -16,11 +16,14 @@ next mapping keyframe: when the share of the newest reference's points it still 
 from __future__ import annotations
 
 import logging
+import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
+from ground.poses.telemetry_poses import KeyframeTelemetry
 from pomar.camera import Camera
 
 log = logging.getLogger(__name__)
@@ -181,3 +184,197 @@ class Tracker:
         # the references' points are kept (a frame that cannot be tracked, e.g. blurred, may be followed by one that
         # can); the motion goes on from the last poses known
         return TrackResult(frame, None, None, 0, 0.0, True, why)
+
+
+class ImageTracking:
+    """The frames' images, in frame order, to the tracker and the mapper: each image is tracked against the
+    keyframes the mapper has handed over up to its frame, and proposed to the mapper when the tracker asks for a
+    keyframe; until the first model, images go to the mapper ``init_spacing_s`` apart in capture time (its baseline).
+    ``telemetry`` maps a frame to its :class:`KeyframeTelemetry`, as the mapper is handed it."""
+
+    #: Images kept while the first model is made; beyond, they are dropped (their frames get telemetry poses).
+    MAX_WAITING = 300
+    #: How long an image that could not be tracked waits for the mapper's answer on it, at most.
+    MAX_RETRY_WAIT_S = 30.0
+
+    def __init__(self, camera: Camera, mapper, telemetry: dict, settings: TrackingSettings | None = None,
+                 init_spacing_s: float = 0.0):
+        self.cam = camera  # the keyframes' camera: images are taken to its size
+        self.mapper = mapper
+        self.tel = telemetry
+        self.tracker = Tracker(camera, settings)
+        self.init_spacing_s = init_spacing_s
+        self._t_init = float("-inf")  # capture time of the last image handed to the mapper for the first model
+        self.tracked: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # tracked frames, model frame
+        self.failed_frames: list[int] = []  # frames with an image that tracking could not place
+        self.processed = -1  # the newest frame whose image went through tracking
+        self._last_image = -1
+        self._untracked: deque[tuple[int, np.ndarray]] = deque()  # images waiting to be tracked, in frame order
+        self._refs: deque = deque()  # keyframes handed over that the images have not reached yet
+        self.first_ref = self._last_ref = None  # frames of the first and the newest keyframe handed over
+        self._retry: int | None = None  # an image that could not be tracked, waiting for the mapper to map it
+        self._retry_since = 0.0
+        self.retried = 0  # images tracked again once the mapper had mapped them
+        self._due: tuple[int, np.ndarray] | None = None  # a keyframe waiting for the mapper to be free
+        self.waits_for_mapper = 0  # times the frames waited for the mapper (it fell behind the flight)
+        self.seconds = {"tracking": 0.0, "mapping_inline": 0.0}
+
+    def add_jpeg(self, frame: int, jpeg: bytes, t_capture: float = float("nan")) -> bool:
+        """A frame's image as the stream sends it (JPEG); False, and nothing done, if it does not decode."""
+        img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        if img is None:
+            return False
+        self.add_image(frame, img, t_capture)
+        return True
+
+    def add_image(self, frame: int, image_bgr: np.ndarray, t_capture: float = float("nan")) -> None:
+        """A frame's image, in frame order: tracked against the map once there is one (until then it waits, and goes
+        to the mapper if it was taken ``init_spacing_s`` or more after the last one it went: the first model needs a
+        baseline); proposed to the mapper when the tracker asks for a keyframe."""
+        if frame <= self._last_image:
+            log.warning("image of frame %d arrived after frame %d's: skipped", frame, self._last_image)
+            return
+        self._last_image = frame
+        if image_bgr.shape[1] != self.cam.width:
+            image_bgr = cv2.resize(image_bgr, (self.cam.width, self.cam.height), interpolation=cv2.INTER_AREA)
+        self._untracked.append((frame, image_bgr))
+        if self.mapper.reference() is None and not t_capture - self._t_init < self.init_spacing_s:  # NaN: mapped
+            self._t_init = t_capture
+            self._map(frame, image_bgr)
+        self.catch_up()
+
+    def _map(self, frame: int, image_bgr: np.ndarray) -> None:
+        t0 = time.perf_counter()
+        self.mapper.add(frame, image_bgr, self.tel.get(frame, KeyframeTelemetry.unknown()))
+        self.seconds["mapping_inline"] += time.perf_counter() - t0
+
+    def _collect_references(self) -> None:
+        """Keep each keyframe the mapper hands over, in order, until the images reach it."""
+        ref = self.mapper.reference()
+        if ref is not None and (self._last_ref is None or ref.frame > self._last_ref):
+            self.first_ref = ref.frame if self.first_ref is None else self.first_ref
+            self._last_ref = ref.frame
+            self._refs.append(ref)
+
+    def catch_up(self) -> None:
+        """Track the images waiting, in order, once the mapper has handed over a keyframe; drop them if the first
+        model never came (their frames then get telemetry poses). An image is tracked against the keyframes handed
+        over up to its own frame, never a later one (the motion prediction would run backwards)."""
+        self._collect_references()
+        if self.first_ref is None:
+            tried = self.mapper.attempts >= self.mapper.settings.first_model_tries
+            if tried or len(self._untracked) > self.MAX_WAITING:
+                while self._untracked:
+                    self.processed = self._untracked.popleft()[0]
+            return
+        while self._untracked:
+            if self._due is not None:  # a keyframe the mapper was too busy to take: the frames wait until it can
+                if self.mapper.busy():
+                    return
+                self._map(*self._due)
+                self._due = None
+            frame, image_bgr = self._untracked[0]
+            if frame == self._retry and self._waiting_for_mapper(frame):
+                return  # the frames after it wait too: they are tracked in order
+            self._untracked.popleft()
+            if frame < self.first_ref:  # before the first keyframe handed over: tracked against the first model's nearest
+                self.processed = frame
+                self._track_early(frame, image_bgr)
+                continue
+            t0 = time.perf_counter()
+            self._collect_references()
+            while self._refs and self._refs[0].frame <= frame:
+                self.tracker.set_reference(self._refs.popleft())
+            grey = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY) if image_bgr.ndim == 3 else image_bgr
+            r = self.tracker.track(frame, grey)
+            self.seconds["tracking"] += time.perf_counter() - t0
+            if r.R is None and frame != self._retry and frame > self.mapper.processed:
+                # the map did not reach this frame (mapping fell behind, or the view changed fast): the frame goes to
+                # the mapper, and it and the frames after it wait for the answer, then it is tracked again
+                self._map(frame, image_bgr)
+                self._retry, self._retry_since = frame, time.monotonic()
+                self._untracked.appendleft((frame, image_bgr))
+                log.info("frame %d: tracking failed (%s); waiting for the mapper", frame, r.why)
+                continue
+            self.processed = frame
+            if frame == self._retry:
+                self._retry = None
+                self.retried += 1
+            self._record(r)
+            # while the mapper is at work on the last proposal, a frame is not proposed, unless the map is falling
+            # behind (then it is due, and the frames after it wait); never one older than what it has mapped already
+            if r.R is not None and r.keyframe and frame > self.mapper.processed:
+                if not self.mapper.busy():
+                    self._map(frame, image_bgr)
+                elif r.share < self.tracker.s.min_share_to_go_on:
+                    self._due = (frame, image_bgr)
+                    self.waits_for_mapper += 1
+
+    def _waiting_for_mapper(self, frame: int) -> bool:
+        """Whether the mapper has yet to answer for the frame it was handed when tracking failed (at most
+        MAX_RETRY_WAIT_S: a mapping process that died must not hold the flight)."""
+        self._collect_references()
+        if self.mapper.processed >= frame or not self.mapper.alive:
+            return False
+        if time.monotonic() - self._retry_since > self.MAX_RETRY_WAIT_S:
+            log.warning("frame %d: no answer from the mapper in %.0f s; the frame goes on untracked", frame,
+                        self.MAX_RETRY_WAIT_S)
+            return False
+        return True
+
+    def _track_early(self, frame: int, image_bgr: np.ndarray) -> None:
+        """A frame before the first reference: tracked from the keyframes of the first model on either side of it
+        (the pose between them is where tracking starts)."""
+        refs = self.mapper.first_references
+        if not refs or frame in self.mapper.model_pose:
+            return
+        # the nearest keyframe before and after it: their points, and a motion between them to start from
+        before = [r for r in refs if r.frame < frame]
+        after = [r for r in refs if r.frame > frame]
+        near = ([max(before, key=lambda r: r.frame)] if before else []) + ([min(after, key=lambda r: r.frame)]
+                                                                             if after else [])
+        tracker = Tracker(self.cam, self.tracker.s)
+        for ref in near:
+            tracker.set_reference(ref)
+        grey = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY) if image_bgr.ndim == 3 else image_bgr
+        self._record(tracker.track(frame, grey))
+
+    def _record(self, r: TrackResult) -> None:
+        """A frame's tracking result: its pose, or a flag (the frame then gets an interpolated or telemetry pose)."""
+        if r.R is not None:
+            self.tracked[r.frame] = (r.R, r.t)
+        else:
+            self.failed_frames.append(r.frame)
+            log.info("frame %d: tracking failed (%s)", r.frame, r.why)
+
+    def settle(self) -> None:
+        """The end of the flight: let the mapper finish what it was handed, and track the images still waiting."""
+        while True:
+            self.mapper.wait()
+            if self.first_ref is None:
+                self._bootstrap_rest()
+            waiting = len(self._untracked)
+            self.catch_up()
+            if not self._untracked or (len(self._untracked) == waiting and not self.mapper.busy()):
+                return
+
+    def _bootstrap_rest(self) -> None:
+        """The flight ended before the first model: the images the mapper had no time for go to it now, in order, one
+        at a time, until it makes one (or has had its chances)."""
+        for frame, image_bgr in list(self._untracked):
+            if self.mapper.reference() is not None or self.mapper.attempts >= self.mapper.settings.first_model_tries:
+                break
+            if frame > self.mapper.processed:
+                self._map(frame, image_bgr)
+                self.mapper.wait()
+
+    def drop_waiting(self) -> None:
+        """A ground told to stop: the images waiting to be tracked are dropped (their frames take interpolated or
+        telemetry poses), so that what is left takes no time."""
+        while self._untracked:
+            self.processed = self._untracked.popleft()[0]
+
+    def forget_before(self, frame: int) -> None:
+        """Drop the tracked poses older than ``frame`` (memory stays bounded over long flights)."""
+        for f in [f for f in self.tracked if f < frame]:
+            del self.tracked[f]
