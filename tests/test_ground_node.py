@@ -784,15 +784,18 @@ def test_one_lock_step_stream_gives_the_same_map_through_every_entry_point(repla
                         "--out", str(tmp_path / "replay"), "--quiet"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    onboard = subprocess.Popen([sys.executable, "-m", "onboard", "run", str(flight), "--listen", endpoint,
-                                "--detector", "truth-replay", "--wait-for-ground", "30", "--linger", "3"],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        g = subprocess.run([sys.executable, "-m", "ground", "run", "--flight-id", replay_test_flight.meta().flight_id,
-                            "--connect", endpoint, "--out", str(tmp_path / "run"), "--fresh", "--idle-timeout", "60"],
-                           capture_output=True, text=True, timeout=600)
-    finally:
-        onboard.wait(60)
+    onboard_log = tmp_path / "onboard.log"
+    with open(onboard_log, "w") as olog:
+        onboard = subprocess.Popen([sys.executable, "-m", "onboard", "run", str(flight), "--listen", endpoint,
+                                    "--detector", "truth-replay", "--wait-for-ground", "30", "--linger", "3"],
+                                   stdout=olog, stderr=subprocess.STDOUT)
+        try:
+            g = subprocess.run([sys.executable, "-m", "ground", "run", "--flight-id",
+                                replay_test_flight.meta().flight_id, "--connect", endpoint, "--out",
+                                str(tmp_path / "run"), "--fresh", "--idle-timeout", "60"],
+                               capture_output=True, text=True, timeout=600)
+        finally:
+            onboard.wait(60)
     assert g.returncode == 0, g.stderr[-2000:]
     assert "profile lockstep, from the stream" in g.stderr
     p = subprocess.run([sys.executable, "-m", "ground", "replay", str(flight), "--recorded",
@@ -801,7 +804,12 @@ def test_one_lock_step_stream_gives_the_same_map_through_every_entry_point(repla
     assert p.returncode == 0, p.stderr[-2000:]
     first = (tmp_path / "replay" / "apples.csv").read_bytes()
     assert first.count(b"\n") > 5
-    assert (tmp_path / "run" / "apples.csv").read_bytes() == first
+    # a load-dependent mismatch was seen once (2026-11-27, not reproduced): what each side received says why
+    def why() -> str:
+        return (json.dumps(json.loads((tmp_path / "run" / "report.json").read_text()).get("frames"))
+                + "\n--- ground run ---\n" + g.stderr[-3000:] + "\n--- onboard run ---\n"
+                + onboard_log.read_text()[-2000:])
+    assert (tmp_path / "run" / "apples.csv").read_bytes() == first, why()
     assert (tmp_path / "played" / "apples.csv").read_bytes() == first
     assert json.loads((tmp_path / "run" / "report.json").read_text())["registration"]["mapping"] == "inline"
 
