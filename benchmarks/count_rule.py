@@ -34,7 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ground.evaluation.scoring import label_candidates  # noqa: E402
+from ground.evaluation.scoring import detected, label_candidates, stream_detections  # noqa: E402
 from pomar.countable import MIN_VISIBLE  # noqa: E402
 from pomar.flight import FlightDir, FlightFormatError  # noqa: E402
 
@@ -60,23 +60,15 @@ def features(cands: list[dict]) -> np.ndarray:
 def strong_views(flight: FlightDir, journal: Path, apple_ids: np.ndarray, score: float) -> list[list[int]]:
     """Per apple (``apple_ids``): the frames of its countable views (at least MIN_VISIBLE visible) in which the stream
     carries a detection scored ``score`` or more whose box centre lies within the apple's radius (at least 2 px)."""
-    from ground.link.journal import read_journal
-    from pomar import wire
     from pomar.countable import visible
 
-    boxes = {}
-    for payload in read_journal(journal):
-        m = wire.decode(payload)
-        if isinstance(m, wire.FrameMessage):
-            b = np.asarray(m.boxes, float).reshape(-1, 4)[np.asarray(m.scores, float) >= score]
-            boxes[m.frame] = np.column_stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2])
     d = flight.truth_detections()
     want = visible(d["visible_fraction"]) & np.isin(d["apple_id"], apple_ids)
+    d = {k: np.asarray(d[k])[want] for k in ("frame", "apple_id", "u", "v", "r_px")}
+    found = detected(d, stream_detections(journal, score))
     frames: dict[int, list[int]] = {int(a): [] for a in apple_ids}
-    for f, a, u, v, r in zip(*(np.asarray(d[k])[want] for k in ("frame", "apple_id", "u", "v", "r_px"))):
-        c = boxes.get(int(f))
-        if c is not None and len(c) and np.hypot(c[:, 0] - u, c[:, 1] - v).min() <= max(r, 2.0):
-            frames[int(a)].append(int(f))
+    for f, a in zip(d["frame"][found], d["apple_id"][found]):
+        frames[int(a)].append(int(f))
     return [frames[int(a)] for a in apple_ids]
 
 

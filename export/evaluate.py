@@ -74,11 +74,15 @@ def evaluate(model=None, add256=None, sim_flights=(), sim_every: int = 5, min_vi
 
 def print_table(res: dict):
     print(f"model {res['model']}  (score threshold {res['score_thresh']})")
-    print(f"{'dataset':<16}{'images':>7}{'apples':>8}{'AP50':>7}{'P':>7}{'R':>7}{'F1':>7}{'s/img':>8}")
+    print(f"{'dataset':<16}{'images':>7}{'apples':>8}{'AP50':>7}{'P':>7}{'R':>7}{'F1':>7}{'s/img':>8}{'partial':>9}")
     for k, m in res.items():
         if isinstance(m, dict):
+            partial = f"{m['ignored_found']:>9.3f}" if "ignored_found" in m else f"{'-':>9}"
             print(f"{k:<16}{m['images']:>7}{m['apples']:>8}{m['ap50']:>7.3f}{m['precision']:>7.3f}"
-                  f"{m['recall']:>7.3f}{m['f1']:>7.3f}{m['seconds_per_image']:>8.3f}")
+                  f"{m['recall']:>7.3f}{m['f1']:>7.3f}{m['seconds_per_image']:>8.3f}{partial}")
+    if any(isinstance(m, dict) and "ignored_found" in m for m in res.values()):
+        print("partial: the share of the apples less visible than the definition asks (the ignored ones) that a "
+              "detection at the threshold finds")
 
 
 def choose_threshold(model, samples, name: str) -> float:

@@ -45,10 +45,26 @@ def match_image(boxes, scores, truth, ignore=None, iou_thresh: float = 0.5):
     return scores[keep], tp[keep]
 
 
+def ignored_found(boxes, scores, truth, ignore, score_thresh: float, iou_thresh: float = 0.5) -> int:
+    """How many ignore boxes (apples less visible than the definition asks) a detection at ``score_thresh`` or more
+    finds (IoU ``iou_thresh``) that matched no truth box: the partial apples a detector finds at its operating point."""
+    if ignore is None or not len(ignore):
+        return 0
+    keep = np.asarray(scores, np.float64).reshape(-1) >= score_thresh
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 4)[keep]
+    truth = np.asarray(truth, np.float64).reshape(-1, 4)
+    if len(truth) and len(boxes):
+        boxes = boxes[iou(boxes, truth).max(1) < iou_thresh]  # those that found a countable apple do not count here
+    if not len(boxes):
+        return 0
+    return int((iou(np.asarray(ignore, np.float64).reshape(-1, 4), boxes).max(1) >= iou_thresh).sum())
+
+
 def evaluate_detections(predictions, truths, score_thresh: float, iou_thresh: float = 0.5) -> dict:
-    """``predictions``: [(boxes, scores)]; ``truths``: [(boxes, ignore_boxes_or_None)] per image."""
+    """``predictions``: [(boxes, scores)]; ``truths``: [(boxes, ignore_boxes_or_None)] per image. With ignore boxes,
+    ``ignored_found`` is the share of them a detection at ``score_thresh`` finds (:func:`ignored_found`)."""
     all_s, all_tp = [], []
-    n_truth = 0
+    n_truth = n_ignore = n_ignore_found = 0
     tp_at = fp_at = 0
     for (boxes, scores), (truth, ignore) in zip(predictions, truths, strict=True):
         truth = np.asarray(truth, np.float64).reshape(-1, 4)
@@ -61,6 +77,9 @@ def evaluate_detections(predictions, truths, score_thresh: float, iou_thresh: fl
         s2, tp2 = match_image(np.asarray(boxes).reshape(-1, 4)[keep], np.asarray(scores)[keep], truth, ignore, iou_thresh)
         tp_at += int(tp2.sum())
         fp_at += int((~tp2).sum())
+        if ignore is not None:
+            n_ignore += len(np.asarray(ignore).reshape(-1, 4))
+            n_ignore_found += ignored_found(boxes, scores, truth, ignore, score_thresh, iou_thresh)
     s = np.concatenate(all_s) if all_s else np.zeros(0)
     tp = np.concatenate(all_tp) if all_tp else np.zeros(0, bool)
     ap = average_precision(s, tp, n_truth)
@@ -68,7 +87,8 @@ def evaluate_detections(predictions, truths, score_thresh: float, iou_thresh: fl
     recall = tp_at / max(n_truth, 1)
     f1 = 2 * precision * recall / max(precision + recall, 1e-12)
     return {"ap50": round(ap, 4), "precision": round(precision, 4), "recall": round(recall, 4), "f1": round(f1, 4),
-            "images": len(truths), "apples": n_truth, "score_thresh": score_thresh}
+            "images": len(truths), "apples": n_truth, "score_thresh": score_thresh,
+            **({"ignored": n_ignore, "ignored_found": round(n_ignore_found / n_ignore, 4)} if n_ignore else {})}
 
 
 def average_precision(scores: np.ndarray, tp: np.ndarray, n_truth: int) -> float:

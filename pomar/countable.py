@@ -3,9 +3,10 @@ share of its disc not hidden by leaves, branches or other apples) in at least MI
 
 - The simulator's truth counts these (``countable_ids``); ``ground replay``'s scoring, ``ground evaluate``,
   ``export evaluate`` and the benchmarks score against them.
-- The detector is taught the same: in simulated frames an apple at least MIN_VISIBLE visible is a box to find, one
-  between IGNORE_ABOVE and MIN_VISIBLE is neither found nor missed (no loss either way), one less visible is
-  background.
+- The detector is taught the same: in simulated frames an apple at least MIN_VISIBLE visible is a box to find, and
+  any less visible apple is background (``export/train.py`` has no ignore regions). Its scores (``export evaluate``)
+  leave the apples between IGNORE_ABOVE and MIN_VISIBLE out, neither found nor missed, and say what share of them it
+  finds (``partial``).
 - MIN_VIEWS: fewer views cannot be triangulated by the paper's RANSAC (three at least).
 
 MIN_VISIBLE is the scoring threshold every figure so far was measured at. ADD256's annotators circled apples about
@@ -21,7 +22,8 @@ import numpy as np
 MIN_VISIBLE = 0.5
 #: ... and in the flight when it does in at least this many frames.
 MIN_VIEWS = 3
-#: In training, apples less visible than MIN_VISIBLE but at least this visible are ignored (neither found nor missed).
+#: In the detector's scores, apples less visible than MIN_VISIBLE but at least this visible are ignored (neither found nor
+#: missed); training takes them as background.
 IGNORE_ABOVE = 0.05
 
 

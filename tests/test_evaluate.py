@@ -12,7 +12,7 @@ import pytest
 
 from ground.apples.association import AssociationParams
 from ground.evaluation.evaluate import Perturbation, evaluate, truth_detections
-from ground.evaluation.scoring import match
+from ground.evaluation.scoring import detected, match
 from ground.apples.rows import direction_rows, kmeans_rows, row_direction
 from tests.conftest import BUNDLED
 
@@ -42,6 +42,15 @@ def test_match_is_one_to_one_within_radius():
     pred = np.array([[0.01, 0, 0], [0.02, 0, 0], [1.5, 0, 0], [2.05, 0, 0]])
     p, t, d = match(pred, truth, 0.1)
     assert sorted(t.tolist()) == [0, 2] and len(set(p.tolist())) == 2 and (d <= 0.1).all()
+
+
+def test_a_detection_finds_the_apple_its_centre_lies_in():
+    """scoring.detected: a truth apple in a frame is found when a detection's centre lies within its radius, or 2 px
+    for a tiny one; a frame the stream does not carry finds nothing."""
+    d = {"frame": np.array([0, 0, 0, 1]), "u": np.array([10.0, 50.0, 80.0, 10.0]), "v": np.full(4, 10.0),
+         "r_px": np.array([5.0, 1.0, 5.0, 5.0])}
+    centres = {0: np.array([[12.0, 11.0], [51.5, 10.0], [86.0, 10.0]])}
+    assert detected(d, centres).tolist() == [True, True, False, False]
 
 
 def test_perturbation_is_deterministic_and_does_what_it_says(bundled_flight):

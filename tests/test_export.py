@@ -29,6 +29,10 @@ def test_metrics_ap_and_ignore():
     ig = (np.vstack([[50, 50, 60, 60], truth]), np.array([0.95, 0.9, 0.8]))
     m = evaluate_detections([ig], [(truth, ignore)], 0.5)
     assert m["ap50"] == pytest.approx(1.0) and m["precision"] == 1.0
+    # ... but it is a partial apple found: counted apart, at the threshold only
+    assert m["ignored"] == 1 and m["ignored_found"] == 1.0
+    assert evaluate_detections([ig], [(truth, ignore)], 0.99)["ignored_found"] == 0.0
+    assert "ignored_found" not in evaluate_detections([ig], [(truth, None)], 0.5)
     assert iou(truth, truth).diagonal() == pytest.approx([1, 1])
 
 

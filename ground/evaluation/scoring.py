@@ -287,6 +287,32 @@ def label_candidates(flight: FlightDir, out: Path, min_visible: float = MIN_VISI
             "found": np.isin(countable, apple_id), "views": views[np.searchsorted(ids, countable)]}
 
 
+def stream_detections(journal: Path, score: float) -> dict[int, np.ndarray]:
+    """Per frame, the box centres (n, 2) of the detections scored ``score`` or more that a recorded stream (a ground's
+    journal.bin) carries, in the frame's pixels."""
+    from ground.link.journal import read_journal
+    from pomar import wire
+
+    out = {}
+    for payload in read_journal(journal):
+        m = wire.decode(payload)
+        if isinstance(m, wire.FrameMessage):
+            b = np.asarray(m.boxes, float).reshape(-1, 4)[np.asarray(m.scores, float) >= score]
+            out[m.frame] = np.column_stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2])
+    return out
+
+
+def detected(truth_detections: dict, centres: dict[int, np.ndarray]) -> np.ndarray:
+    """For each row of a flight's truth detections (an apple in a frame): whether one of the frame's detection centres
+    (:func:`stream_detections`) lies within the apple's radius (2 px at least)."""
+    d = truth_detections
+    found = np.zeros(len(d["frame"]), bool)
+    for k, (f, u, v, r) in enumerate(zip(d["frame"], d["u"], d["v"], d["r_px"])):
+        c = centres.get(int(f))
+        found[k] = c is not None and len(c) and np.hypot(c[:, 0] - u, c[:, 1] - v).min() <= max(r, 2.0)
+    return found
+
+
 def evaluate_map(flight: FlightDir, out: Path, min_visible: float = MIN_VISIBLE, match_m: float = MATCH_M) -> dict:
     """Score the written apples.csv against the flight's truth (in the truth's ENU frame).
 

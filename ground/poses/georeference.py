@@ -10,6 +10,9 @@ mount on the track's heading) gives only which way is up, which a stabilised gim
 
 is minimised exactly in t, and alternately in R (weighted Procrustes over positions and axes together)
 and s (closed form), from a start on positions alone.
+
+:class:`AssociationFrame` is the frame the live association works in (the first fit, frozen) and gives each frame's
+:class:`Pose` in it; :func:`drift_offsets` takes a long map's bends back to the GPS.
 """
 
 from __future__ import annotations

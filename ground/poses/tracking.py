@@ -11,6 +11,10 @@ next mapping keyframe: when the share of the newest reference's points it still 
     tracker = Tracker(camera)                 # the keyframes' camera (their width)
     tracker.set_reference(ref)                # whenever the mapper registered a newer keyframe
     result = tracker.track(frame, grey)       # TrackResult: R, t (model frame) or None, and why
+
+:class:`ImageTracking` feeds it: the frames' images in frame order, each tracked against the keyframes handed over up
+to its frame, proposed to the mapper when the tracker asks for a keyframe, held while the mapper answers for one it
+could not track.
 """
 
 from __future__ import annotations

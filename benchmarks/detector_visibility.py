@@ -1,0 +1,92 @@
+"""How visible an apple must be for the detector to find it at the count's score: from recorded streams, nothing run.
+
+    python benchmarks/detector_visibility.py --replay out/bench/generalisation/np0/tune-1 out/sim/tune-1 \\
+        --replay out/bench/generalisation/np0/tune-2 out/sim/gen/tune-2 ...
+
+For every apple in every frame of each simulated flight (its truth detections, with the share of the apple not hidden),
+whether the stream the ground received (the replay's journal.bin) carries a detection scored at the count's
+confirm_score or more whose box centre lies within the apple's radius (ground.evaluation.scoring.detected). The table
+gives the share found per band of visibility, over all flights and per flight, and the visibility at which half are
+found: the threshold the detector applies in effect, to set beside the definition's MIN_VISIBLE (pomar.countable).
+Accuracy only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from ground.apples.counting import CountingSettings  # noqa: E402
+from ground.evaluation.scoring import detected, stream_detections  # noqa: E402
+from pomar.countable import IGNORE_ABOVE, MIN_VISIBLE  # noqa: E402
+from pomar.flight import FlightDir, FlightFormatError  # noqa: E402
+
+EDGES = [IGNORE_ABOVE, 0.2, 0.3, 0.4, MIN_VISIBLE, 0.6, 0.7, 0.8, 0.9, 1.0 + 1e-9]
+
+
+def found_by_visibility(flight: FlightDir, journal: Path, score: float) -> tuple[np.ndarray, np.ndarray]:
+    """(visible fraction, found) for each apple in each frame of the flight that the stream carries."""
+    d = flight.truth_detections()
+    centres = stream_detections(journal, score)
+    keep = np.isin(d["frame"], list(centres))
+    d = {k: np.asarray(d[k])[keep] for k in ("frame", "u", "v", "r_px", "visible_fraction")}
+    return d["visible_fraction"], detected(d, centres)
+
+
+def half_found(vis: np.ndarray, found: np.ndarray) -> float:
+    """The visibility at which the share found crosses one half (linear between the bands' middles); NaN if never."""
+    mids, share = [], []
+    for lo, hi in zip(EDGES[:-1], EDGES[1:]):
+        sel = (vis >= lo) & (vis < hi)
+        if sel.sum() >= 20:
+            mids.append((lo + min(hi, 1.0)) / 2)
+            share.append(found[sel].mean())
+    for (x0, y0), (x1, y1) in zip(zip(mids, share), zip(mids[1:], share[1:])):
+        if y0 < 0.5 <= y1:
+            return float(x0 + (0.5 - y0) * (x1 - x0) / (y1 - y0))
+    return float("nan")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--replay", nargs=2, action="append", metavar=("REPLAY", "FLIGHT"), required=True, type=Path,
+                    help="a replay folder (its journal.bin) and the simulated flight it replayed (repeatable)")
+    ap.add_argument("--score", type=float, default=CountingSettings.confirm_score,
+                    help="the score a detection needs (default: the count's confirm_score)")
+    a = ap.parse_args(argv)
+    for out, path in a.replay:  # every input checked before any work: one line naming what is wrong
+        try:
+            FlightDir(path).meta()
+        except FlightFormatError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        if not (out / "journal.bin").is_file():
+            print(f"error: {out / 'journal.bin'}: no recorded stream there", file=sys.stderr)
+            return 2
+    per = {}
+    for out, path in a.replay:
+        per[path.name] = found_by_visibility(FlightDir(path), out / "journal.bin", a.score)
+        print(f"{path.name}: {len(per[path.name][0])} apples in frames read", file=sys.stderr, flush=True)
+    allv = np.concatenate([v for v, _ in per.values()])
+    allf = np.concatenate([f for _, f in per.values()])
+    bands = [f"{lo:.2f}-{min(hi, 1.0):.2f}" for lo, hi in zip(EDGES[:-1], EDGES[1:])]
+    print(f"share of the apples in a frame found at score >= {a.score} (apples in the band), by visible share")
+    print(f"{'flight':<14}" + "".join(f"{b:>13}" for b in bands) + f"{'half at':>9}")
+    for name, (v, f) in [*per.items(), ("all", (allv, allf))]:
+        cells = []
+        for lo, hi in zip(EDGES[:-1], EDGES[1:]):
+            sel = (v >= lo) & (v < hi)
+            cells.append(f"{f[sel].mean():>6.2f} ({sel.sum():>4})" if sel.any() else f"{'-':>13}")
+        print(f"{name:<14}" + "".join(f"{c:>13}" for c in cells) + f"{half_found(v, f):>9.2f}")
+    print(f"the definition: an apple counts in a frame at {MIN_VISIBLE} visible (pomar.countable.MIN_VISIBLE)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
