@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from onboard.loop import Capture, publish_frames, sent_keyframe_width, telemetry_record
+from onboard.loop import Capture, camera_message, publish_frames, telemetry_record
 from pomar.telemetry import TelemetryLog
 from onboard.node import KeyframePolicy
 from onboard.numbering import FrameNumbers
@@ -112,9 +112,8 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
     """Run until the source ends, ``max_frames`` frames were processed or ``duration_s`` passed. ``state_dir``: where
     the frame numbers are kept across a restart of the node (onboard.numbering); None: not kept."""
     cam = Camera.from_dict(camera)
-    publisher.publish(wire.CameraMessage(flight_id, drone_id, camera, play_fps or 0.0, time.time(),
-                                         sent_keyframe_width(keyframe_width, cam.width), paced=True,
-                                         min_apple_radius_px=getattr(detector, "min_apple_radius_px", None) or 0.0))
+    publisher.publish(camera_message(flight_id, drone_id, camera, cam.width, play_fps or 0.0, time.time(),
+                                     keyframe_width, True, detector))
     numbers = FrameNumbers(Path(state_dir) / f"{flight_id}-{drone_id}.json" if state_dir else None)
     frames = LiveFrames(camera_url, telemetry, cam.fx, clock_offset_s, telemetry_max_wait_s, play_fps, numbers)
     scaling = policy_for(detector, detector_scale)

@@ -43,6 +43,16 @@ def sent_keyframe_width(width: int, image_width: int) -> int:
     return min(width, image_width) if width else image_width
 
 
+def camera_message(flight_id: str, drone_id: str, camera: dict, image_width: int, fps: float, start_unix: float,
+                   keyframe_width: int, paced: bool, detector) -> wire.CameraMessage:
+    """The message that opens a drone's stream, the same from every source: its camera (camera.json's content), frame
+    rate, start, the keyframes' width, whether frames come at the video's pace, and the detector's envelope (the
+    smallest apple radius it finds reliably, 0 where its model does not say)."""
+    return wire.CameraMessage(flight_id, drone_id, camera, fps, start_unix,
+                              sent_keyframe_width(keyframe_width, image_width), paced=paced,
+                              min_apple_radius_px=getattr(detector, "min_apple_radius_px", None) or 0.0)
+
+
 def encode_jpeg(img: np.ndarray, width: int, quality: int) -> bytes:
     import cv2
 

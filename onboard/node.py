@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from onboard.loop import Capture, publish_frames, sent_keyframe_width, telemetry_record
+from onboard.loop import Capture, camera_message, publish_frames, telemetry_record
 from onboard.sources import LatestFrame, SourceError, VideoSource
 from pomar.telemetry import Flags, TelemetryError, read_log
 from pomar import wire
@@ -164,10 +164,8 @@ class OnboardNode:
     def run(self) -> dict:
         meta, cam, t_frames, tel = self.inputs or self.check_inputs()
         scaling = policy_for(self.detector, self.s.detector_scale)  # the detector may come after check_inputs()
-        self.pub.publish(wire.CameraMessage(meta.flight_id, meta.drone_id, cam.to_dict(), meta.fps, meta.video_start_utc,
-                                            sent_keyframe_width(self.s.keyframe_width, cam.width),
-                                            paced=self.s.realtime,
-                                            min_apple_radius_px=getattr(self.detector, "min_apple_radius_px", None) or 0.0))
+        self.pub.publish(camera_message(meta.flight_id, meta.drone_id, cam.to_dict(), cam.width, meta.fps,
+                                        meta.video_start_utc, self.s.keyframe_width, self.s.realtime, self.detector))
         frames = RecordedFrames(self.flight.video, t_frames, tel, self.s.every, meta.frame_count, meta.fps,
                                 not self.s.realtime, started_at=self.s.camera_started_at)
         pacer = scaling.pacer() if self.s.realtime else None  # live: enlarge frames only while there is time

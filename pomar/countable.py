@@ -22,8 +22,8 @@ import numpy as np
 MIN_VISIBLE = 0.5
 #: ... and in the flight when it does in at least this many frames.
 MIN_VIEWS = 3
-#: In the detector's scores, apples less visible than MIN_VISIBLE but at least this visible are ignored (neither found nor
-#: missed); training takes them as background.
+#: In the detector's scores, apples less visible than MIN_VISIBLE but at least this visible are ignored (neither
+#: found nor missed); training takes them as background.
 IGNORE_ABOVE = 0.05
 
 

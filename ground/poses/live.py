@@ -162,7 +162,8 @@ class LivePoses:
         ab = self._neighbours(frame, kf_sorted) if own is None else None
         between = None if ab is None else (ab[0], self._model_frame_pose(ab[0], model_pose),
                                            ab[1], self._model_frame_pose(ab[1], model_pose))
-        return self.assoc.frame_pose(frame, own, between, self.tel.get(frame), self.cam, float(np.degrees(self.sigma_att)))
+        return self.assoc.frame_pose(frame, own, between, self.tel.get(frame), self.cam,
+                                     float(np.degrees(self.sigma_att)))
 
     # -- corrections of poses already given
     #: A frame is corrected by keyframes at most this many frames away.
