@@ -1,11 +1,14 @@
-"""How visible an apple must be for the detector to find it at the count's score: from recorded streams, nothing run.
+"""How visible an apple must be for the detector to find it at the count's score.
 
     python benchmarks/detector_visibility.py --replay out/bench/generalisation/np0/tune-1 out/sim/tune-1 \\
         --replay out/bench/generalisation/np0/tune-2 out/sim/gen/tune-2 ...
+    python benchmarks/detector_visibility.py --flight out/sim/tune-1 --flight out/sim/gen/tune-2 [--model M.onnx]
 
 For every apple in every frame of each simulated flight (its truth detections, with the share of the apple not hidden),
-whether the stream the ground received (the replay's journal.bin) carries a detection scored at the count's
-confirm_score or more whose box centre lies within the apple's radius (ground.evaluation.scoring.detected). The table
+whether a detection scored at the count's confirm_score or more has its box centre within the apple's radius
+(ground.evaluation.scoring.detected): the detections the ground received (``--replay``: the replay's journal.bin,
+nothing run), or a model's (``--flight``: an ONNX model run on every ``--every``-th frame, scaled as the onboard node
+scales them; to judge a candidate before it ships). The table
 gives the share found per band of visibility, over all flights and per flight, and the visibility at which half are
 found: the threshold the detector applies in effect, to set beside the definition's MIN_VISIBLE (pomar.countable).
 Accuracy only.
@@ -39,6 +42,26 @@ def found_by_visibility(flight: FlightDir, journal: Path, score: float) -> tuple
     return d["visible_fraction"], detected(d, centres)
 
 
+def model_found_by_visibility(flight: FlightDir, det, scaling, score: float, every: int):
+    """(visible fraction, found) for each apple in every ``every``-th frame of the flight, detected by ``det`` (an
+    onboard.detector.OnnxDetector) at the scale ``scaling`` (pomar.apple_scale) gives each frame."""
+    from pomar.apple_scale import flight_radius_px
+    from pomar.video import iter_frames
+
+    radius = flight_radius_px(flight)
+    centres = {}
+    for idx, bgr in iter_frames(flight.video):
+        if idx % every:
+            continue
+        b, s = det.detect(idx, bgr, scale=scaling.scale(float(radius[idx])))
+        b = np.asarray(b, float).reshape(-1, 4)[np.asarray(s) >= score]
+        centres[idx] = np.column_stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2])
+    d = flight.truth_detections()
+    keep = np.isin(d["frame"], list(centres))
+    d = {k: np.asarray(d[k])[keep] for k in ("frame", "u", "v", "r_px", "visible_fraction")}
+    return d["visible_fraction"], detected(d, centres)
+
+
 def half_found(vis: np.ndarray, found: np.ndarray) -> float:
     """The visibility at which the share found crosses one half (linear between the bands' middles); NaN if never."""
     mids, share = [], []
@@ -55,11 +78,23 @@ def half_found(vis: np.ndarray, found: np.ndarray) -> float:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--replay", nargs=2, action="append", metavar=("REPLAY", "FLIGHT"), required=True, type=Path,
+    ap.add_argument("--replay", nargs=2, action="append", metavar=("REPLAY", "FLIGHT"), default=[], type=Path,
                     help="a replay folder (its journal.bin) and the simulated flight it replayed (repeatable)")
+    ap.add_argument("--flight", action="append", default=[], type=Path,
+                    help="a simulated flight to run --model on instead (repeatable)")
+    ap.add_argument("--model", type=Path, default=None, help="with --flight: the ONNX model (default: the shipped one)")
+    ap.add_argument("--every", type=int, default=5, help="with --flight: every this many frames")
     ap.add_argument("--score", type=float, default=CountingSettings.confirm_score,
                     help="the score a detection needs (default: the count's confirm_score)")
     a = ap.parse_args(argv)
+    if not a.replay and not a.flight:
+        ap.error("give --replay REPLAY FLIGHT or --flight FLIGHT")
+    for path in a.flight:
+        try:
+            FlightDir(path).meta()
+        except FlightFormatError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     for out, path in a.replay:  # every input checked before any work: one line naming what is wrong
         try:
             FlightDir(path).meta()
@@ -73,6 +108,16 @@ def main(argv=None) -> int:
     for out, path in a.replay:
         per[path.name] = found_by_visibility(FlightDir(path), out / "journal.bin", a.score)
         print(f"{path.name}: {len(per[path.name][0])} apples in frames read", file=sys.stderr, flush=True)
+    if a.flight:
+        from onboard.detector import OnnxDetector
+        from pomar.apple_scale import policy_for
+
+        det = OnnxDetector(a.model)
+        scaling = policy_for(det, "auto")
+        print(f"model {det.path}", flush=True)
+        for path in a.flight:
+            per[path.name] = model_found_by_visibility(FlightDir(path), det, scaling, a.score, a.every)
+            print(f"{path.name}: {len(per[path.name][0])} apples in frames run", file=sys.stderr, flush=True)
     allv = np.concatenate([v for v, _ in per.values()])
     allf = np.concatenate([f for _, f in per.values()])
     bands = [f"{lo:.2f}-{min(hi, 1.0):.2f}" for lo, hi in zip(EDGES[:-1], EDGES[1:])]

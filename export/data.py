@@ -138,6 +138,9 @@ def load_pack(path) -> list[Sample]:
 def load_sim_frames(flight_dir, min_visible: float = MIN_VISIBLE, every: int = 1, limit: int | None = None) -> list[Sample]:
     """Whole frames of a simulated flight (or of a pack of ``save_pack``) with their truth and ignore boxes."""
     if str(flight_dir).endswith(".npz"):
+        if min_visible != MIN_VISIBLE:
+            raise DataError(f"{flight_dir}: a pack keeps the labels it was packed with (apples from {MIN_VISIBLE} "
+                            f"visible); give the flight folder to label from {min_visible}")
         return load_pack(flight_dir)[::every][:limit]
     from pomar.video import iter_frames
     from pomar.flight import FlightDir

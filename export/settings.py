@@ -8,6 +8,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from pomar.countable import MIN_VISIBLE
+
 #: The backbones ``export.model`` builds.
 BACKBONE_NAMES = ["resnet18", "resnet50", "mobilenet_v3_large"]
 
@@ -44,6 +46,9 @@ class TrainSettings:
     resume: bool = False
     #: Start from this checkpoint's weights (a .pt, or a folder of fp16 parts) with a fresh optimiser and schedule.
     init: Path | None = field(default=None, metadata={"type": Path, "metavar": "CKPT"})
+    #: Simulated apples at least this visible are boxes to find, the rest background (default: the definition's,
+    #: pomar.countable.MIN_VISIBLE; another for a study). Flight folders only: a pack keeps the labels it was packed with.
+    min_visible: float = MIN_VISIBLE
     #: Random scale range of ADD256 patches (0.45 1.3: down to the simulated flights' apple sizes; 0.8 1.25 to train
     #: for ADD256-like imagery alone).
     add256_scale: tuple[float, float] = field(default=(0.45, 1.3), metadata={"nargs": 2, "type": float,

@@ -163,7 +163,7 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
     torch.manual_seed(seed)
     add = load_add256(add256, "training")
     test = load_add256(add256, "test")
-    sim = [s for f in sim_flights for s in load_sim_frames(f)]
+    sim = [x for f in sim_flights for x in load_sim_frames(f, s.min_visible)]
     log.info("data: %d ADD256 patches, %d simulated frames (%d crops/epoch), %d test patches; %s%s, %d loader processes",
              len(add), len(sim), sim_crops if sim else 0, len(test), dev, " bfloat16 autocast" if amp else "", workers)
     plan = EpochPlan(len(add), len(sim), sim_crops, seed)
@@ -196,7 +196,8 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
     run_info = dict(backbone=backbone, fpn_channels=fpn_channels, epochs=epochs, batch=batch, lr=lr,
                     sim_crops=sim_crops, seed=seed, sim_flights=[str(f) for f in sim_flights],
                     add256_train=len(add), sim_frames=len(sim), iterations=total,
-                    init=str(init) if init is not None else None, add256_scale=list(add256_scale))
+                    init=str(init) if init is not None else None, add256_scale=list(add256_scale),
+                    min_visible=s.min_visible)
 
     def checkpoint(path):
         save_atomic({"config": config, "model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it,

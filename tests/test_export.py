@@ -220,6 +220,10 @@ def test_training_runs_with_mixed_precision_on_the_cpu_from_a_pack_and_continues
     r = train(tmp_path / "cycle2", "--init", str(tmp_path / "kept"))
     assert r.returncode == 0, r.stderr[-2000:]
     assert "initialised from" in r.stderr and "trained 3 iterations" in r.stderr
+    # a study's other visibility needs the flight's truth: a pack keeps the labels it was packed with
+    r = train(tmp_path / "v04", "--min-visible", "0.4")
+    assert r.returncode == 2 and r.stderr.startswith("error: ") and "sim.npz" in r.stderr, r.stderr[-2000:]
+    assert len(r.stderr.strip().splitlines()) == 1
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")

@@ -110,6 +110,13 @@ def test_the_detector_visibility_table_reads_the_stream_the_ground_received(repl
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "half at" in r.stdout and r.stdout.strip().splitlines()[-1].startswith("the definition")
+    # the shipped model run on the flight itself (a candidate is judged so before it ships): the same frames, so the
+    # same apples found as in the stream the replay sent
+    r2 = subprocess.run([sys.executable, "benchmarks/detector_visibility.py", "--flight", str(flight.path), "--every",
+                         "1"], capture_output=True, text=True, timeout=300)
+    assert r2.returncode == 0, r2.stderr[-2000:]
+    row = [line for line in r.stdout.splitlines() if line.startswith(flight.path.name)]
+    assert row and row == [line for line in r2.stdout.splitlines() if line.startswith(flight.path.name)]
     r = subprocess.run([sys.executable, "benchmarks/detector_visibility.py", "--replay", str(flight.path),
                         str(flight.path)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and r.stderr.startswith("error: ") and len(r.stderr.strip().splitlines()) == 1
