@@ -119,8 +119,7 @@ def test_a_rescaled_frame_gives_boxes_in_the_full_frames_pixels(bundled_flight):
     from onboard.detector import DEFAULT_MODEL, OnnxDetector
     from pomar.video import read_frame
 
-    if not DEFAULT_MODEL.is_file():
-        pytest.skip("no shipped model")
+    assert DEFAULT_MODEL.is_file(), f"{DEFAULT_MODEL} is missing from this checkout"
     det = OnnxDetector()
     assert det.apple_radius_px and 3 < det.apple_radius_px < 8  # the model says the size it detects best
     img = read_frame(bundled_flight.video, 80)
