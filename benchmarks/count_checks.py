@@ -24,9 +24,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ground.evaluation.scoring import evaluate_map  # noqa: E402
+from ground.evaluation.scoring import evaluate_map, input_problem  # noqa: E402
 from pomar.countable import MIN_VISIBLE  # noqa: E402
-from pomar.flight import FlightDir, FlightFormatError  # noqa: E402
+from pomar.flight import FlightDir  # noqa: E402
 
 APPLE_COLUMNS = ["id", "x", "y", "z", "lat", "lon", "alt", "first_frame", "last_frame"]
 
@@ -61,13 +61,9 @@ def main(argv=None) -> int:
                     help="score against apples this visible (default: pomar.countable's definition)")
     a = ap.parse_args(argv)
     for path in a.flights:  # every input checked before any work: one line naming what is wrong
-        try:
-            FlightDir(path).meta()
-        except FlightFormatError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
-        if not (a.run / path.name / "candidates.csv").is_file():
-            print(f"error: {a.run / path.name / 'candidates.csv'}: no replay of {path.name} there", file=sys.stderr)
+        problem = input_problem(path, a.run / path.name, "candidates.csv", f"no replay of {path.name} there")
+        if problem:
+            print(f"error: {problem}", file=sys.stderr)
             return 2
     work = Path(tempfile.mkdtemp(prefix="pomar-checks-"))
     print(f"{'flight':<14} {'size':>5} {'views':>5} {'F1':>6} {'count':>6} {'truth':>6} {'err %':>7} {'worst row':>9}")

@@ -34,9 +34,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ground.evaluation.scoring import detected, label_candidates, stream_detections  # noqa: E402
+from ground.evaluation.scoring import detected, input_problem, label_candidates, stream_detections  # noqa: E402
 from pomar.countable import MIN_VISIBLE  # noqa: E402
-from pomar.flight import FlightDir, FlightFormatError  # noqa: E402
+from pomar.flight import FlightDir  # noqa: E402
 
 FEATURES = ["share of expected views", "strong / views", "strong / expected", "radius / median", "log strong",
             "narrow"]
@@ -100,13 +100,9 @@ def main(argv=None) -> int:
                     help="a replay's output folder and the simulated flight it replayed (at least 3)")
     a = ap.parse_args(argv)
     for out, path in a.replay:  # every input checked before any work: one line naming what is wrong
-        try:
-            FlightDir(path).meta()
-        except FlightFormatError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
-        if not (out / "candidates.csv").is_file():
-            print(f"error: {out / 'candidates.csv'}: missing (not a ground replay's output folder)", file=sys.stderr)
+        problem = input_problem(path, out, "candidates.csv", "missing (not a ground replay's output folder)")
+        if problem:
+            print(f"error: {problem}", file=sys.stderr)
             return 2
     if len(a.replay) < 3:
         print("error: --replay: give at least 3 (a rule is fitted on all but one)", file=sys.stderr)

@@ -26,9 +26,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ground.apples.counting import CountingSettings  # noqa: E402
-from ground.evaluation.scoring import detected, stream_detections  # noqa: E402
+from ground.evaluation.scoring import detected, input_problem, stream_detections  # noqa: E402
 from pomar.countable import IGNORE_ABOVE, MIN_VISIBLE  # noqa: E402
-from pomar.flight import FlightDir, FlightFormatError  # noqa: E402
+from pomar.flight import FlightDir  # noqa: E402
 
 EDGES = [IGNORE_ABOVE, 0.2, 0.3, 0.4, MIN_VISIBLE, 0.6, 0.7, 0.8, 0.9, 1.0 + 1e-9]
 
@@ -89,20 +89,11 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     if not a.replay and not a.flight:
         ap.error("give --replay REPLAY FLIGHT or --flight FLIGHT")
-    for path in a.flight:
-        try:
-            FlightDir(path).meta()
-        except FlightFormatError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
-    for out, path in a.replay:  # every input checked before any work: one line naming what is wrong
-        try:
-            FlightDir(path).meta()
-        except FlightFormatError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
-        if not (out / "journal.bin").is_file():
-            print(f"error: {out / 'journal.bin'}: no recorded stream there", file=sys.stderr)
+    # every input checked before any work: one line naming what is wrong
+    for problem in [input_problem(p) for p in a.flight] + [input_problem(p, out, "journal.bin", "no recorded stream "
+                                                                         "there") for out, p in a.replay]:
+        if problem:
+            print(f"error: {problem}", file=sys.stderr)
             return 2
     per = {}
     for out, path in a.replay:

@@ -12,7 +12,7 @@ import pytest
 
 from ground.apples.association import AssociationParams
 from ground.evaluation.evaluate import Perturbation, evaluate, truth_detections
-from ground.evaluation.scoring import detected, match
+from ground.evaluation.scoring import detected, input_problem, match
 from ground.apples.rows import direction_rows, kmeans_rows, row_direction
 from tests.conftest import BUNDLED
 
@@ -51,6 +51,16 @@ def test_a_detection_finds_the_apple_its_centre_lies_in():
          "r_px": np.array([5.0, 1.0, 5.0, 5.0])}
     centres = {0: np.array([[12.0, 11.0], [51.5, 10.0], [86.0, 10.0]])}
     assert detected(d, centres).tolist() == [True, True, False, False]
+
+
+def test_a_benchmarks_inputs_are_judged_in_one_line(tmp_path):
+    """scoring.input_problem: a folder that is no flight, and a replay folder without the file a benchmark reads, each
+    give one line naming the file; good inputs give none."""
+    assert "flight.json" in input_problem(tmp_path)
+    assert input_problem(BUNDLED, tmp_path, "journal.bin", "no recorded stream there") == \
+        f"{tmp_path / 'journal.bin'}: no recorded stream there"
+    (tmp_path / "journal.bin").write_bytes(b"")
+    assert input_problem(BUNDLED) is None and input_problem(BUNDLED, tmp_path, "journal.bin") is None
 
 
 def test_perturbation_is_deterministic_and_does_what_it_says(bundled_flight):

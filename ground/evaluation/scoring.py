@@ -287,6 +287,20 @@ def label_candidates(flight: FlightDir, out: Path, min_visible: float = MIN_VISI
             "found": np.isin(countable, apple_id), "views": views[np.searchsorted(ids, countable)]}
 
 
+def input_problem(flight: Path, replay: Path | None = None, needs: str = "", why: str = "") -> str | None:
+    """What is wrong with a benchmark's inputs, as one line (None if nothing): a simulated flight that does not read,
+    or a replay folder without the file ``needs`` (``why``: what that says about the folder)."""
+    from pomar.flight import FlightFormatError
+
+    try:
+        FlightDir(flight).meta()
+    except FlightFormatError as exc:
+        return str(exc)
+    if replay is not None and not (Path(replay) / needs).is_file():
+        return f"{Path(replay) / needs}: {why or 'missing'}"
+    return None
+
+
 def stream_detections(journal: Path, score: float) -> dict[int, np.ndarray]:
     """Per frame, the box centres (n, 2) of the detections scored ``score`` or more that a recorded stream (a ground's
     journal.bin) carries, in the frame's pixels."""
