@@ -26,25 +26,16 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ground.apples.counting import CountingSettings  # noqa: E402
-from ground.evaluation.scoring import detected, input_problem, stream_detections  # noqa: E402
+from ground.evaluation.scoring import box_centres, found_by_visibility, input_problem, stream_detections  # noqa: E402
 from pomar.countable import IGNORE_ABOVE, MIN_VISIBLE  # noqa: E402
 from pomar.flight import FlightDir  # noqa: E402
 
 EDGES = [IGNORE_ABOVE, 0.2, 0.3, 0.4, MIN_VISIBLE, 0.6, 0.7, 0.8, 0.9, 1.0 + 1e-9]
 
 
-def found_by_visibility(flight: FlightDir, journal: Path, score: float) -> tuple[np.ndarray, np.ndarray]:
-    """(visible fraction, found) for each apple in each frame of the flight that the stream carries."""
-    d = flight.truth_detections()
-    centres = stream_detections(journal, score)
-    keep = np.isin(d["frame"], list(centres))
-    d = {k: np.asarray(d[k])[keep] for k in ("frame", "u", "v", "r_px", "visible_fraction")}
-    return d["visible_fraction"], detected(d, centres)
-
-
-def model_found_by_visibility(flight: FlightDir, det, scaling, score: float, every: int):
-    """(visible fraction, found) for each apple in every ``every``-th frame of the flight, detected by ``det`` (an
-    onboard.detector.OnnxDetector) at the scale ``scaling`` (pomar.apple_scale) gives each frame."""
+def model_detections(flight: FlightDir, det, scaling, score: float, every: int) -> dict[int, np.ndarray]:
+    """Per every ``every``-th frame of the flight, the box centres of ``det``'s detections (an
+    onboard.detector.OnnxDetector) scored ``score`` or more, at the scale ``scaling`` (pomar.apple_scale) gives it."""
     from pomar.apple_scale import flight_radius_px
     from pomar.video import iter_frames
 
@@ -53,13 +44,8 @@ def model_found_by_visibility(flight: FlightDir, det, scaling, score: float, eve
     for idx, bgr in iter_frames(flight.video):
         if idx % every:
             continue
-        b, s = det.detect(idx, bgr, scale=scaling.scale(float(radius[idx])))
-        b = np.asarray(b, float).reshape(-1, 4)[np.asarray(s) >= score]
-        centres[idx] = np.column_stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2])
-    d = flight.truth_detections()
-    keep = np.isin(d["frame"], list(centres))
-    d = {k: np.asarray(d[k])[keep] for k in ("frame", "u", "v", "r_px", "visible_fraction")}
-    return d["visible_fraction"], detected(d, centres)
+        centres[idx] = box_centres(*det.detect(idx, bgr, scale=scaling.scale(float(radius[idx]))), score)
+    return centres
 
 
 def half_found(vis: np.ndarray, found: np.ndarray) -> float:
@@ -97,7 +83,7 @@ def main(argv=None) -> int:
             return 2
     per = {}
     for out, path in a.replay:
-        per[path.name] = found_by_visibility(FlightDir(path), out / "journal.bin", a.score)
+        per[path.name] = found_by_visibility(FlightDir(path), stream_detections(out / "journal.bin", a.score))
         print(f"{path.name}: {len(per[path.name][0])} apples in frames read", file=sys.stderr, flush=True)
     if a.flight:
         from onboard.detector import OnnxDetector
@@ -107,7 +93,8 @@ def main(argv=None) -> int:
         scaling = policy_for(det, "auto")
         print(f"model {det.path}", flush=True)
         for path in a.flight:
-            per[path.name] = model_found_by_visibility(FlightDir(path), det, scaling, a.score, a.every)
+            flight = FlightDir(path)
+            per[path.name] = found_by_visibility(flight, model_detections(flight, det, scaling, a.score, a.every))
             print(f"{path.name}: {len(per[path.name][0])} apples in frames run", file=sys.stderr, flush=True)
     allv = np.concatenate([v for v, _ in per.values()])
     allf = np.concatenate([f for _, f in per.values()])

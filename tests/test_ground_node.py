@@ -101,10 +101,10 @@ def test_the_candidates_are_labelled_as_the_score_counts_them(replayed_test_flig
 def test_the_detector_visibility_table_reads_the_stream_the_ground_received(replayed_test_flight):
     """benchmarks/detector_visibility.py, as a user runs it on a replay: the shipped detector finds the apples in full
     view far more often than those mostly hidden, and the table says where half are found."""
-    from benchmarks.detector_visibility import found_by_visibility
+    from ground.evaluation.scoring import found_by_visibility, stream_detections
 
     flight, out, _ = replayed_test_flight
-    vis, found = found_by_visibility(flight, out / "journal.bin", 0.9)
+    vis, found = found_by_visibility(flight, stream_detections(out / "journal.bin", 0.9))
     assert len(vis) and found[vis >= 0.8].mean() > 0.8 > 0.2 > found[vis < 0.2].mean()
     r = subprocess.run([sys.executable, "benchmarks/detector_visibility.py", "--replay", str(out), str(flight.path)],
                        capture_output=True, text=True, timeout=300)

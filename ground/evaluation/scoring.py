@@ -279,12 +279,23 @@ def label_candidates(flight: FlightDir, out: Path, min_visible: float = MIN_VISI
             continue
         uv, z = cam.project(X[k][None], R[f], t[f])
         j = there[int(np.argmin(np.hypot(d_u[there] - uv[0, 0], d_v[there] - uv[0, 1])))]
-        if z[0] > 0 and np.hypot(d_u[j] - uv[0, 0], d_v[j] - uv[0, 1]) <= max(float(d_r[j]), 2.0):
+        if z[0] > 0 and on_apple(np.hypot(d_u[j] - uv[0, 0], d_v[j] - uv[0, 1]), float(d_r[j])):
             ray_apple[k] = int(d_id[j])
             label[k] = "misplaced"
     ids, views = np.unique(d["apple_id"][np.asarray(d["visible_fraction"], float) >= min_visible], return_counts=True)
     return {"label": label, "apple_id": apple_id, "ray_apple": ray_apple, "countable": countable,
             "found": np.isin(countable, apple_id), "views": views[np.searchsorted(ids, countable)]}
+
+
+#: A point lies on an apple in an image within the apple's radius, and never less than this (px): a projection or a box
+#: centre 1–2 px off a tiny apple still means it.
+MIN_ON_APPLE_PX = 2.0
+
+
+def on_apple(dist_px, r_px):
+    """Whether points ``dist_px`` from an apple's centre in the image lie on it (its radius ``r_px``, at least
+    MIN_ON_APPLE_PX)."""
+    return np.asarray(dist_px) <= np.maximum(r_px, MIN_ON_APPLE_PX)
 
 
 def input_problem(flight: Path, replay: Path | None = None, needs: str = "", why: str = "") -> str | None:
@@ -311,20 +322,34 @@ def stream_detections(journal: Path, score: float) -> dict[int, np.ndarray]:
     for payload in read_journal(journal):
         m = wire.decode(payload)
         if isinstance(m, wire.FrameMessage):
-            b = np.asarray(m.boxes, float).reshape(-1, 4)[np.asarray(m.scores, float) >= score]
-            out[m.frame] = np.column_stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2])
+            out[m.frame] = box_centres(m.boxes, m.scores, score)
     return out
+
+
+def box_centres(boxes, scores, score: float) -> np.ndarray:
+    """The centres (n, 2) of the boxes (x0, y0, x1, y1) scored ``score`` or more."""
+    b = np.asarray(boxes, float).reshape(-1, 4)[np.asarray(scores, float).reshape(-1) >= score]
+    return np.column_stack([(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2])
 
 
 def detected(truth_detections: dict, centres: dict[int, np.ndarray]) -> np.ndarray:
     """For each row of a flight's truth detections (an apple in a frame): whether one of the frame's detection centres
-    (:func:`stream_detections`) lies within the apple's radius (2 px at least)."""
+    (:func:`box_centres`) lies on the apple (:func:`on_apple`)."""
     d = truth_detections
     found = np.zeros(len(d["frame"]), bool)
     for k, (f, u, v, r) in enumerate(zip(d["frame"], d["u"], d["v"], d["r_px"])):
         c = centres.get(int(f))
-        found[k] = c is not None and len(c) and np.hypot(c[:, 0] - u, c[:, 1] - v).min() <= max(r, 2.0)
+        found[k] = c is not None and len(c) and bool(on_apple(np.hypot(c[:, 0] - u, c[:, 1] - v).min(), r))
     return found
+
+
+def found_by_visibility(flight: FlightDir, centres: dict[int, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(visible fraction, found) for each apple in each frame that ``centres`` holds detections for (frame -> box
+    centres: a stream's, :func:`stream_detections`, or a model's)."""
+    d = flight.truth_detections()
+    keep = np.isin(d["frame"], list(centres))
+    d = {k: np.asarray(d[k])[keep] for k in ("frame", "u", "v", "r_px", "visible_fraction")}
+    return d["visible_fraction"], detected(d, centres)
 
 
 def evaluate_map(flight: FlightDir, out: Path, min_visible: float = MIN_VISIBLE, match_m: float = MATCH_M) -> dict:
