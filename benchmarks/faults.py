@@ -35,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import signal
 import socket
 import statistics
@@ -226,9 +227,18 @@ def run(flight: FlightDir, out: Path, fault: str | None, recorded: Path | None =
     seen = [line.split(": ", 1)[-1].strip() for line in err_path.read_text().splitlines()
             if " ERROR " in line or " WARNING " in line]
     res = {"fault": fault or "clean", "exit_code": ground.returncode, "fault_done": done, "user_saw": seen[:6]}
-    if (out / "report.json").is_file():
-        rep = json.loads((out / "report.json").read_text())
-        ev = evaluate_map(flight, out)
+    # map files that could not be written to the output folder are in the folder the ground names as it exits
+    rescued = Path(tempfile.gettempdir()) / f"pomar-rescue-{flight.meta().flight_id}-{ground.pid}"
+    if (rescued / "report.json").is_file():
+        res["rescued"] = True
+        shutil.rmtree(out.parent / (out.name + "-rescued"), ignore_errors=True)
+        shutil.move(str(rescued), str(out.parent / (out.name + "-rescued")))
+        scored = out.parent / (out.name + "-rescued")
+    else:
+        scored = out
+    if (scored / "report.json").is_file():
+        rep = json.loads((scored / "report.json").read_text())
+        ev = evaluate_map(flight, scored)
         res.update(f1=ev["f1"], count=ev["count"], truth=ev["truth_count"],
                    delay_p95_s=rep["timings"].get("frame_delay_p95_s"),
                    restarts=len(rep["registration"].get("mapper_restarts") or []), final=rep.get("final"),

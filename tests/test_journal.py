@@ -81,3 +81,22 @@ def test_map_files_the_disk_refuses_at_the_end_go_to_a_rescue_folder(tmp_path, m
     assert {"apples.csv", "rows.csv", "trees.csv", "poses.csv", "candidates.csv", "report.json"} <= {
         p.name for p in rescued.iterdir()}
     assert json.loads((rescued / "report.json").read_text())["link"]["outputs_rescued_to"] == str(rescued)
+
+
+@pytest.mark.skipif(not os.path.exists("/dev/full"), reason="needs /dev/full (Linux) to fill a disk")
+def test_a_recording_the_disk_refuses_leaves_the_flight_and_its_map_files(tmp_path, caplog):
+    """A rerun recording that cannot be written (its disk full from the start, here /dev/full) is a warning: the
+    flight goes on without it, and its end writes the map files and the report as ever."""
+    from ground.link.node import GroundNode
+    from pomar import wire
+
+    out = tmp_path / "out"
+    node = GroundNode(out, rrd=Path("/dev/full"))
+    cam = {"model": "PINHOLE", "width": 1280, "height": 720, "params": [1372.0, 1372.0, 640.0, 360.0]}
+    with caplog.at_level(logging.WARNING, logger="ground.link.node"):
+        node.handle(wire.CameraMessage("f", "d", cam, 10.0))
+        node.refresh()
+        rep = node.finish()
+    assert node.rr is None and any("recording" in e for e in rep["errors"])
+    assert sum("rerun recording" in r.getMessage() for r in caplog.records) == 1  # said once
+    assert json.loads((out / "report.json").read_text())["final"] is True and (out / "apples.csv").is_file()

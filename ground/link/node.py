@@ -125,7 +125,12 @@ class GroundNode:
             from ground.outputs.rerun_log import RerunLog
 
             rrd, serve, viewer = self._rr_args
-            self.rr = RerunLog(self.pipe.flight_id, rrd, serve, viewer)
+            try:
+                self.rr = RerunLog(self.pipe.flight_id, rrd, serve, viewer)
+            except Exception as exc:  # its file cannot be started (a full disk): the flight goes on without it
+                log.warning("the rerun recording %s cannot be written (%s): the flight goes on without it", rrd, exc)
+                self.errors.append(f"recording: {exc}")
+                self._rr_args = (None, serve, viewer)
         return self.rr
 
     def handle(self, msg, step: bool = True) -> None:
@@ -275,7 +280,7 @@ class GroundNode:
                       summary=summary_markdown(report, self._live),
                       trajectory_latlon=np.stack([cams["lat"], cams["lon"]], 1)[::5] if len(cams["frame"]) else None)
         self._written(lambda: write_json(out / "report.json", report))
-        if self._was_failing and self.outputs_failed is None:
+        if self._was_failing and self.outputs_failed is None and out == self.out:
             log.warning("the map files are written again")
         return report
 
@@ -395,7 +400,12 @@ class GroundNode:
         if self.pipe.poses is not None and self.pipe.poses.mapper.submodels() and not self.outputs_failed:
             self._written(self.write_model)
         if self.rr is not None:
-            self.rr.close(compact=not hurry)
+            try:
+                self.rr.close(compact=not hurry)
+            except Exception as exc:  # its writer stopped (a full disk): what it wrote stays a readable recording
+                log.warning("the rerun recording could not be written to the end (%s): it holds the flight up to where "
+                            "it stopped", exc)
+                self.errors.append(f"recording: {exc}")
         return report
 
     def _rescue(self) -> dict:
