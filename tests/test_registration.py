@@ -270,3 +270,33 @@ def test_sift_on_a_shrunk_keyframe_gives_keyframe_pixels():
     # SIFT's scale comes back in keyframe pixels too
     ratio = kp[[m.queryIdx for m in good], 2] / full_kp[[m.trainIdx for m in good], 2]
     assert 0.8 < np.median(ratio) < 1.25, np.median(ratio)
+
+
+def test_a_mapper_without_a_folder_maps_in_memory_as_on_disk(reg_base, tmp_path):
+    """A full disk starts the mapper again without a folder (``workdir`` None): its database in memory, no keyframe
+    images kept. It places the keyframes exactly as the mapper with a folder does, and writes nothing."""
+    from ground.poses.mapping import Mapper, is_disk_full
+    from pomar.camera import Camera
+    from pomar.flight import FlightDir
+    from pomar.video import iter_frames
+
+    fl = FlightDir(reg_base)
+    cam = Camera.load(fl.path / "camera.json")
+    tel = (np.full(3, np.nan), np.full(4, np.nan), 2.0)
+    on_disk, in_memory = Mapper(cam, cam, tmp_path / "work"), Mapper(cam, cam, None)
+    try:
+        for f, img in iter_frames(fl.video):
+            if f < 12:
+                on_disk.add(f, img, tel)
+                in_memory.add(f, img, tel)
+        assert in_memory.registrar.db_path == ":memory:" and len(in_memory.model_pose) >= 8
+        assert sorted(in_memory.model_pose) == sorted(on_disk.model_pose)
+        for f, (R, t) in on_disk.model_pose.items():
+            assert np.allclose(in_memory.model_pose[f][0], R, atol=1e-9) and np.allclose(in_memory.model_pose[f][1], t,
+                                                                                         atol=1e-9)
+        assert (tmp_path / "work" / "database.db").is_file() and list(tmp_path.iterdir()) == [tmp_path / "work"]
+    finally:
+        on_disk.close()
+        in_memory.close()
+    assert is_disk_full(RuntimeError("[database_sqlite.cc:1296] SQLite error: database or disk is full"))
+    assert is_disk_full(OSError(28, "No space left on device")) and not is_disk_full(OSError(13, "Permission denied"))

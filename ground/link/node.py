@@ -427,6 +427,9 @@ class GroundNode:
 
         poses = self.pipe.poses
         for k, sm in enumerate(poses.mapper.submodels()):
+            if sm.rec is None and sm.path is None:  # mapped in memory (its disk was full): only its poses came back
+                log.warning("sub-model %d was mapped in memory: its model files cannot be written", k)
+                continue
             d = self.out / "model" / str(k)
             d.mkdir(parents=True, exist_ok=True)
             rec = pycolmap.Reconstruction(sm.reconstruction())

@@ -17,11 +17,13 @@ and the pose interface read: the registered poses it moved, the fit, the referen
 from __future__ import annotations
 
 import bisect
+import errno
 import logging
 import multiprocessing as mp
 import multiprocessing.connection
 import os
 import queue
+import sys
 import threading
 import time
 from pathlib import Path
@@ -73,6 +75,7 @@ class Mapper:
         self._moved_all = (0, 0)  # the registrar's re-anchorings and global refinements, as last seen
         self.moved: set[int] = set()  # keyframes whose poses changed since take_moved
         self.scale_source = "positions"  # what scales the georeference: the GPS positions, or the heights (_refit)
+        self.disk_full = False  # a keyframe failed because the mapping folder's disk is full
 
     # -- inputs
     def busy(self) -> bool:
@@ -114,6 +117,7 @@ class Mapper:
         except Exception as exc:  # one keyframe that breaks the mapper must not stop the flight
             log.warning("keyframe %d failed to register: %s", frame, exc)
             self.registrar.failed.append(frame)
+            self.disk_full = self.disk_full or is_disk_full(exc)
             ok = False
         self.processed = frame
         if not ok:
@@ -293,6 +297,16 @@ class Mapper:
         return out
 
 
+#: The exit code of a mapping process whose folder's disk is full (ENOSPC): it is started again in memory.
+DISK_FULL_EXIT = errno.ENOSPC
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """Whether an error is a full disk: an OSError with ENOSPC, or SQLite's (through pycolmap) 'database or disk is
+    full'."""
+    return (isinstance(exc, OSError) and exc.errno == errno.ENOSPC) or "disk is full" in str(exc)
+
+
 def _exit_with_parent() -> None:
     """Stop this process as soon as the ground that started it is gone, even in the middle of a job: the pipe's EOF
     is only read between jobs, and one registration can take many seconds."""
@@ -343,10 +357,18 @@ def _serve(jobs, results) -> None:
                      "ref": m.reference() if ok else None, "points": points, "stats": m.stats(),
                      "first_refs": m.first_references if ok and first else None,
                      "processed": m.processed, "attempts": m.attempts})
+        if m.disk_full and workdir is not None:  # the ground starts another, in memory, from the last keyframes
+            log.error("the mapping folder's disk is full (%s): this mapping process stops", workdir)
+            results.close()
+            results.join_thread()
+            sys.exit(DISK_FULL_EXIT)
     m.close()
     points = m.sparse_points()
     subs = []
     for k, sm in enumerate(m.registrar.submodels):
+        if workdir is None:  # in memory (a full disk): the poses come back, the model files cannot be written
+            subs.append(Submodel(None, sm.names, sm.to_first, None, sm.cam_from_world()))
+            continue
         if sm.rec is not None:
             sm.offload(Path(workdir) / "submodels" / str(k))
         subs.append(Submodel(None, sm.names, sm.to_first, sm.path, sm._frozen))
@@ -445,6 +467,7 @@ class MapperProcess:
         self.died: dict | None = None
         #: Each restart: when, why, and whether (and how well) its model was placed in the old frame.
         self.restarts: list[dict] = []
+        self.in_memory = False  # mapping without a folder, since its disk was found full
         self._recent: list[tuple] = []  # the last RESEND keyframe jobs sent
         self._to_old: Similarity | None = None  # a restarted process's frame -> the map's frame, once known
         self._new_pose: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # its poses in its own frame, until then
@@ -558,9 +581,13 @@ class MapperProcess:
         """A new mapping process, given the last keyframes first; the old one's unanswered keyframes are lost."""
         n = len(self.restarts) + 1
         kf_camera, camera, workdir, *rest = self._config
+        if death["exit_code"] == DISK_FULL_EXIT and not self.in_memory:
+            self.in_memory = True
+            log.error("the mapping folder's disk is full (%s): mapping goes on in memory; the model files will not be "
+                      "written", workdir)
         worker = MappingWorker()
         self._proc, self._results, self._outbox = worker.proc, worker.inbox, worker.outbox
-        self._outbox.put((kf_camera, camera, str(Path(workdir) / f"restart-{n}"), *rest))
+        self._outbox.put((kf_camera, camera, None if self.in_memory else str(Path(workdir) / f"restart-{n}"), *rest))
         self._base_attempts = self.attempts
         self._earlier_stats = dict(self._stats)
         self.answered = self.sent
@@ -570,6 +597,7 @@ class MapperProcess:
         self._to_old, self._new_pose, self._new_ref = None, {}, None
         self._map_before, self._new_frames = set(self.model_pose), set()
         self.restarts.append({**death, "restart": n, "at_keyframe": self.processed, "resent": len(resend),
+                              "in_memory": self.in_memory,
                               "placed": None if self._map_before else "no map before it: its model is the map"})
         log.error("the mapping process died (exit code %s) after %d keyframes; started again (restart %d of at most "
                   "%d) with the last %d keyframes, to be placed in the map's frame by those both models hold",

@@ -188,24 +188,27 @@ class SiftExtractor:
 
 
 class IncrementalRegistrar:
-    def __init__(self, camera: Camera, workdir: str | Path, settings: RegistrationSettings | None = None,
+    def __init__(self, camera: Camera, workdir: str | Path | None, settings: RegistrationSettings | None = None,
                  sigma_att_deg: float = 0.5):
         """sigma_att_deg: the telemetry's attitude error, which weighs the axes in placing a re-joined sub-model (the
         same as in georeferencing)."""
         self.cam, self.s = camera, settings or RegistrationSettings()
         self.sigma_att = np.radians(sigma_att_deg)
-        self.work = Path(workdir)
-        if self.work.exists():
-            shutil.rmtree(self.work)
-        (self.work / "images").mkdir(parents=True)
-        self.db_path = self.work / "database.db"
+        # workdir None: everything in memory (a full disk), the database included; no keyframe images are kept and
+        # finished sub-models stay in memory
+        self.work = Path(workdir) if workdir is not None else None
+        if self.work is not None:
+            if self.work.exists():
+                shutil.rmtree(self.work)
+            (self.work / "images").mkdir(parents=True)
+        self.db_path = self.work / "database.db" if self.work is not None else ":memory:"
         self.names: list[str] = []  # every keyframe, in order
         self.frame_of: dict[str, int] = {}
         self.submodels: list[Submodel] = []
         self.failed: list[int] = []
         self.seconds: list[float] = []
         self.stage_seconds: list[tuple[float, float, float]] = []  # features, matching, mapping
-        self.places = Places(self.work / "places", radius=self.s.revisit_radius, min_gap=self.s.revisit_min_gap)
+        self.places = Places(self.work / "places" if self.work is not None else None, radius=self.s.revisit_radius, min_gap=self.s.revisit_min_gap)
         self.priors: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}  # keyframe -> (ENU centre, R, sigma m)
         self._image_ids: dict[str, int] = {}
         self._revisit_matches: dict[str, list[tuple[str, np.ndarray]]] = {}  # new keyframe -> (earlier one, matches)
@@ -397,7 +400,8 @@ class IncrementalRegistrar:
         chain breaks. ``features``: its SIFT features if they were extracted elsewhere (:class:`SiftExtractor`)."""
         t0 = time.perf_counter()
         name = f"{frame:06d}.jpg"
-        cv2.imwrite(str(self.work / "images" / name), image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        if self.work is not None:
+            cv2.imwrite(str(self.work / "images" / name), image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
         features = self._extract(name, image_bgr, features)
         t1 = time.perf_counter()
         self._order[name] = len(self.names)
@@ -449,7 +453,7 @@ class IncrementalRegistrar:
         if self.submodels:
             self._keep_anchors(len(self.submodels) - 1, self.submodels[-1])
         self.submodels.append(sm)
-        for k, old in enumerate(self.submodels[:-self.s.keep_submodels]):
+        for k, old in enumerate(self.submodels[:-self.s.keep_submodels] if self.work is not None else []):
             if old.rec is not None:
                 old.offload(self.work / "submodels" / str(k))
         for n in sm.names:

@@ -26,18 +26,20 @@ from pomar.align import Similarity, umeyama
 
 
 class Places:
-    def __init__(self, folder: str | Path, radius: float = 0.2, max_angle_deg: float = 40.0, min_gap: int = 8,
+    def __init__(self, folder: str | Path | None, radius: float = 0.2, max_angle_deg: float = 40.0, min_gap: int = 8,
                  max_near: int = 2):
-        """radius: how far apart two keyframes' look points may be, as a share of the new one's viewing depth;
-        min_gap: keyframes nearer than this in order are the recent chain's, already matched."""
-        self.folder = Path(folder)
+        """folder: where the anchors go (None: they stay in memory); radius: how far apart two keyframes' look points
+        may be, as a share of the new one's viewing depth; min_gap: keyframes nearer than this in order are the recent
+        chain's, already matched."""
+        self.folder = Path(folder) if folder is not None else None
+        self._in_memory: dict[int, dict] = {}  # sub-model -> its anchors' arrays, without a folder
         self.radius, self.cos_max, self.min_gap, self.max_near = radius, np.cos(np.radians(max_angle_deg)), min_gap, max_near
         self.names: list[str] = []
         self._row: dict[str, int] = {}
         self._order: list[int] = []
         self._look = np.zeros((0, 3))
         self._axis = np.zeros((0, 3))
-        self._file: dict[str, tuple[int, Path]] = {}  # keyframe -> (its finished sub-model, that sub-model's anchors)
+        self._file: dict[str, tuple[int, Path | None]] = {}  # keyframe -> (its finished sub-model, its anchors' file)
         self._cache: tuple[Path, dict] | None = None
 
     def __contains__(self, name: str) -> bool:
@@ -67,13 +69,17 @@ class Places:
 
     def keep_anchors(self, submodel: int, anchors: dict[str, tuple[np.ndarray, np.ndarray]]) -> None:
         """A finished sub-model's keyframes: their keypoint indices with a 3-D point, and the points (its frame)."""
-        self.folder.mkdir(parents=True, exist_ok=True)
-        path = self.folder / f"{submodel}.npz"
         arrays = {}
         for name, (idx, X) in anchors.items():
             arrays[f"{name}.idx"] = np.asarray(idx, np.int32)
             arrays[f"{name}.X"] = np.asarray(X, np.float32)
-        np.savez(path, **arrays)
+        if self.folder is None:
+            self._in_memory[submodel] = arrays
+            path = None
+        else:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            path = self.folder / f"{submodel}.npz"
+            np.savez(path, **arrays)
         for name in anchors:
             self._file[name] = (submodel, path)
 
@@ -81,6 +87,9 @@ class Places:
         if name not in self._file:
             return None
         k, path = self._file[name]
+        if path is None:
+            z = self._in_memory[k]
+            return k, z[f"{name}.idx"], z[f"{name}.X"].astype(float)
         if self._cache is None or self._cache[0] != path:
             self._cache = (path, np.load(path))  # lazy: each keyframe's arrays are read when asked for
         z = self._cache[1]
