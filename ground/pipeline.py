@@ -149,10 +149,14 @@ class GroundPipeline:
 
     def _take_status(self, msg: wire.StatusMessage) -> None:
         """The drone's newest status (an older one, from its history, changes nothing). A status that starts at
-        another frame than the one before is a node started again mid-flight: said once per restart, and counted."""
+        another frame than the one before is a node started again mid-flight: said once per restart, and counted. So is
+        the first status heard, where frames before the one it starts at came (sent by a node before it, whose statuses
+        were lost: the link drops what it cannot carry)."""
         if self.status is not None and msg.t < self.status.t:
             return
-        if self.status is not None and msg.first_frame != self.status.first_frame:
+        a = self.arrivals
+        if (msg.first_frame != self.status.first_frame if self.status is not None
+                else msg.first_frame > 0 and a.arrived_from(0) > a.arrived_from(msg.first_frame)):
             self._counts["onboard_restarts"] += 1
             log.warning("the drone's onboard node started again: it sends from frame %d on (frames not sent meanwhile "
                         "are gaps); the flight goes on", msg.first_frame)

@@ -37,3 +37,24 @@ def test_frames_that_come_back_after_a_link_outage_wait_for_their_keyframes():
     assert a.stalled()
     a.take(_keyframe(10))
     assert not a.stalled()
+
+
+def test_a_restarted_node_is_counted_from_the_frames_when_the_statuses_before_it_were_lost(tmp_path):
+    """The link may drop statuses: the first one heard can be a restarted node's. Frames before the one it starts at
+    came from a node before it, so it counts as a restart; one that starts at the first frame heard does not."""
+    from ground.pipeline import GroundPipeline
+
+    def pipe_with(frames):
+        pipe = GroundPipeline(tmp_path)
+        for f in frames:
+            pipe.arrivals.take(_frame(f))
+        return pipe
+
+    pipe = pipe_with([*range(10), *range(12, 20)])
+    pipe._take_status(wire.StatusMessage("flight", "drone", time.time(), 8, 8, state="finished", first_frame=12))
+    assert pipe.counters["onboard_restarts"] == 1
+    pipe._take_status(wire.StatusMessage("flight", "drone", time.time() + 1, 8, 8, state="finished", first_frame=12))
+    assert pipe.counters["onboard_restarts"] == 1  # the same node again
+    late_ground = pipe_with(range(12, 20))  # nothing came before the node's first frame
+    late_ground._take_status(wire.StatusMessage("flight", "drone", time.time(), 8, 8, first_frame=12))
+    assert late_ground.counters["onboard_restarts"] == 0
