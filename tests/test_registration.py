@@ -274,8 +274,10 @@ def test_sift_on_a_shrunk_keyframe_gives_keyframe_pixels():
 
 def test_a_mapper_without_a_folder_maps_in_memory_as_on_disk(reg_base, tmp_path):
     """A full disk starts the mapper again without a folder (``workdir`` None): its database in memory, no keyframe
-    images kept. It places the keyframes exactly as the mapper with a folder does, and writes nothing."""
+    images kept, finished sub-models and their anchors in memory. Over a chain of sub-models it places the keyframes
+    exactly as the mapper with a folder does (which writes the older sub-models to it), and writes nothing."""
     from ground.poses.mapping import Mapper, is_disk_full
+    from ground.poses.registration import RegistrationSettings
     from pomar.camera import Camera
     from pomar.flight import FlightDir
     from pomar.video import iter_frames
@@ -283,13 +285,16 @@ def test_a_mapper_without_a_folder_maps_in_memory_as_on_disk(reg_base, tmp_path)
     fl = FlightDir(reg_base)
     cam = Camera.load(fl.path / "camera.json")
     tel = (np.full(3, np.nan), np.full(4, np.nan), 2.0)
-    on_disk, in_memory = Mapper(cam, cam, tmp_path / "work"), Mapper(cam, cam, None)
+    s = RegistrationSettings(submodel_size=8, overlap=4, keep_submodels=1)
+    on_disk, in_memory = Mapper(cam, cam, tmp_path / "work", s), Mapper(cam, cam, None, s)
     try:
         for f, img in iter_frames(fl.video):
-            if f < 12:
-                on_disk.add(f, img, tel)
-                in_memory.add(f, img, tel)
-        assert in_memory.registrar.db_path == ":memory:" and len(in_memory.model_pose) >= 8
+            on_disk.add(f, img, tel)
+            in_memory.add(f, img, tel)
+        assert in_memory.registrar.db_path == ":memory:" and len(in_memory.model_pose) >= 20
+        kept = in_memory.registrar.submodels
+        assert len(kept) >= 4 and all(sm.rec is not None for sm in kept)
+        assert any(sm.rec is None for sm in on_disk.registrar.submodels)  # written to the folder
         assert sorted(in_memory.model_pose) == sorted(on_disk.model_pose)
         for f, (R, t) in on_disk.model_pose.items():
             assert np.allclose(in_memory.model_pose[f][0], R, atol=1e-9) and np.allclose(in_memory.model_pose[f][1], t,

@@ -26,8 +26,8 @@ from pomar.align import Similarity, umeyama
 
 
 class Places:
-    def __init__(self, folder: str | Path | None, radius: float = 0.2, max_angle_deg: float = 40.0, min_gap: int = 8,
-                 max_near: int = 2):
+    def __init__(self, folder: str | Path | None, radius: float = 0.2, max_angle_deg: float = 40.0,
+                 min_gap: int = 8, max_near: int = 2):
         """folder: where the anchors go (None: they stay in memory); radius: how far apart two keyframes' look points
         may be, as a share of the new one's viewing depth; min_gap: keyframes nearer than this in order are the recent
         chain's, already matched."""
