@@ -436,7 +436,7 @@ class MapperProcess:
     #: Times a mapping process that died is started again in one flight.
     MAX_RESTARTS = 3
     #: Keyframes kept (as sent) to give a restarted process first, so that its model overlaps the old one.
-    RESEND = 8
+    RESEND = 16
 
     def __init__(self, kf_camera: Camera, camera: Camera, workdir, settings: RegistrationSettings | None = None,
                  sigma_att_deg: float = 0.5, points_every: int = 10, worker: MappingWorker | None = None):
@@ -467,6 +467,7 @@ class MapperProcess:
         self.died: dict | None = None
         #: Each restart: when, why, and whether (and how well) its model was placed in the old frame.
         self.restarts: list[dict] = []
+        self._answered_at_restart = 0  # keyframes answered when the process last restarted
         self.in_memory = False  # mapping without a folder, since its disk was found full
         self._recent: list[tuple] = []  # the last RESEND keyframe jobs sent
         self._to_old: Similarity | None = None  # a restarted process's frame -> the map's frame, once known
@@ -590,7 +591,7 @@ class MapperProcess:
         self._outbox.put((kf_camera, camera, None if self.in_memory else str(Path(workdir) / f"restart-{n}"), *rest))
         self._base_attempts = self.attempts
         self._earlier_stats = dict(self._stats)
-        self.answered = self.sent
+        self.answered = self._answered_at_restart = self.sent
         resend, self._recent = self._recent, []
         for job in resend:
             self._put(job)
@@ -674,6 +675,8 @@ class MapperProcess:
         if self._to_old is None:
             self._new_pose.update(poses)
             self._new_ref = ref if ref is not None else self._new_ref
+            if self.answered - self._answered_at_restart < self.restarts[-1]["resent"]:
+                return {}, None, None, None  # placed by every keyframe both can hold: the more, the surer its scale
             placed = align_models(self.model_pose, self._new_pose)
             if placed is None:
                 return {}, None, None, None
