@@ -305,3 +305,29 @@ def test_a_mapper_without_a_folder_maps_in_memory_as_on_disk(reg_base, tmp_path)
         in_memory.close()
     assert is_disk_full(RuntimeError("[database_sqlite.cc:1296] SQLite error: database or disk is full"))
     assert is_disk_full(OSError(28, "No space left on device")) and not is_disk_full(OSError(13, "Permission denied"))
+
+
+def test_a_keyframe_older_than_one_handed_over_never_reaches_the_mapping_process(reg_base, tmp_path):
+    """The mapping process maps in frame order and skips a keyframe older than one it has mapped (with a warning a
+    clean flight should not show). The ground hands over none older than the newest it sent or holds."""
+    from ground.poses.mapping import MapperProcess
+    from ground.poses.registration import RegistrationSettings
+    from pomar.camera import Camera
+    from pomar.flight import FlightDir
+    from pomar.video import iter_frames
+
+    fl = FlightDir(reg_base)
+    cam = Camera.load(fl.path / "camera.json")
+    images = [img for i, img in iter_frames(fl.video) if i < 8]
+    tel = (np.full(3, np.nan), np.full(4, np.nan), 2.0)
+    live = MapperProcess(cam, cam, tmp_path / "live", RegistrationSettings(init_frames=4))
+    try:
+        for f, img in enumerate(images):
+            live.add(f, img, tel)
+        sent = live.sent
+        live.add(5, images[5], tel)  # older than keyframes sent (or held) before it
+        assert live.sent == sent
+        live.wait(120)
+        assert live.sent == sent + (sent < len(images)) and live.processed == len(images) - 1
+    finally:
+        live.close()

@@ -470,6 +470,7 @@ class MapperProcess:
         self._answered_at_restart = 0  # keyframes answered when the process last restarted
         self.in_memory = False  # mapping without a folder, since its disk was found full
         self._recent: list[tuple] = []  # the last RESEND keyframe jobs sent
+        self._newest_sent = -1  # the newest keyframe sent to the process
         self._to_old: Similarity | None = None  # a restarted process's frame -> the map's frame, once known
         self._new_pose: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # its poses in its own frame, until then
         self._new_ref: Reference | None = None
@@ -496,6 +497,11 @@ class MapperProcess:
         that starts over ground with nothing to match) this process does not spend its time on SIFT."""
         if self._closed or not self._running():
             return
+        # the process maps in frame order: behind a newer keyframe sent or held, this one would be skipped there
+        newest = max(self._newest_sent, self._held[0] if self._held is not None else -1)
+        if frame <= newest:
+            log.debug("keyframe %d not handed over: keyframe %d is newer", frame, newest)
+            return
         ok, jpeg = cv2.imencode(".jpg", image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
         self._poll()
         job = (frame, jpeg.tobytes(), tel, None)
@@ -521,7 +527,8 @@ class MapperProcess:
 
     def _send(self) -> None:
         if self._held is not None and self.answered == self.sent:
-            self._put(self._held)
+            if self._held[0] > self._newest_sent:  # else newer ones went first (the first model's tries, in order)
+                self._put(self._held)
             self._held = None
 
     def _put(self, job) -> None:
@@ -529,6 +536,7 @@ class MapperProcess:
             self._last_progress = time.monotonic()
         self._outbox.put(job)
         self.sent += 1
+        self._newest_sent = max(self._newest_sent, job[0])
         self._recent = (self._recent + [job])[-self.RESEND:]
 
     def busy(self) -> bool:
