@@ -51,6 +51,7 @@ sys.path.insert(0, str(ROOT))
 
 from ground.evaluation.scoring import evaluate_map  # noqa: E402
 from ground.link.journal import Journal, read_journal  # noqa: E402
+from ground.link.node import rescue_folder  # noqa: E402
 from ground.replay import child_pids, free_port  # noqa: E402
 from pomar import wire  # noqa: E402
 from pomar.flight import FlightDir  # noqa: E402
@@ -228,7 +229,7 @@ def run(flight: FlightDir, out: Path, fault: str | None, recorded: Path | None =
             if " ERROR " in line or " WARNING " in line]
     res = {"fault": fault or "clean", "exit_code": ground.returncode, "fault_done": done, "user_saw": seen[:6]}
     # map files that could not be written to the output folder are in the folder the ground names as it exits
-    rescued = Path(tempfile.gettempdir()) / f"pomar-rescue-{flight.meta().flight_id}-{ground.pid}"
+    rescued = rescue_folder(flight.meta().flight_id, ground.pid)
     if (rescued / "report.json").is_file():
         res["rescued"] = True
         shutil.rmtree(out.parent / (out.name + "-rescued"), ignore_errors=True)

@@ -412,7 +412,7 @@ class GroundNode:
         """The map files could not be written where asked at the flight's end (a full disk): nothing computed is lost,
         they go to a folder of the system's temporary directory (often another disk), and the report says where."""
         failed = self.outputs_failed
-        self.rescued_to = Path(tempfile.gettempdir()) / f"pomar-rescue-{self.pipe.flight_id or 'flight'}-{os.getpid()}"
+        self.rescued_to = rescue_folder(self.pipe.flight_id, os.getpid())
         report = self.refresh(final=True, out=self.rescued_to)
         if self.outputs_failed is None:
             log.warning("the map files could not be written to %s (%s): they are in %s", self.out, failed,
@@ -439,6 +439,11 @@ class GroundNode:
                 S = compose(poses.fit, sm.to_first)
                 rec.transform(pycolmap.Sim3d(S.scale, pycolmap.Rotation3d(S.R), S.t))
             rec.write_text(str(d))
+
+
+def rescue_folder(flight_id: str | None, pid: int) -> Path:
+    """Where a ground process (``pid``) writes the map files its output folder refused at the flight's end."""
+    return Path(tempfile.gettempdir()) / f"pomar-rescue-{flight_id or 'flight'}-{pid}"
 
 
 def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=None, drone_ids=None,

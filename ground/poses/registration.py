@@ -208,7 +208,8 @@ class IncrementalRegistrar:
         self.failed: list[int] = []
         self.seconds: list[float] = []
         self.stage_seconds: list[tuple[float, float, float]] = []  # features, matching, mapping
-        self.places = Places(self.work / "places" if self.work is not None else None, radius=self.s.revisit_radius, min_gap=self.s.revisit_min_gap)
+        self.places = Places(self.work / "places" if self.work is not None else None, radius=self.s.revisit_radius,
+                             min_gap=self.s.revisit_min_gap)
         self.priors: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}  # keyframe -> (ENU centre, R, sigma m)
         self._image_ids: dict[str, int] = {}
         self._revisit_matches: dict[str, list[tuple[str, np.ndarray]]] = {}  # new keyframe -> (earlier one, matches)

@@ -89,10 +89,10 @@ class Places:
         k, path = self._file[name]
         if path is None:
             z = self._in_memory[k]
-            return k, z[f"{name}.idx"], z[f"{name}.X"].astype(float)
-        if self._cache is None or self._cache[0] != path:
-            self._cache = (path, np.load(path))  # lazy: each keyframe's arrays are read when asked for
-        z = self._cache[1]
+        else:
+            if self._cache is None or self._cache[0] != path:
+                self._cache = (path, np.load(path))  # lazy: each keyframe's arrays are read when asked for
+            z = self._cache[1]
         return k, z[f"{name}.idx"], z[f"{name}.X"].astype(float)
 
 
