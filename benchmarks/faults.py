@@ -51,7 +51,7 @@ sys.path.insert(0, str(ROOT))
 
 from ground.evaluation.scoring import evaluate_map  # noqa: E402
 from ground.link.journal import Journal, read_journal  # noqa: E402
-from ground.link.node import rescue_folder  # noqa: E402
+from ground.outputs.tables import rescue_folder  # noqa: E402
 from ground.replay import child_pids, free_port  # noqa: E402
 from pomar import wire  # noqa: E402
 from pomar.flight import FlightDir  # noqa: E402

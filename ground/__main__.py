@@ -187,9 +187,13 @@ def _cmd_replay(args) -> int:
     if "evaluation" in rep:
         print("against the flight's truth:")
         print(format_evaluation(rep["evaluation"]))
-    print(f"map: {out}/apples.csv, apples.geojson (open in any GIS, e.g. QGIS or geojson.io), apples.ply, rows.csv")
+    maps = Path(rep["out"])  # out, or where the ground put the map files when out's disk refused them
+    print(f"map: {maps}/apples.csv, apples.geojson (open in any GIS, e.g. QGIS or geojson.io), apples.ply, rows.csv")
     print(f"rerun recording: {out}/flight.rrd  (open it with: rerun {out}/flight.rrd)")
-    print(f"report: {out}/report.json")
+    print(f"report: {maps}/report.json")
+    if maps != Path(out):
+        print(f"error: the map files could not be written to {out}; they are in {maps}", file=sys.stderr)
+        return 1
     if rep.get("onboard_error"):
         print(f"error: the onboard node stopped early: {rep['onboard_error']} (the map holds the frames before)",
               file=sys.stderr)

@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 from ground.evaluation.scoring import evaluate_map
+from ground.outputs.tables import rescue_folder, write_json
 from pomar.flight import FlightDir
 
 log = logging.getLogger(__name__)
@@ -144,7 +145,13 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
             if failed.is_set():
                 ground.send_signal(signal.SIGTERM)
             for line in ground.stdout:  # the ground's progress, shown and kept
-                logs["ground"].write(line)
+                if logs["ground"] is not None:
+                    try:
+                        logs["ground"].write(line)
+                    except OSError as exc:  # a full disk: shown, no longer kept
+                        log.warning("the ground's log cannot be written to %s (%s): it is shown only", out, exc)
+                        _close(logs["ground"])
+                        logs["ground"] = None
                 if not quiet:
                     sys.stderr.write(line)
                 if time.monotonic() - t0 > timeout_s:
@@ -156,7 +163,7 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
             if proc is not None:
                 stop_process(proc)
         for f in logs.values():
-            f.close()
+            _close(f)
     wall = time.monotonic() - t0
     # the onboard node failed only if it exited by itself (the watcher saw it) or said so in its summary: the exit code
     # after our own stop (SIGINT, then SIGKILL when closing its zenoh session outlasts stop_process) is not its failure
@@ -167,7 +174,13 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
     if onboard_error and not summary.get("frames_processed"):
         raise ReplayError(f"the onboard node failed before it sent a frame: {onboard_error} (log: {out / 'onboard.log'})")
     ground = procs.get("ground")
-    if ground is None or ground.returncode != 0:
+    rescued = rescue_folder(meta.flight_id, ground.pid) if ground is not None else None
+    if ground is not None and ground.returncode == 1 and (rescued / "report.json").is_file():
+        # the output folder refused the map files (a full disk): the ground wrote them there, and said so
+        log.warning("the map files are in %s, not in %s: its disk refused them; this replay's report goes there too",
+                    rescued, out)
+        out = rescued
+    elif ground is None or ground.returncode != 0:
         raise ReplayError(f"the ground node failed (exit {ground.returncode if ground else None}); see {out / 'ground.log'}")
     report = json.loads((out / "report.json").read_text())
     flight_s = meta.frame_count / meta.fps
@@ -183,7 +196,16 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
         report["onboard_error"] = onboard_error
     if flight.has_truth:
         report["evaluation"] = evaluate_map(flight, out)
-    from ground.outputs.tables import write_json
-
     write_json(out / "report.json", report)
+    report["out"] = str(out)
     return report
+
+
+def _close(f) -> None:
+    """Close a log file; what it still held for a full disk is lost, with nothing more said."""
+    if f is None:
+        return
+    try:
+        f.close()
+    except OSError:
+        pass

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import csv
 import shutil
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -272,16 +274,48 @@ def test_sift_on_a_shrunk_keyframe_gives_keyframe_pixels():
     assert 0.8 < np.median(ratio) < 1.25, np.median(ratio)
 
 
-def test_a_mapper_without_a_folder_maps_in_memory_as_on_disk(reg_base, tmp_path):
-    """A full disk starts the mapper again without a folder (``workdir`` None): its database in memory, no keyframe
-    images kept, finished sub-models and their anchors in memory. Over a chain of sub-models it places the keyframes
-    exactly as the mapper with a folder does (which writes the older sub-models to it), and writes nothing."""
-    from ground.poses.mapping import Mapper, is_disk_full
-    from ground.poses.registration import RegistrationSettings
+#: Maps the flight (argv 1) in the folder argv 2 with every file it writes limited to argv 3 bytes (a disk that fills:
+#: SQLite and numpy's writes fail beyond it), then writes its poses and what its registrar says to argv 4.
+_LIMITED_MAPPER = """
+import pickle, resource, signal, sys
+from pathlib import Path
+import numpy as np
+from ground.poses.mapping import Mapper
+from ground.poses.registration import RegistrationSettings
+from pomar.camera import Camera
+from pomar.flight import FlightDir
+from pomar.video import iter_frames
+
+fl = FlightDir(Path(sys.argv[1]))
+cam = Camera.load(fl.path / "camera.json")
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails (EFBIG) instead of killing
+resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[3]), resource.RLIM_INFINITY))
+m = Mapper(cam, cam, sys.argv[2], RegistrationSettings(submodel_size=8, overlap=4, keep_submodels=1))
+for f, img in iter_frames(fl.video):
+    m.add(f, img, (np.full(3, np.nan), np.full(4, np.nan), 2.0))
+m.close()
+resource.setrlimit(resource.RLIMIT_FSIZE, (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
+pickle.dump({"poses": m.model_pose, "in_memory_from": m.stats()["in_memory_from"],
+             "failed": m.registrar.failed}, open(sys.argv[4], "wb"))
+"""
+
+
+def test_a_mapper_without_a_folder_or_whose_folder_refuses_writes_maps_in_memory_as_on_disk(reg_base, tmp_path):
+    """Without a folder (``workdir`` None), the mapper keeps its database, finished sub-models and their anchors in
+    memory, and no keyframe images. Where its folder refuses a write midway (a disk that fills), its database moves
+    into memory with every keyframe in it and it maps on. Over a chain of sub-models both place the keyframes exactly
+    as the mapper with a folder does (which writes the older sub-models to it)."""
+    import pickle
+
+    from ground.poses.mapping import Mapper
+    from ground.poses.registration import RegistrationSettings, write_refused
     from pomar.camera import Camera
     from pomar.flight import FlightDir
     from pomar.video import iter_frames
 
+    refusing = subprocess.Popen([sys.executable, "-c", _LIMITED_MAPPER, str(reg_base), str(tmp_path / "full"),
+                                 str(1_000_000), str(tmp_path / "full.pkl")], cwd=ROOT, stderr=subprocess.PIPE,
+                                text=True)
     fl = FlightDir(reg_base)
     cam = Camera.load(fl.path / "camera.json")
     tel = (np.full(3, np.nan), np.full(4, np.nan), 2.0)
@@ -295,16 +329,24 @@ def test_a_mapper_without_a_folder_maps_in_memory_as_on_disk(reg_base, tmp_path)
         kept = in_memory.registrar.submodels
         assert len(kept) >= 4 and all(sm.rec is not None for sm in kept)
         assert any(sm.rec is None for sm in on_disk.registrar.submodels)  # written to the folder
-        assert sorted(in_memory.model_pose) == sorted(on_disk.model_pose)
-        for f, (R, t) in on_disk.model_pose.items():
-            assert np.allclose(in_memory.model_pose[f][0], R, atol=1e-9) and np.allclose(in_memory.model_pose[f][1], t,
-                                                                                         atol=1e-9)
-        assert (tmp_path / "work" / "database.db").is_file() and list(tmp_path.iterdir()) == [tmp_path / "work"]
+        assert (tmp_path / "work" / "database.db").is_file()
+        assert not {p.name for p in tmp_path.iterdir()} - {"work", "full", "full.pkl"}  # nothing else written
+        _, err = refusing.communicate(timeout=300)
+        assert refusing.returncode == 0, err[-2000:]
+        full = pickle.loads((tmp_path / "full.pkl").read_bytes())
+        assert 0 < full["in_memory_from"] < 22, full["in_memory_from"]
+        assert "refused a write" in err and "mapping goes on in memory" in err
+        assert full["failed"] == on_disk.registrar.failed  # the keyframe in work when the disk filled registered
+        for other in (in_memory.model_pose, full["poses"]):
+            assert sorted(other) == sorted(on_disk.model_pose)
+            for f, (R, t) in on_disk.model_pose.items():
+                assert np.allclose(other[f][0], R, atol=1e-9) and np.allclose(other[f][1], t, atol=1e-9)
     finally:
         on_disk.close()
         in_memory.close()
-    assert is_disk_full(RuntimeError("[database_sqlite.cc:1296] SQLite error: database or disk is full"))
-    assert is_disk_full(OSError(28, "No space left on device")) and not is_disk_full(OSError(13, "Permission denied"))
+        refusing.kill()
+    assert write_refused(RuntimeError("[database_sqlite.cc:1296] SQLite error: database or disk is full"))
+    assert write_refused(OSError(28, "No space left on device")) and not write_refused(OSError(13, "Permission denied"))
 
 
 def test_a_keyframe_older_than_one_handed_over_never_reaches_the_mapping_process(reg_base, tmp_path):

@@ -15,7 +15,6 @@ from __future__ import annotations
 import logging
 import os
 import resource
-import tempfile
 import threading
 import time
 from collections import deque
@@ -26,8 +25,8 @@ import numpy as np
 from ground.link.envelope import ApplesSeen
 from ground.link.journal import Journal, read_journal_report
 from ground.outputs.tables import (apple_table, candidate_table, candidates_csv, harvest_correlation, pose_table,
-                                   poses_csv, read_harvest, rows_summary, write_atomic, write_json,
-                                   write_map)
+                                   poses_csv, read_harvest, rescue_folder, rows_summary, write_atomic,
+                                   write_json, write_map)
 from ground.pipeline import GroundPipeline, GroundSettings
 from pomar import wire
 
@@ -322,6 +321,9 @@ class GroundNode:
                 # new model was placed in the map's frame (keyframes shared, residuals) or null if it never was
                 "mapper_died": p.poses.mapper.died if p.poses else None,
                 "mapper_restarts": list(p.poses.mapper.restarts) if p.poses else [],
+                # the keyframe from which the mapping folder refused writes (a full disk): mapped in memory since,
+                # and those sub-models' model files are not written
+                "in_memory_from_keyframe": reg.get("in_memory_from") if reg else None,
                 # across passes: keyframes matched to earlier keyframes of the same place, re-anchorings of a
                 # sub-model onto earlier passes' points, sub-models placed by telemetry after the chain broke
                 "revisits": reg["revisits"] if reg else 0,
@@ -439,11 +441,6 @@ class GroundNode:
                 S = compose(poses.fit, sm.to_first)
                 rec.transform(pycolmap.Sim3d(S.scale, pycolmap.Rotation3d(S.R), S.t))
             rec.write_text(str(d))
-
-
-def rescue_folder(flight_id: str | None, pid: int) -> Path:
-    """Where a ground process (``pid``) writes the map files its output folder refused at the flight's end."""
-    return Path(tempfile.gettempdir()) / f"pomar-rescue-{flight_id or 'flight'}-{pid}"
 
 
 def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=None, drone_ids=None,

@@ -214,6 +214,10 @@ def summary_markdown(report: dict, live: dict) -> str:
         lines.append(f"\n**The mapping process died** (exit code {r.get('exit_code')}) after "
                      f"{r.get('keyframes_mapped', 0)} keyframes, {r.get('keyframes_lost', 0)} lost; **restarted** "
                      f"with the last {r.get('resent', 0)}: {how}")
+    if reg.get("in_memory_from_keyframe") is not None:
+        lines.append(f"\n**The mapping folder refused a write** (a full disk?) at keyframe "
+                     f"{reg['in_memory_from_keyframe']}: mapping went on in memory; the model files mapped since are "
+                     f"not written")
     link = report.get("link", {})
     onboard = report.get("onboard_status") or {}
     lines.append("")

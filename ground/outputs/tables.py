@@ -22,6 +22,7 @@ import csv
 import io
 import json
 import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -132,6 +133,11 @@ def write_atomic(path: Path, data: str | bytes) -> None:
     except OSError:
         tmp.unlink(missing_ok=True)  # a full disk: the file before stays whole, and no half-written one is left
         raise
+
+
+def rescue_folder(flight_id: str | None, pid: int) -> Path:
+    """Where a ground process (``pid``) writes the map files its output folder refused at the flight's end."""
+    return Path(tempfile.gettempdir()) / f"pomar-rescue-{flight_id or 'flight'}-{pid}"
 
 
 def write_json(path: Path, obj) -> None:

@@ -17,13 +17,11 @@ and the pose interface read: the registered poses it moved, the fit, the referen
 from __future__ import annotations
 
 import bisect
-import errno
 import logging
 import multiprocessing as mp
 import multiprocessing.connection
 import os
 import queue
-import sys
 import threading
 import time
 from pathlib import Path
@@ -75,7 +73,6 @@ class Mapper:
         self._moved_all = (0, 0)  # the registrar's re-anchorings and global refinements, as last seen
         self.moved: set[int] = set()  # keyframes whose poses changed since take_moved
         self.scale_source = "positions"  # what scales the georeference: the GPS positions, or the heights (_refit)
-        self.disk_full = False  # a keyframe failed because the mapping folder's disk is full
 
     # -- inputs
     def busy(self) -> bool:
@@ -117,7 +114,6 @@ class Mapper:
         except Exception as exc:  # one keyframe that breaks the mapper must not stop the flight
             log.warning("keyframe %d failed to register: %s", frame, exc)
             self.registrar.failed.append(frame)
-            self.disk_full = self.disk_full or is_disk_full(exc)
             ok = False
         self.processed = frame
         if not ok:
@@ -270,6 +266,7 @@ class Mapper:
         return {"keyframes_processed": len(reg.seconds), "failed": len(reg.failed), "submodels": len(reg.submodels),
                 "revisits": reg.revisits, "reanchored": reg.reanchored, "rejoined": reg.rejoined,
                 "scale_from": self.scale_source,
+                "in_memory_from": reg.in_memory_from,
                 "seconds": list(reg.seconds),
                 "stage_seconds_median": dict(zip(("features", "matching", "mapping"),
                                                  np.median(st, 0).tolist() if len(st) else [None] * 3))}
@@ -295,16 +292,6 @@ class Mapper:
             xyz = np.array([p.xyz for p in pts], float).reshape(-1, 3)
             out[k] = compose(self.fit, sm.to_first).apply(xyz)
         return out
-
-
-#: The exit code of a mapping process whose folder's disk is full (ENOSPC): it is started again in memory.
-DISK_FULL_EXIT = errno.ENOSPC
-
-
-def is_disk_full(exc: BaseException) -> bool:
-    """Whether an error is a full disk: an OSError with ENOSPC, or SQLite's (through pycolmap) 'database or disk is
-    full'."""
-    return (isinstance(exc, OSError) and exc.errno == errno.ENOSPC) or "disk is full" in str(exc)
 
 
 def _exit_with_parent() -> None:
@@ -357,21 +344,13 @@ def _serve(jobs, results) -> None:
                      "ref": m.reference() if ok else None, "points": points, "stats": m.stats(),
                      "first_refs": m.first_references if ok and first else None,
                      "processed": m.processed, "attempts": m.attempts})
-        if m.disk_full and workdir is not None:  # the ground starts another, in memory, from the last keyframes
-            log.error("the mapping folder's disk is full (%s): this mapping process stops", workdir)
-            results.close()
-            results.join_thread()
-            sys.exit(DISK_FULL_EXIT)
     m.close()
     points = m.sparse_points()
     subs = []
     for k, sm in enumerate(m.registrar.submodels):
-        if workdir is None:  # in memory (a full disk): the poses come back, the model files cannot be written
-            subs.append(Submodel(None, sm.names, sm.to_first, None, sm.cam_from_world()))
-            continue
-        if sm.rec is not None:
-            sm.offload(Path(workdir) / "submodels" / str(k))
-        subs.append(Submodel(None, sm.names, sm.to_first, sm.path, sm._frozen))
+        m.registrar.offload(k)
+        # one the folder did not take (mapped in memory): only its poses come back, its model files are not written
+        subs.append(Submodel(None, sm.names, sm.to_first, sm.path, sm.cam_from_world()))
     results.put({"closed": subs, "points": points, "stats": m.stats()})
 
 
@@ -468,7 +447,6 @@ class MapperProcess:
         #: Each restart: when, why, and whether (and how well) its model was placed in the old frame.
         self.restarts: list[dict] = []
         self._answered_at_restart = 0  # keyframes answered when the process last restarted
-        self.in_memory = False  # mapping without a folder, since its disk was found full
         self._recent: list[tuple] = []  # the last RESEND keyframe jobs sent
         self._newest_sent = -1  # the newest keyframe sent to the process
         self._to_old: Similarity | None = None  # a restarted process's frame -> the map's frame, once known
@@ -590,13 +568,9 @@ class MapperProcess:
         """A new mapping process, given the last keyframes first; the old one's unanswered keyframes are lost."""
         n = len(self.restarts) + 1
         kf_camera, camera, workdir, *rest = self._config
-        if death["exit_code"] == DISK_FULL_EXIT and not self.in_memory:
-            self.in_memory = True
-            log.error("the mapping folder's disk is full (%s): mapping goes on in memory; the model files will not be "
-                      "written", workdir)
         worker = MappingWorker()
         self._proc, self._results, self._outbox = worker.proc, worker.inbox, worker.outbox
-        self._outbox.put((kf_camera, camera, None if self.in_memory else str(Path(workdir) / f"restart-{n}"), *rest))
+        self._outbox.put((kf_camera, camera, str(Path(workdir) / f"restart-{n}"), *rest))
         self._base_attempts = self.attempts
         self._earlier_stats = dict(self._stats)
         self.answered = self._answered_at_restart = self.sent
@@ -606,7 +580,6 @@ class MapperProcess:
         self._to_old, self._new_pose, self._new_ref = None, {}, None
         self._map_before, self._new_frames = set(self.model_pose), set()
         self.restarts.append({**death, "restart": n, "at_keyframe": self.processed, "resent": len(resend),
-                              "in_memory": self.in_memory,
                               "placed": None if self._map_before else "no map before it: its model is the map"})
         log.error("the mapping process died (exit code %s) after %d keyframes; started again (restart %d of at most "
                   "%d) with the last %d keyframes, to be placed in the map's frame by those both models hold",
@@ -675,6 +648,8 @@ class MapperProcess:
         for k in self._ADDITIVE:
             out[k] = stats.get(k, 0) + self._earlier_stats.get(k, 0)
         out["seconds"] = self._earlier_stats.get("seconds", []) + list(stats.get("seconds", []))
+        if self._earlier_stats.get("in_memory_from") is not None:  # the folder refused a process before this one
+            out["in_memory_from"] = self._earlier_stats["in_memory_from"]
         return out
 
     def _to_map_frame(self, poses, fit, ref, points):

@@ -19,6 +19,7 @@ soon as it sees a place seen before: the flight stays one map.
 
 from __future__ import annotations
 
+import errno
 import logging
 import shutil
 import time
@@ -187,6 +188,20 @@ class SiftExtractor:
         return pycolmap.keypoints_to_matrix(keypoints), raw, unit_descriptors(raw)
 
 
+#: errnos of a write the folder refuses: full, a file or quota limit, read-only, failing.
+_REFUSED = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS, errno.EIO}
+#: SQLite's words (through pycolmap) for the same.
+_SQLITE_REFUSED = ("disk is full", "disk I/O error", "readonly database", "unable to open database")
+
+
+def write_refused(exc: BaseException) -> bool:
+    """Whether an error is the disk refusing a write (a full disk, a file size or quota limit, a disk gone read-only
+    or failing), from the OS or from SQLite through pycolmap."""
+    if isinstance(exc, OSError):
+        return exc.errno in _REFUSED
+    return any(w in str(exc) for w in _SQLITE_REFUSED)
+
+
 class IncrementalRegistrar:
     def __init__(self, camera: Camera, workdir: str | Path | None, settings: RegistrationSettings | None = None,
                  sigma_att_deg: float = 0.5):
@@ -194,13 +209,22 @@ class IncrementalRegistrar:
         same as in georeferencing)."""
         self.cam, self.s = camera, settings or RegistrationSettings()
         self.sigma_att = np.radians(sigma_att_deg)
-        # workdir None: everything in memory (a full disk), the database included; no keyframe images are kept and
-        # finished sub-models stay in memory
+        # workdir None: everything in memory, the database included; no keyframe images are kept and finished
+        # sub-models stay in memory. A folder whose disk refuses a write (full) is left for memory the same way
+        # (_to_memory), at the keyframe where that happened
         self.work = Path(workdir) if workdir is not None else None
+        self.in_memory_from: int | None = None  # the keyframe at which the folder refused a write
+        self.places = Places(self.work / "places" if self.work is not None else None, radius=self.s.revisit_radius,
+                             min_gap=self.s.revisit_min_gap)
         if self.work is not None:
-            if self.work.exists():
-                shutil.rmtree(self.work)
-            (self.work / "images").mkdir(parents=True)
+            try:
+                if self.work.exists():
+                    shutil.rmtree(self.work)
+                (self.work / "images").mkdir(parents=True)
+            except OSError as exc:
+                if not write_refused(exc):
+                    raise
+                self._leave_folder(exc, 0)
         self.db_path = self.work / "database.db" if self.work is not None else ":memory:"
         self.names: list[str] = []  # every keyframe, in order
         self.frame_of: dict[str, int] = {}
@@ -208,8 +232,6 @@ class IncrementalRegistrar:
         self.failed: list[int] = []
         self.seconds: list[float] = []
         self.stage_seconds: list[tuple[float, float, float]] = []  # features, matching, mapping
-        self.places = Places(self.work / "places" if self.work is not None else None, radius=self.s.revisit_radius,
-                             min_gap=self.s.revisit_min_gap)
         self.priors: dict[str, tuple[np.ndarray, np.ndarray, float]] = {}  # keyframe -> (ENU centre, R, sigma m)
         self._image_ids: dict[str, int] = {}
         self._revisit_matches: dict[str, list[tuple[str, np.ndarray]]] = {}  # new keyframe -> (earlier one, matches)
@@ -227,12 +249,22 @@ class IncrementalRegistrar:
         self._mopts.mapper.init_min_num_inliers = 50
         self._mopts.ba_min_num_residuals_for_cpu_multi_threading = self.s.ba_threads_min_residuals
         self._mopts.random_seed = 0  # RANSAC's samples the same each run
-        self._open_database()
+        self._db = None
+        try:
+            self._open_database()
+        except Exception as exc:  # a new database in a folder just made: what fails is the folder (a full disk)
+            if self.work is None:
+                raise
+            if self._db is not None:
+                self._db.close()
+            self._leave_folder(exc, 0)
+            self._open_database()
+        self._start_workers()
 
     # -- features and matches
     def _open_database(self):
         """One database for the flight: the camera and its rig once, then an image and a frame per keyframe."""
-        self._db = pycolmap.Database.open(self.db_path)
+        self._db = pycolmap.Database.open(str(self.db_path))
         self._pcam = pycolmap.Camera(model=self.cam.model, width=self.cam.width, height=self.cam.height,
                                      params=list(self.cam.params()))
         self._camera_id = self._db.write_camera(self._pcam)
@@ -241,6 +273,8 @@ class IncrementalRegistrar:
         rig = pycolmap.Rig()
         rig.add_ref_sensor(self._sensor)
         self._rig_id = self._db.write_rig(rig)
+
+    def _start_workers(self):
         self._sift = SiftExtractor(self.s)
         self._pool = ThreadPoolExecutor(2, thread_name_prefix="two-view")
         self._two_view = pycolmap.TwoViewGeometryOptions()
@@ -248,10 +282,25 @@ class IncrementalRegistrar:
         self._recent = deque(maxlen=max(self.s.match_window, 1))  # (image id, keypoint xy, unit descriptors)
         self._order: dict[str, int] = {}  # keyframe -> its place in the flight's keyframes
 
-    def _extract(self, name: str, image_bgr: np.ndarray, features: tuple[np.ndarray, np.ndarray] | None = None):
-        """The keyframe's features (``features``: already extracted with the same settings, :class:`SiftExtractor`),
-        stored in the database; (image id, keypoint xy, unit descriptors)."""
-        kp, raw, desc = self._sift(image_bgr) if features is None else (*features, unit_descriptors(features[1]))
+    def _store(self, name: str, frame: int, kp: np.ndarray, raw: np.ndarray, desc: np.ndarray, prior) -> None:
+        """The keyframe into the database: its features, then its matches."""
+        new = self._write_features(name, kp, raw, desc)
+        self._order[name] = len(self.names)
+        self.names.append(name)
+        self.frame_of[name] = frame
+        if prior is not None and all(np.isfinite(np.asarray(p, float)).all() for p in prior):
+            self.priors[name] = prior
+        self._match(name, new)
+
+    def _forget(self, name: str) -> None:
+        """Undo what _store did for a keyframe whose writes failed part way."""
+        for d in (self._image_ids, self._order, self.frame_of, self.priors, self._revisit_matches):
+            d.pop(name, None)
+        if self.names and self.names[-1] == name:
+            self.names.pop()
+
+    def _write_features(self, name: str, kp: np.ndarray, raw: np.ndarray, desc: np.ndarray):
+        """Store the keyframe's features in the database; (image id, keypoint xy, unit descriptors)."""
         descriptors = pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, raw)
         image_id = self._db.write_image(pycolmap.Image(name=name, camera_id=self._camera_id))
         frame = pycolmap.Frame(rig_id=self._rig_id)
@@ -403,14 +452,16 @@ class IncrementalRegistrar:
         name = f"{frame:06d}.jpg"
         if self.work is not None:
             cv2.imwrite(str(self.work / "images" / name), image_bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
-        features = self._extract(name, image_bgr, features)
+        kp, raw, desc = self._sift(image_bgr) if features is None else (*features, unit_descriptors(features[1]))
         t1 = time.perf_counter()
-        self._order[name] = len(self.names)
-        self.names.append(name)
-        self.frame_of[name] = frame
-        if prior is not None and all(np.isfinite(np.asarray(p, float)).all() for p in prior):
-            self.priors[name] = prior
-        self._match(name, features)
+        try:
+            self._store(name, frame, kp, raw, desc, prior)
+        except Exception as exc:
+            if self.work is None or not write_refused(exc):
+                raise
+            self._forget(name)
+            self._to_memory(exc, frame, drop=name)
+            self._store(name, frame, kp, raw, desc, prior)
         t2 = time.perf_counter()
         ok = False
         sm = self.submodels[-1] if self.submodels else None
@@ -452,14 +503,73 @@ class IncrementalRegistrar:
         """A new sub-model: the one before it is finished (its keyframes' 3-D points kept as anchors for later passes),
         and the oldest leave memory."""
         if self.submodels:
-            self._keep_anchors(len(self.submodels) - 1, self.submodels[-1])
+            self._refusable(True, self._keep_anchors, len(self.submodels) - 1, self.submodels[-1])
         self.submodels.append(sm)
-        for k, old in enumerate(self.submodels[:-self.s.keep_submodels] if self.work is not None else []):
-            if old.rec is not None:
-                old.offload(self.work / "submodels" / str(k))
+        for k in range(len(self.submodels) - self.s.keep_submodels):
+            self.offload(k)
         for n in sm.names:
             if n not in self.places:
                 self._add_place(sm, n)
+
+    def offload(self, k: int) -> None:
+        """Sub-model ``k`` to the folder, out of memory (:meth:`Submodel.offload`); it stays in memory where there
+        is no folder, or its disk refuses it."""
+        sm = self.submodels[k]
+        if sm.rec is not None and self.work is not None:
+            self._refusable(False, sm.offload, self.work / "submodels" / str(k))
+
+    def _refusable(self, again: bool, write, *args) -> None:
+        """A write to the folder; where its disk refuses it, mapping goes on in memory, and the write is done ``again``
+        there (not a sub-model's offload: it stays in memory)."""
+        try:
+            write(*args)
+        except Exception as exc:
+            if self.work is None or not write_refused(exc):
+                raise
+            self._to_memory(exc, self.frame_of.get(self.names[-1], 0) if self.names else 0)
+            if again:
+                write(*args)
+
+    def _leave_folder(self, exc: BaseException, frame: int) -> None:
+        log.error("the mapping folder %s refused a write (%s): mapping goes on in memory from keyframe %d; the "
+                  "keyframes' images, the database and the sub-models left to write are not kept there", self.work,
+                  exc, frame)
+        self.work, self.db_path, self.in_memory_from = None, ":memory:", frame
+        self.places.folder = None
+
+    def _to_memory(self, exc: BaseException, frame: int, drop: str | None = None) -> None:
+        """The folder's disk refused a write: the database moves into memory (every keyframe but ``drop``, whose
+        writes failed part way, with the same ids) and nothing more is written to the folder. Sub-models and anchors
+        already written there stay and are read as before."""
+        src = self._db
+        dropped = {im.image_id for im in src.read_all_images() if im.name == drop}
+        self._leave_folder(exc, frame)
+        dst = pycolmap.Database.open(":memory:")
+        for cam in src.read_all_cameras():
+            dst.write_camera(cam, use_camera_id=True)
+        for rig in src.read_all_rigs():
+            dst.write_rig(rig, use_rig_id=True)
+        # a keyframe whose writes failed part way is left out
+        kept = {im.image_id for im in src.read_all_images()
+                if im.image_id not in dropped and src.exists_descriptors(im.image_id)}
+        for fr in src.read_all_frames():  # each image's frame first: writing an image checks that it is there
+            if all(d.id in kept for d in fr.data_ids):
+                dst.write_frame(fr, use_frame_id=True)
+        for im in src.read_all_images():
+            if im.image_id in kept:
+                dst.write_image(im, use_image_id=True)
+                dst.write_keypoints(im.image_id, src.read_keypoints(im.image_id))
+                dst.write_descriptors(im.image_id, src.read_descriptors(im.image_id))
+        for pair_id, matches in zip(*src.read_all_matches()):
+            a, b = pycolmap.pair_id_to_image_pair(pair_id)
+            if a in kept and b in kept:
+                dst.write_matches(a, b, matches)
+        for pair_id, geom in zip(*src.read_two_view_geometries()):
+            a, b = pycolmap.pair_id_to_image_pair(pair_id)
+            if a in kept and b in kept:
+                dst.write_two_view_geometry(a, b, geom)
+        src.close()
+        self._db = dst
 
     def _keep_anchors(self, k: int, sm: Submodel) -> None:
         if sm.rec is None:
