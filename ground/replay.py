@@ -94,9 +94,13 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
     out = Path(out_dir or f"out/replay/{flight.path.name}")
     if recorded is not None and Path(recorded).resolve() == (out / "journal.bin").resolve():
         raise ReplayError(f"{recorded} is the journal this replay would write: give another --out")
-    out.mkdir(parents=True, exist_ok=True)
-    for stale in ("journal.bin", "report.json"):
-        (out / stale).unlink(missing_ok=True)
+    try:  # nothing is computed yet: an output folder it cannot write is refused at once
+        out.mkdir(parents=True, exist_ok=True)
+        for stale in ("journal.bin", "report.json"):
+            (out / stale).unlink(missing_ok=True)
+        logs = {name: open(out / f"{name}.log", "w") for name in ("onboard", "ground")}
+    except OSError as exc:
+        raise ReplayError(f"{out}: the replay cannot write there ({exc.strerror}): give another --out") from None
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     py = sys.executable
@@ -119,7 +123,6 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
         + (ground_args or [])  # lock-step (and --speed 0): mapping inline, deterministic
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     t0 = time.monotonic()
-    logs = {name: open(out / f"{name}.log", "w") for name in ("onboard", "ground")}
     (out / "onboard.json").unlink(missing_ok=True)
     onboard = subprocess.Popen(onboard_cmd, stdout=logs["onboard"], stderr=subprocess.STDOUT, env=env)
     procs: dict[str, subprocess.Popen] = {}

@@ -346,7 +346,8 @@ def test_a_mapper_without_a_folder_or_whose_folder_refuses_writes_maps_in_memory
         in_memory.close()
         refusing.kill()
     assert write_refused(RuntimeError("[database_sqlite.cc:1296] SQLite error: database or disk is full"))
-    assert write_refused(OSError(28, "No space left on device")) and not write_refused(OSError(13, "Permission denied"))
+    assert write_refused(OSError(28, "No space left on device")) and write_refused(OSError(13, "Permission denied"))
+    assert not write_refused(OSError(2, "No such file or directory")) and not write_refused(ValueError("bad image"))
 
 
 def test_a_keyframe_older_than_one_handed_over_never_reaches_the_mapping_process(reg_base, tmp_path):

@@ -70,3 +70,13 @@ def test_bad_ids_and_a_directory_as_log_are_refused_with_a_message(replay_test_f
         assert r.returncode == 2, (args, r.stderr[-1500:])
         assert "Traceback" not in r.stderr and ("orchard/north" in r.stderr or "'a/b'" in r.stderr
                                                 or "is a directory" in r.stderr), (args, r.stderr[-1500:])
+
+
+def test_an_output_folder_the_replay_cannot_write_is_refused_with_a_message(replay_test_flight, tmp_path):
+    """Nothing is computed yet: one line names the folder and why, and the replay starts nothing."""
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    r = _run("ground", "replay", str(replay_test_flight.path), "--out", str(blocker / "out"), "--detector",
+             "truth-replay", "--quiet")
+    assert r.returncode == 1 and "Traceback" not in r.stderr, r.stderr[-2000:]
+    assert f"error: {blocker / 'out'}: the replay cannot write there" in r.stderr, r.stderr[-2000:]

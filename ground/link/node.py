@@ -465,7 +465,10 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
         read = read_journal_report(journal_path)  # an unreadable journal raises before anything is overwritten
     else:
         read = None
-        journal_path.unlink(missing_ok=True)
+        try:
+            journal_path.unlink(missing_ok=True)
+        except OSError:  # a folder it cannot write (read-only): the journal says so once, and the flight goes on
+            pass
     node = GroundNode(out, settings, rrd, serve, viewer, harvest, stream=stream, progress_s=progress_s,
                       expected_frames=expected_frames)
     if read is not None:

@@ -188,15 +188,15 @@ class SiftExtractor:
         return pycolmap.keypoints_to_matrix(keypoints), raw, unit_descriptors(raw)
 
 
-#: errnos of a write the folder refuses: full, a file or quota limit, read-only, failing.
-_REFUSED = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS, errno.EIO}
+#: errnos of a write the folder refuses: full, a file or quota limit, read-only (or not ours), failing.
+_REFUSED = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO}
 #: SQLite's words (through pycolmap) for the same.
 _SQLITE_REFUSED = ("disk is full", "disk I/O error", "readonly database", "unable to open database")
 
 
 def write_refused(exc: BaseException) -> bool:
-    """Whether an error is the disk refusing a write (a full disk, a file size or quota limit, a disk gone read-only
-    or failing), from the OS or from SQLite through pycolmap."""
+    """Whether an error is the disk refusing a write (a full disk, a file size or quota limit, a folder or disk that
+    is read-only, a failing disk), from the OS or from SQLite through pycolmap."""
     if isinstance(exc, OSError):
         return exc.errno in _REFUSED
     return any(w in str(exc) for w in _SQLITE_REFUSED)
