@@ -158,7 +158,8 @@ def _cmd_replay(args) -> int:
     print()
     print(f"flight {rep['flight_id']}: {rep['apples']} apples in {len(rep['rows'])} rows; "
           f"{rep['frames']['frames']} frames ({rep['frames']['registered']} registered, "
-          f"{rep['frames'].get('tracked', 0)} tracked, {rep['frames']['interpolated']} interpolated, {rep['frames']['telemetry']} telemetry poses)")
+          f"{rep['frames'].get('tracked', 0)} tracked, {rep['frames']['interpolated']} interpolated, "
+          f"{rep['frames'].get('apples', 0)} placed by apples, {rep['frames']['telemetry']} telemetry poses)")
     for r in rep["rows"]:
         print(f"  row {r['row']}: {r['count']} apples over {r['length_m']:.1f} m")
     ob = rep.get("onboard", {})

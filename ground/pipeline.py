@@ -121,7 +121,7 @@ class GroundPipeline:
         self._mapping_worker = MappingWorker() if self.s.mapping == "process" else None
         self._kf_for_event: dict[int, bytes] = {}  # images tracked, kept for their frame's event
         self._counts = {"bad_keyframes": 0, "frames_without_pose": 0, "onboard_restarts": 0,
-                        "registered": 0, "tracked": 0, "interpolated": 0, "telemetry": 0}
+                        "registered": 0, "tracked": 0, "interpolated": 0, "apples": 0, "telemetry": 0}
         self.seconds = {"poses": 0.0, "association": 0.0, "corrections": 0.0}
         self._last_correction = -float("inf")
         self.corrections = {"rounds": 0, "frames": 0, "apples_moved": 0, "apples_merged": 0}
@@ -133,7 +133,7 @@ class GroundPipeline:
         return {**self.arrivals.counters, "bad_keyframes": c["bad_keyframes"],
                 "onboard_restarts": c["onboard_restarts"],
                 "frames_without_pose": c["frames_without_pose"], "detections": self.apples.detections,
-                **{k: c[k] for k in ("registered", "tracked", "interpolated", "telemetry")}}
+                **{k: c[k] for k in ("registered", "tracked", "interpolated", "apples", "telemetry")}}
 
     # -- inputs
     def feed(self, msg, step: bool = True) -> list[FrameEvent]:
@@ -245,6 +245,8 @@ class GroundPipeline:
                                          lambda: poses.mapper.has_model):
             f = msg.frame
             pose = poses.pose(f)
+            if pose is not None and pose.source == "telemetry":  # no image placed it: the apples it sees may
+                pose = self.apples.place(msg) or pose
             new: list[Apple] = []
             if pose is None:
                 self._counts["frames_without_pose"] += 1

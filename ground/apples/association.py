@@ -565,6 +565,16 @@ class WindowedAssociation:
                       "merged_across_passes": 0, "reposed": 0, "merged_after_repose": 0}
 
     # -- helpers
+    def landmarks(self) -> np.ndarray:
+        """The apples mapped about the newest frames, (n, 3): those emitted within the merge window, and the open
+        tracks' points (the longest of each root's hypotheses, once mature)."""
+        best: dict[int, _Track] = {}
+        for t in self.tracks:
+            if t.mature and len(t.obs) > len(best[t.root].obs if t.root in best else ()):
+                best[t.root] = t
+        pts = [a.X for a in self._recent] + [t.X for t in best.values() if t.X is not None]
+        return np.asarray(pts, float).reshape(-1, 3)
+
     def _emit(self, t: _Track) -> Apple | None:
         p = self.params
         Ps, xs = np.stack(t.Ps), np.stack(t.xs)

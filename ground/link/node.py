@@ -74,7 +74,7 @@ def rss_mb() -> float:
         return peak_rss_mb()
 
 
-POSE_SOURCES = ("registered", "tracked", "interpolated", "telemetry", "frames_without_pose")
+POSE_SOURCES = ("registered", "tracked", "interpolated", "apples", "telemetry", "frames_without_pose")
 
 
 class GroundNode:

@@ -156,7 +156,7 @@ class Pose:
     frame: int
     R: np.ndarray  # association-frame-to-camera rotation
     t: np.ndarray
-    source: str  # registered | tracked | interpolated | telemetry
+    source: str  # registered | tracked | interpolated | apples (ground.apples.landmarks) | telemetry
     sigma_m: float
     sigma_deg: float
 
