@@ -43,11 +43,11 @@ def place_by_apples(camera, centres: np.ndarray, landmarks: np.ndarray, before: 
         return None
     R0, t0 = predict(before, last)
     uv, z = camera.project(landmarks, R0, t0)
-    ok = (z > 0) & (uv[:, 0] > -GATE_PX) & (uv[:, 0] < camera.width + GATE_PX) & (uv[:, 1] > -GATE_PX) & \
+    inside = (z > 0) & (uv[:, 0] > -GATE_PX) & (uv[:, 0] < camera.width + GATE_PX) & (uv[:, 1] > -GATE_PX) & \
         (uv[:, 1] < camera.height + GATE_PX)
-    if ok.sum() < MIN_PAIRS:
+    if inside.sum() < MIN_PAIRS:
         return None
-    L, uv = landmarks[ok], uv[ok]
+    L, uv = landmarks[inside], uv[inside]
     d = np.linalg.norm(centres[:, None, :] - uv[None, :, :], axis=2)
     near_l, near_c = d.argmin(1), d.argmin(0)
     pairs = [(i, j) for i, j in enumerate(near_l) if near_c[j] == i and d[i, j] <= GATE_PX]

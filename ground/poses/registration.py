@@ -531,6 +531,7 @@ class IncrementalRegistrar:
                 write(*args)
 
     def _leave_folder(self, exc: BaseException, frame: int) -> None:
+        """Nothing more goes to the folder: said once, with the keyframe it happened at."""
         log.error("the mapping folder %s refused a write (%s): mapping goes on in memory from keyframe %d; the "
                   "keyframes' images, the database and the sub-models left to write are not kept there", self.work,
                   exc, frame)
@@ -542,7 +543,7 @@ class IncrementalRegistrar:
         writes failed part way, with the same ids) and nothing more is written to the folder. Sub-models and anchors
         already written there stay and are read as before."""
         src = self._db
-        dropped = {im.image_id for im in src.read_all_images() if im.name == drop}
+        images = src.read_all_images()
         self._leave_folder(exc, frame)
         dst = pycolmap.Database.open(":memory:")
         for cam in src.read_all_cameras():
@@ -550,12 +551,11 @@ class IncrementalRegistrar:
         for rig in src.read_all_rigs():
             dst.write_rig(rig, use_rig_id=True)
         # a keyframe whose writes failed part way is left out
-        kept = {im.image_id for im in src.read_all_images()
-                if im.image_id not in dropped and src.exists_descriptors(im.image_id)}
+        kept = {im.image_id for im in images if im.name != drop and src.exists_descriptors(im.image_id)}
         for fr in src.read_all_frames():  # each image's frame first: writing an image checks that it is there
             if all(d.id in kept for d in fr.data_ids):
                 dst.write_frame(fr, use_frame_id=True)
-        for im in src.read_all_images():
+        for im in images:
             if im.image_id in kept:
                 dst.write_image(im, use_image_id=True)
                 dst.write_keypoints(im.image_id, src.read_keypoints(im.image_id))
