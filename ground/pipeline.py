@@ -71,7 +71,7 @@ class GroundSettings:
     #: The map's drift along the flight, corrected from the GPS: each camera is moved by the GPS's disagreement with
     #: the map, a line fitted over the registered keyframes within about this much flight (Gaussian sigma, s), and each
     #: apple by its views' mean; 0 = one similarity for the whole map. Wider than the GPS error's wander (tens of
-    #: seconds), so that it stays out of the map's shape; and only where the map drifted (AssociationFrame.drift_correction).
+    #: seconds), so that it stays out of the map's shape; and only where the map drifted (AssociationFrame.correction).
     drift_sigma_s: float = 60.0
 
 

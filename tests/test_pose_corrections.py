@@ -48,7 +48,7 @@ def test_frames_follow_the_keyframes_the_mapper_moved(tmp_path):
 
 
 def test_drift_correction_applies_only_where_the_map_drifted_beyond_the_gps_wander(tmp_path):
-    """The gate of AssociationFrame.drift_correction: a map rigid within the GPS's stated accuracy is left as it is (what a
+    """The GPS's gate of AssociationFrame.correction: a map rigid within the GPS's stated accuracy is left as it is (what a
     correction would follow there is the GPS error's wander); a map that bent away from the GPS is taken back to it."""
     lp = LivePoses(Camera.from_fov(1280, 720, 50.0), tmp_path)
     try:
@@ -67,16 +67,79 @@ def test_drift_correction_applies_only_where_the_map_drifted_beyond_the_gps_wand
                                                    0.5)
 
         gps(np.zeros((len(kf), 3)))  # rigid map, 0.5-m GPS noise stated as 0.5 m
-        assert not lp.assoc.drift_correction(q, 60.0).any()
+        assert not lp.assoc.correction(q, 60.0)[0].any()
         assert not lp.assoc.drift_corrected and lp.assoc.drift_m < lp.assoc.DRIFT_MIN_GPS_SIGMAS * 0.5, lp.assoc.drift_m
 
         bend = np.stack([np.zeros(len(kf)), 15 * (1 - kf / 3000) ** 2, np.zeros(len(kf))], 1)
         gps(bend)  # the map's start lies 15 m from the GPS, its end on it
-        off = lp.assoc.drift_correction(q, 60.0)
+        off = lp.assoc.correction(q, 60.0)[0]
         assert lp.assoc.drift_corrected and lp.assoc.drift_m > 10, lp.assoc.drift_m
         want = np.stack([np.zeros(len(q)), 15 * (1 - q / 3000) ** 2, np.zeros(len(q))], 1)
         err = np.linalg.norm(off - want, axis=1)
         assert np.median(err) < 0.15 and err.max() < 0.5, (np.median(err), err.max())
-        assert not lp.assoc.drift_correction(q, 0.0).any()  # switched off
+        assert not lp.assoc.correction(q, 0.0)[0].any()  # switched off
     finally:
         lp.close()
+
+
+def test_a_map_that_turns_along_a_long_pass_is_bent_back_by_the_attitudes(tmp_path):
+    """Incremental reconstruction along a long pass turns slowly, and the map bends with it. The gimbal's attitudes
+    (0.5 degrees of noise each, no drift) give its tilt back: the cameras' centres are laid again along the true
+    path, and their axes turned with it. A map that does not turn is left as it is, and so is a turn about the
+    vertical (a compass's heading wanders as much)."""
+    from scipy.spatial.transform import Rotation
+
+    from pomar.rotations import rotation_to_quat_wxyz
+
+    cam = Camera.from_fov(1280, 720, 50.0)
+    lp = LivePoses(cam, tmp_path)
+    try:
+        rng = np.random.default_rng(3)
+        lp.assoc.frozen = IDENTITY
+        lp.mapper.fit = IDENTITY  # model frame = ENU
+        kf = np.arange(0, 900, 2)
+        s = kf / kf.max() - 0.5  # along the pass, -0.5 .. 0.5
+        truth_c = np.stack([np.zeros(len(kf)), 184 * s, np.full(len(kf), 12.0)], 1)
+        # a camera looking east from a northward pass (world-to-camera), the same all along in truth
+        R_true = np.array([[0.0, -1, 0], [0, 0, -1], [1, 0, 0]])
+        q = np.arange(0, 900, 3)
+
+        def fly(turn_deg, axis=(1.0, 0, 0)):
+            """The map turns about ``axis`` (east: a tilt) by turn_deg x s, and its path bends with it."""
+            G = Rotation.from_rotvec(np.outer(np.radians(turn_deg) * s, axis)).as_matrix()
+            steps = np.einsum("nij,nj->ni", G[1:], np.diff(truth_c, axis=0))
+            c = np.vstack([truth_c[:1], truth_c[0] + np.cumsum(steps, axis=0)])
+            c += truth_c.mean(0) - c.mean(0)
+            lp.mapper.model_pose.clear()
+            for f, Gk, ck in zip(kf, G, c):
+                R = R_true @ Gk.T
+                lp.mapper.model_pose[int(f)] = (R, -R @ ck)
+                # the gimbal's attitude: the true camera's, through the mount, with 0.5 degrees of noise
+                R_gimbal = Rotation.from_rotvec(rng.normal(0, np.radians(0.5), 3)).as_matrix() @ R_true
+                lp.tel[int(f)] = KeyframeTelemetry(ck, rotation_to_quat_wxyz(camera_attitude_to_gimbal(R_gimbal, cam)),
+                                                   0.5)
+            return c
+
+        bent = fly(0.8)
+        off, rot = lp.assoc.correction(q, 60.0)
+        assert lp.assoc.bend_corrected and 0.3 < lp.assoc.bend_deg < 0.6, lp.assoc.bend_deg  # +-0.4 at the ends
+        at = np.searchsorted(kf, q)
+        before = np.linalg.norm(bent[at] - truth_c[at], axis=1)
+        after = np.linalg.norm(bent[at] + off - truth_c[at], axis=1)
+        assert before.max() > 0.15 and after.max() < 0.2 * before.max(), (before.max(), after.max())
+        for turn, axis in ((0.0, (1.0, 0, 0)), (0.8, (0, 0, 1.0))):  # none; about the vertical (a compass's heading)
+            fly(turn, axis)
+            off, rot = lp.assoc.correction(q, 60.0)
+            assert not lp.assoc.bend_corrected and not off.any() and np.allclose(rot, np.eye(3)), lp.assoc.bend_deg
+    finally:
+        lp.close()
+
+
+def camera_attitude_to_gimbal(R_world_to_camera, cam):
+    """The gimbal attitude (a Rotation, NED from gimbal) whose camera, through ``cam``'s mount, has this ENU-to-camera
+    rotation: pomar.rotations.camera_from_gimbal_attitude undone."""
+    from scipy.spatial.transform import Rotation
+
+    from pomar.rotations import R_ENU_FROM_NED
+
+    return Rotation.from_matrix(R_ENU_FROM_NED.T @ R_world_to_camera.T @ cam.r_gimbal_from_camera.T)

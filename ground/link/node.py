@@ -332,6 +332,9 @@ class GroundNode:
                 # the map's drift from the GPS along the flight, and whether the outputs were corrected for it
                 "drift_m": p.poses.assoc.drift_m if p.poses else 0.0,
                 "drift_corrected": p.poses.assoc.drift_corrected if p.poses else False,
+                # the map's turn from the gimbal's attitudes along the flight, and whether it was taken back out
+                "bend_deg": p.poses.assoc.bend_deg if p.poses else 0.0,
+                "bend_corrected": p.poses.assoc.bend_corrected if p.poses else False,
                 "seconds_per_keyframe_median": float(np.median(reg["seconds"])) if reg and reg["seconds"] else None,
                 "stage_seconds_median": reg["stage_seconds_median"] if reg else None,
                 "mapping": p.s.mapping,  # as the stream asked for it (or as set)

@@ -33,15 +33,24 @@ def _drift_sigma_frames(pipe) -> float:
 
 def apples_enu(pipe, A: list) -> np.ndarray:
     """(N, 3) ENU positions of these apples (ground.apples.association.Apple, in the association frame of a
-    ground.pipeline.GroundPipeline): the map's similarity, then the drift correction averaged over the frames each
-    apple was seen in (an apple seen again on a later pass takes both stretches' corrections)."""
+    ground.pipeline.GroundPipeline): the map's similarity, then the corrections of the map's bend and drift
+    (:meth:`AssociationFrame.correction`) of the frames each apple was seen in, each moving it with its camera, and
+    averaged (an apple seen again on a later pass takes both stretches' corrections)."""
     X = np.array([a.X for a in A]).reshape(-1, 3)
     if pipe.poses is None or not len(X):
         return X
+    assoc = pipe.poses.assoc
     seen = [[pipe.apples.frames.frame[o.frame] for o in a.observations] for a in A]
     frames = np.unique(np.concatenate(seen))
-    off = dict(zip(frames.tolist(), pipe.poses.assoc.drift_correction(frames, _drift_sigma_frames(pipe))))
-    return pipe.poses.assoc.to_enu(X) + np.array([np.mean([off[f] for f in fs], 0) for fs in seen])
+    off, rot = assoc.correction(frames, _drift_sigma_frames(pipe))
+    centre = assoc.to_enu(np.array([pipe.apples.frames.poses[f].centre for f in frames]))
+    at = {f: k for k, f in enumerate(frames.tolist())}
+    X = assoc.to_enu(X)
+    out = np.empty_like(X)
+    for i, fs in enumerate(seen):
+        k = np.array([at[f] for f in fs])
+        out[i] = (centre[k] + off[k] + np.einsum("nij,nj->ni", rot[k], X[i] - centre[k])).mean(0)
+    return out
 
 
 def _geodetic(pipe, enu: np.ndarray) -> np.ndarray:
@@ -95,8 +104,9 @@ def pose_table(pipe) -> dict[str, np.ndarray]:
         return {k: np.zeros(0) for k in ("frame", "t_unix", "source", "x", "y", "z", "lat", "lon", "alt",
                                          "qw", "qx", "qy", "qz", "sigma_m")}
     S = pipe.poses.assoc.assoc_to_enu()
-    C = S.apply(np.array([p.centre for p in P])) + pipe.poses.assoc.drift_correction(frames, _drift_sigma_frames(pipe))
-    R = np.array([p.R for p in P]) @ S.R.T  # ENU-to-camera
+    off, rot = pipe.poses.assoc.correction(frames, _drift_sigma_frames(pipe))
+    C = S.apply(np.array([p.centre for p in P])) + off
+    R = np.array([p.R for p in P]) @ S.R.T @ np.swapaxes(rot, 1, 2)  # ENU-to-camera, turned with the map's bend
     q = Rotation.from_matrix(R).as_quat()  # xyzw
     geo = np.asarray(pipe.poses.origin.to_geodetic(C)).reshape(-1, 3) if pipe.poses.origin else np.full(C.shape, np.nan)
     return {"frame": np.array(frames), "t_unix": np.array([pipe.arrivals.frame_times.get(f, np.nan) for f in frames]),

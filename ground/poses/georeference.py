@@ -24,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
+from ground.poses.telemetry_poses import camera_rotations
 from pomar.align import IDENTITY, Similarity, compose, inverse
 
 log = logging.getLogger(__name__)
@@ -165,6 +166,25 @@ class Pose:
         return -self.R.T @ self.t
 
 
+def line_noise(kf_frames: np.ndarray, sigma_frames: float) -> np.ndarray:
+    """At each keyframe, the standard deviation of :func:`drift_offsets`' line (uniform weights) for unit noise on
+    each residual: sqrt(sum of its weights squared), the weights of a local linear fit being
+    w_j (s2 - s1 d_j) / (s0 s2 - s1^2)."""
+    kf = np.asarray(kf_frames, float).reshape(-1)
+    out = np.full(len(kf), np.inf)
+    for s in range(0, len(kf), 256):
+        q = kf[s:s + 256]
+        a, b = np.searchsorted(kf, [q.min() - 5 * sigma_frames, q.max() + 5 * sigma_frames], side="left")
+        d = (kf[None, a:b] - q[:, None]) / sigma_frames
+        w = np.exp(-0.5 * d * d)
+        s0, s1, s2 = w.sum(1), (w * d).sum(1), (w * d * d).sum(1)
+        w0, w1, w2 = (w * w).sum(1), (w * w * d).sum(1), (w * w * d * d).sum(1)
+        det = s0 * s2 - s1 * s1
+        ok = det > 1e-12
+        out[s:s + 256][ok] = (np.sqrt(np.maximum(s2 * s2 * w0 - 2 * s2 * s1 * w1 + s1 * s1 * w2, 0.0)) / det)[ok]
+    return out
+
+
 class AssociationFrame:
     """The frame the association works in: the model's coordinates taken through the first good georeferencing fit,
     then frozen (the frames in the association's window stay consistent while later fits move a little); ENU itself
@@ -174,13 +194,20 @@ class AssociationFrame:
     #: The drift correction applies once the map has drifted this many times the GPS's stated accuracy (the spread
     #: of the corrections along the flight): below, what it would follow is mostly the GPS error's own wander.
     DRIFT_MIN_GPS_SIGMAS = 4.0
+    #: The bend correction applies once the map's turn along the flight spreads this many times the noise of the
+    #: attitudes' local mean (their stated accuracy over the keyframes the mean takes in).
+    BEND_MIN_SIGMAS = 4.0
 
-    def __init__(self, mapper, telemetry: dict):
+    def __init__(self, mapper, telemetry: dict, camera=None, sigma_att_deg: float = 0.5):
         self.mapper = mapper
         self.tel = telemetry
+        self.camera = camera  # its mount turns the gimbal's attitudes into the camera's (the bend correction)
+        self.sigma_att = np.radians(sigma_att_deg)
+        self.bend_deg = 0.0  # how far the map turns from the attitudes along the flight (deg), see bend
+        self.bend_corrected = False
         self.frozen: Similarity | None = None  # model -> association frame (a fit frozen), or None
         self.assoc_from_enu: Similarity | None = None  # set when the association frame is ENU itself
-        self.drift_m = 0.0  # how far the drift corrections spread along the flight (m), see drift_correction
+        self.drift_m = 0.0  # how far the drift corrections spread along the flight (m), see correction
         self.drift_corrected = False
         self._key: tuple | None = None  # what the similarities below were composed from
         self._cached: tuple[Similarity | None, Similarity] = (None, IDENTITY)
@@ -258,28 +285,85 @@ class AssociationFrame:
         R, t = georeference_poses(R_enu[None], t_enu[None], inverse(a2e))
         return Pose(frame, R[0], t[0], "telemetry", tel.h_acc, sigma_att_deg)
 
-    def drift_correction(self, frames, sigma_frames: float) -> np.ndarray:
-        """ENU offsets (n, 3) to add at these frames to what :meth:`to_enu` gives: where the GPS of the registered
-        keyframes around them (Gaussian, ``sigma_frames``) disagrees with the map after its one similarity
-        (:func:`drift_offsets`). Zero without a model, with ``sigma_frames`` 0, or while the corrections spread less
-        than DRIFT_MIN_GPS_SIGMAS x the GPS accuracy along the flight (``drift_m``)."""
-        zeros = np.zeros((len(np.atleast_1d(frames)), 3))
+    def correction(self, frames, sigma_frames: float) -> tuple[np.ndarray, np.ndarray]:
+        """(ENU offsets (n, 3), ENU rotations (n, 3, 3)) at these frames, to apply to what :meth:`to_enu` gives: a
+        camera's centre moves by the offset and its axes turn by the rotation; a point seen from it moves with it
+        (turned about its centre). The map's turn taken back out (:meth:`_bend`), then its drift from the GPS
+        (:meth:`_drift`)."""
+        q = np.asarray(frames, float).reshape(-1)
+        off, rot = np.zeros((len(q), 3)), np.broadcast_to(np.eye(3), (len(q), 3, 3)).copy()
+        self.bend_corrected = self.drift_corrected = False
         S = self.mapper.fit
         if S is None or self.frozen is None or not sigma_frames > 0:
-            return zeros
+            return off, rot
         model_pose = self.mapper.model_pose
-        kf = np.array([f for f in model_pose if f in self.tel and np.isfinite(self.tel[f].enu).all()], int)
+        kf = np.array(sorted(f for f in model_pose if f in self.tel), int)
         if len(kf) < 3:
-            return zeros
-        R = np.array([model_pose[f][0] for f in kf])
-        t = np.array([model_pose[f][1] for f in kf])
-        res = np.array([self.tel[f].enu for f in kf]) - S.apply(-np.einsum("nji,nj->ni", R, t))
+            return off, rot
+        R = np.array([model_pose[f][0] for f in kf]) @ S.R.T  # ENU-to-camera, as the map has them
+        C = S.apply(-np.einsum("nji,nj->ni", np.array([model_pose[f][0] for f in kf]),
+                               np.array([model_pose[f][1] for f in kf])))
+        bent = self._bend(kf, R, C, q, sigma_frames)
+        if bent is not None:
+            (off_kf, _), (off, rot) = bent
+            C = C + off_kf
+        return off + self._drift(kf, C, q, sigma_frames), rot
+
+    def _bend(self, kf, R, C, q, sigma_frames):
+        """((offsets, rotations) at the keyframes, (offsets, rotations) at ``q``), or None where it does not apply.
+
+        Incremental reconstruction along a long pass turns slowly (about 0.4 degrees at each end of a 184-m pass),
+        and the map bends with it (0.25 m at the ends). The gimbal's tilt does not drift (gravity holds it): its
+        disagreement with the map's cameras, fitted by a line around each frame (Gaussian, ``sigma_frames``), is the
+        map's tilt there, known to the attitudes' accuracy over the keyframes the fit takes in. The turn about the
+        vertical is left: a compass's heading wanders. Each stretch of the map is turned back
+        by it, and the path is laid again from the turned steps between keyframes. It applies once that turn spreads
+        BEND_MIN_SIGMAS times its noise along the flight (``bend_deg``), on keyframes whose heading the log knows."""
+        if self.camera is None:
+            return None
+        ok = np.array([np.isfinite(self.tel[f].q_gimbal).all() and self.tel[f].heading_known for f in kf])
+        if ok.sum() < 10:
+            return None
+        kf_a, R_a = kf[ok], R[ok]
+        R_tel = camera_rotations(np.array([self.tel[f].q_gimbal for f in kf_a]), self.camera)
+        # the map's turn in ENU: G with R G^T = R_tel, as a rotation vector (a fraction of a degree). Its tilt only:
+        # a gimbal's tilt is held to gravity, its heading to a compass that may wander as much as the map
+        turn = Rotation.from_matrix(np.einsum("nji,njk->nik", R_tel, R_a)).as_rotvec() * [1.0, 1.0, 0.0]
+        w = np.ones(len(kf_a))
+        at_a = drift_offsets(kf_a, turn, w, kf_a, sigma_frames)
+        mean = at_a.mean(0)  # a turn the whole flight shares is the mount's, or the similarity's: not the map's shape
+        dev = np.linalg.norm(at_a - mean, axis=1)
+        self.bend_deg = float(np.degrees(dev.max()))
+        # each keyframe's fitted turn against its own noise (the attitudes' accuracy through the line's weights)
+        if not (dev >= self.BEND_MIN_SIGMAS * self.sigma_att * line_noise(kf_a, sigma_frames)).any():
+            return None
+        self.bend_corrected = True
+        G = Rotation.from_rotvec(drift_offsets(kf_a, turn, w, kf, sigma_frames) - mean).as_matrix()
+        # the path laid again from its turned steps (each turned by its ends' mean turn), then put back where it was
+        # on average: the similarity's placement stays
+        steps = np.einsum("nij,nj->ni", 0.5 * (G[1:] + G[:-1]), np.diff(C, axis=0))
+        off_kf = np.vstack([C[:1], C[0] + np.cumsum(steps, axis=0)]) - C
+        off_kf -= off_kf.mean(0)
+        off = np.column_stack([np.interp(q, kf, off_kf[:, i]) for i in range(3)])
+        rot = Rotation.from_rotvec(drift_offsets(kf_a, turn, w, q, sigma_frames) - mean).as_matrix()
+        return (off_kf, G), (off, rot)
+
+    def _drift(self, kf, C, q, sigma_frames) -> np.ndarray:
+        """ENU offsets (n, 3) at frames ``q``: where the GPS of the registered keyframes around them (Gaussian,
+        ``sigma_frames``) disagrees with the map's camera centres ``C`` at keyframes ``kf`` (:func:`drift_offsets`).
+        Zero while the corrections spread less than DRIFT_MIN_GPS_SIGMAS x the GPS accuracy along the flight
+        (``drift_m``)."""
+        ok = np.array([np.isfinite(self.tel[f].enu).all() for f in kf])
+        if ok.sum() < 3:
+            return np.zeros((len(q), 3))
+        kf, C = kf[ok], C[ok]
+        res = np.array([self.tel[f].enu for f in kf]) - C
         sigma = np.array([self.tel[f].h_acc for f in kf])
         w = 1.0 / sigma**2
         at_kf = drift_offsets(kf, res, w, kf, sigma_frames)
         self.drift_m = float(np.linalg.norm(at_kf - np.average(at_kf, axis=0, weights=w), axis=1).max())
         self.drift_corrected = self.drift_m >= self.DRIFT_MIN_GPS_SIGMAS * float(np.median(sigma))
-        return drift_offsets(kf, res, w, frames, sigma_frames) if self.drift_corrected else zeros
+        return drift_offsets(kf, res, w, q, sigma_frames) if self.drift_corrected else np.zeros((len(q), 3))
 
 
 class FloorPlane(NamedTuple):

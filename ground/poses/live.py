@@ -58,7 +58,7 @@ class LivePoses:
         self.mapper = (MapperProcess(self.kf_cam, camera, workdir, settings, sigma_att_deg, worker=mapping_worker)
                        if mapping_worker is not None else Mapper(self.kf_cam, camera, workdir, settings, sigma_att_deg))
         self.tracking = ImageTracking(self.kf_cam, self.mapper, self.tel, tracking, init_spacing_s)
-        self.assoc = AssociationFrame(self.mapper, self.tel)
+        self.assoc = AssociationFrame(self.mapper, self.tel, camera, sigma_att_deg)
         self.origin = origin
         self.max_interp_gap = max_interp_gap
         self.sigma_att = np.radians(sigma_att_deg)
