@@ -20,7 +20,8 @@ import pycolmap
 from scipy.spatial.transform import Rotation
 
 from ground.poses.georeference import fit_similarity, georeference_poses
-from ground.poses.telemetry_poses import camera_rotations, frame_telemetry
+from ground.poses.telemetry_poses import frame_telemetry
+from pomar.rotations import camera_rotations
 from ground.evaluation.scoring import apple_reprojection_errors
 from pomar.flight import FlightDir
 

@@ -47,6 +47,13 @@ def camera_from_gimbal_attitude(r_ned_from_gimbal: Rotation, r_gimbal_from_camer
     return R_ENU_FROM_NED @ r_ned_from_gimbal.as_matrix() @ r_gimbal_from_camera
 
 
+def camera_rotations(q_gimbal: np.ndarray, camera) -> np.ndarray:
+    """World(ENU)-to-camera rotations (N, 3, 3) from gimbal attitudes (wxyz, NED; NaN = identity) and the mount of
+    ``camera`` (a pomar.camera.Camera)."""
+    q = np.where(np.isfinite(q_gimbal), q_gimbal, [1.0, 0.0, 0.0, 0.0])
+    return np.swapaxes(camera_from_gimbal_attitude(quat_wxyz_to_rotation(q), camera.r_gimbal_from_camera), -1, -2)
+
+
 def world_to_camera(r_enu_from_camera: np.ndarray, centre_enu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(R, t) of x_cam = R X + t from a camera orientation and centre in ENU."""
     r = np.swapaxes(r_enu_from_camera, -1, -2)

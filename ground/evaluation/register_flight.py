@@ -23,12 +23,12 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from ground.evaluation.scoring import score_poses
 from ground.poses.georeference import fit_similarity, georeference_poses
-from ground.poses.telemetry_poses import camera_rotations, frame_telemetry, telemetry_origin, telemetry_poses
+from ground.poses.telemetry_poses import frame_telemetry, telemetry_origin, telemetry_poses
 from ground.poses.registration import IncrementalRegistrar, RegistrationSettings
 from pomar import flight as ff
 from pomar.camera import Camera
 from pomar.flight import FlightDir
-from pomar.rotations import rotation_to_quat_wxyz
+from pomar.rotations import camera_rotations, rotation_to_quat_wxyz
 from pomar.video import iter_frames
 
 log = logging.getLogger(__name__)

@@ -24,8 +24,8 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from ground.poses.telemetry_poses import camera_rotations
 from pomar.align import IDENTITY, Similarity, compose, inverse
+from pomar.rotations import camera_rotations
 
 log = logging.getLogger(__name__)
 

@@ -30,12 +30,13 @@ import cv2
 import numpy as np
 
 from ground.poses.georeference import fit_similarity, floor_plane, georeference_poses
-from ground.poses.telemetry_poses import KeyframeTelemetry, camera_rotations
+from ground.poses.telemetry_poses import KeyframeTelemetry
 from ground.poses.registration import IncrementalRegistrar, RegistrationSettings, Submodel
 from ground.poses.restart import align_models, move_pose, move_reference
 from ground.poses.tracking import Reference
 from pomar.align import Similarity, compose, inverse
 from pomar.camera import Camera
+from pomar.rotations import camera_rotations
 
 log = logging.getLogger(__name__)
 

@@ -14,7 +14,7 @@ from pomar.telemetry.tlog import read_tlog
 from pomar.camera import Camera
 from pomar.flight import FlightDir
 from pomar.geo import Origin
-from pomar.rotations import camera_from_gimbal_attitude, quat_wxyz_to_rotation
+from pomar.rotations import camera_rotations
 from pomar.telemetry.base import UNSTATED_H_ACC_M
 
 
@@ -51,12 +51,6 @@ def frame_telemetry(flight: FlightDir, clock_offset_s: float = 0.0) -> tuple[np.
     s = tl.at(t)
     s["flags"] = s["flags"] | flags
     return t, s
-
-
-def camera_rotations(q_gimbal: np.ndarray, camera: Camera) -> np.ndarray:
-    """World(ENU)-to-camera rotations (N, 3, 3) from gimbal attitudes (wxyz, NED; NaN = identity) and the mount."""
-    q = np.where(np.isfinite(q_gimbal), q_gimbal, [1.0, 0.0, 0.0, 0.0])
-    return np.swapaxes(camera_from_gimbal_attitude(quat_wxyz_to_rotation(q), camera.r_gimbal_from_camera), -1, -2)
 
 
 def telemetry_origin(flight: FlightDir, sample: dict) -> Origin:
