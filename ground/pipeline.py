@@ -22,6 +22,7 @@ from dataclasses import dataclass, field, replace
 
 from ground.apples.association import Apple, AssociationParams
 from ground.apples.counting import CountingSettings
+from ground.apples.landmarks import SIGMA as APPLES_SIGMA
 from ground.apples.live import LiveApples
 from ground.link.arrivals import Arrivals
 from ground.poses.live import LivePoses, Pose
@@ -245,8 +246,9 @@ class GroundPipeline:
                                          lambda: poses.mapper.has_model):
             f = msg.frame
             pose = poses.pose(f)
-            if pose is not None and pose.source == "telemetry":  # no image placed it: the apples it sees may
-                pose = self.apples.place(msg) or pose
+            placed = self.apples.place(msg) if pose is not None and pose.source == "telemetry" else None
+            if placed is not None:  # no image placed it: the apples it sees did
+                pose = Pose(f, *placed, "apples", *APPLES_SIGMA)
             new: list[Apple] = []
             if pose is None:
                 self._counts["frames_without_pose"] += 1

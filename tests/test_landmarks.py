@@ -23,10 +23,9 @@ def test_a_frame_is_placed_by_the_apples_it_sees_and_left_alone_where_they_do_no
     uv, z = cam.project(apples, truth.R, truth.t)
     seen = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < 1280) & (uv[:, 1] >= 0) & (uv[:, 1] < 720)
     centres = uv[seen] + rng.normal(0, 0.5, (seen.sum(), 2))
-    pose = place_by_apples(cam, centres, apples, before, last, 2)
-    assert pose is not None and pose.source == "apples" and pose.frame == 2
-    assert np.linalg.norm(pose.centre - truth.centre) < 0.01, pose.centre
-    assert np.degrees(np.arccos(np.clip((np.trace(pose.R @ truth.R.T) - 1) / 2, -1, 1))) < 0.1
+    R, t = place_by_apples(cam, centres, apples, before, last)
+    assert np.linalg.norm(-R.T @ t - truth.centre) < 0.01, -R.T @ t
+    assert np.degrees(np.arccos(np.clip((np.trace(R @ truth.R.T) - 1) / 2, -1, 1))) < 0.1
     # too few apples in view, or detections that lie nowhere near where the mapped apples would be
-    assert place_by_apples(cam, centres[:5], apples, before, last, 2) is None
-    assert place_by_apples(cam, centres + 60.0, apples, before, last, 2) is None
+    assert place_by_apples(cam, centres[:5], apples, before, last) is None
+    assert place_by_apples(cam, centres + 60.0, apples, before, last) is None

@@ -7,7 +7,7 @@ the perspective-n-point fit to the pairs (RANSAC, then refined on its inliers). 
 association, whose apples then place the frames after them: the map goes on where the images stopped, drifting
 with the apples' own error over the distance flown instead of jumping with the GPS's error from frame to frame.
 
-    pose = place_by_apples(camera, centres, landmarks, before, last, frame)   # a Pose, or None
+    R, t = place_by_apples(camera, centres, landmarks, before, last)   # or None
 """
 
 from __future__ import annotations
@@ -15,30 +15,29 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from ground.poses.georeference import Pose
-
 #: Pairs a fit needs, at least, and inliers it keeps: fewer and it is left to the pose it had.
 MIN_PAIRS = 8
 #: How far from its predicted image a detection may lie to be paired (px).
 GATE_PX = 25.0
 #: An inlier's reprojection error (px) in the fit.
 REPROJECTION_PX = 3.0
-#: The pose's stated uncertainty (m, degrees): as a tracked frame's.
-SIGMA_M, SIGMA_DEG = 0.02, 0.1
+#: A pose placed so is stated to this uncertainty (m, degrees): as a tracked frame's.
+SIGMA = (0.02, 0.1)
 
 
-def predict(before: Pose, last: Pose) -> tuple[np.ndarray, np.ndarray]:
-    """The next frame's world-to-camera (R, t) at the same velocity and turn rate as from ``before`` to ``last``."""
+def predict(before, last) -> tuple[np.ndarray, np.ndarray]:
+    """The next frame's world-to-camera (R, t) at the same velocity and turn rate as from ``before`` to ``last`` (the
+    two frames' poses: ``R``, ``centre``)."""
     dR = last.R @ before.R.T  # the turn over a frame, in the camera's frame
     R = dR @ last.R
     c = 2 * last.centre - before.centre
     return R, -R @ c
 
 
-def place_by_apples(camera, centres: np.ndarray, landmarks: np.ndarray, before: Pose, last: Pose,
-                    frame: int) -> Pose | None:
-    """The frame's pose from its detection centres (n, 2; OpenCV pixels) and the mapped apples (m, 3; association
-    frame), given the two frames placed before it; None where too few pairs agree."""
+def place_by_apples(camera, centres: np.ndarray, landmarks: np.ndarray, before, last) -> tuple | None:
+    """The frame's world-to-camera (R, t) from its detection centres (n, 2; OpenCV pixels) and the mapped apples
+    (m, 3; association frame), given the poses of the two frames placed before it; None where too few pairs
+    agree."""
     if len(centres) < MIN_PAIRS or len(landmarks) < MIN_PAIRS:
         return None
     R0, t0 = predict(before, last)
@@ -64,5 +63,4 @@ def place_by_apples(camera, centres: np.ndarray, landmarks: np.ndarray, before: 
         return None
     inl = inl.ravel()
     rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
-    R = cv2.Rodrigues(rvec)[0]
-    return Pose(frame, R, tvec.ravel(), "apples", SIGMA_M, SIGMA_DEG)
+    return cv2.Rodrigues(rvec)[0], tvec.ravel()

@@ -17,7 +17,6 @@ from ground.apples.association import Apple, AssociationParams, FrameDetections,
 from ground.apples.counting import Counting, CountingSettings
 from ground.apples.frames import AssociationFrames
 from ground.apples.landmarks import place_by_apples
-from ground.poses.georeference import Pose
 from pomar import wire
 
 
@@ -54,15 +53,15 @@ class LiveApples:
                              np.asarray(msg.scores)[keep])
         return self.count.confirm(self.assoc.add_frame(fd), steps)
 
-    def place(self, msg: wire.FrameMessage) -> Pose | None:
+    def place(self, msg: wire.FrameMessage) -> tuple | None:
         """A frame that no image placed, placed by the apples it sees (:mod:`ground.apples.landmarks`), from the two
-        frames fed before it where neither had only its telemetry; None where that cannot be done."""
+        frames fed before it where neither had only its telemetry: its (R, t), or None where that cannot be done."""
         n = self.frames.newest
         before, last = self.frames.pose_at(n - 1), self.frames.pose_at(n)
         if before is None or last is None or "telemetry" in (before.source, last.source):
             return None
         keep = np.asarray(msg.scores) >= self.min_score
-        return place_by_apples(self.camera, msg.centres[keep], self.assoc.landmarks(), before, last, msg.frame)
+        return place_by_apples(self.camera, msg.centres[keep], self.assoc.landmarks(), before, last)
 
     def repose(self, new: dict, steps, metres_per_unit: float) -> tuple[list[Apple], list[tuple[int, int]]]:
         """Frames fed earlier took corrected poses (frame -> pose): their apples are triangulated again, and merged
