@@ -166,14 +166,15 @@ class Pose:
         return -self.R.T @ self.t
 
 
-def line_noise(kf_frames: np.ndarray, sigma_frames: float) -> np.ndarray:
-    """At each keyframe, the standard deviation of :func:`drift_offsets`' line (uniform weights) for unit noise on
-    each residual: sqrt(sum of its weights squared), the weights of a local linear fit being
-    w_j (s2 - s1 d_j) / (s0 s2 - s1^2)."""
-    kf = np.asarray(kf_frames, float).reshape(-1)
-    out = np.full(len(kf), np.inf)
-    for s in range(0, len(kf), 256):
-        q = kf[s:s + 256]
+def line_noise(kf_frames: np.ndarray, frames: np.ndarray, sigma_frames: float) -> np.ndarray:
+    """At each of ``frames``, the standard deviation of :func:`drift_offsets`' line through the keyframes (uniform
+    weights) for unit noise on each residual: sqrt(sum of its weights squared), the weights of a local linear fit
+    being w_j (s2 - s1 d_j) / (s0 s2 - s1^2)."""
+    kf = np.sort(np.asarray(kf_frames, float).reshape(-1))
+    at = np.asarray(frames, float).reshape(-1)
+    out = np.full(len(at), np.inf)
+    for s in range(0, len(at), 256):
+        q = at[s:s + 256]
         a, b = np.searchsorted(kf, [q.min() - 5 * sigma_frames, q.max() + 5 * sigma_frames], side="left")
         d = (kf[None, a:b] - q[:, None]) / sigma_frames
         w = np.exp(-0.5 * d * d)
@@ -329,23 +330,30 @@ class AssociationFrame:
         # the map's turn in ENU: G with R G^T = R_tel, as a rotation vector (a fraction of a degree). Its tilt only:
         # a gimbal's tilt is held to gravity, its heading to a compass that may wander as much as the map
         turn = Rotation.from_matrix(np.einsum("nji,njk->nik", R_tel, R_a)).as_rotvec() * [1.0, 1.0, 0.0]
-        w = np.ones(len(kf_a))
-        at_a = drift_offsets(kf_a, turn, w, kf_a, sigma_frames)
+        # the line, and its noise, on a grid an eighth of sigma apart (it bends on the scale of sigma), read between
+        # its points: every map refresh computes it, and a 10-minute flight has thousands of keyframes
+        grid = np.arange(kf_a[0], kf_a[-1] + sigma_frames / 8, max(sigma_frames / 8, 1.0))
+        line = drift_offsets(kf_a, turn, np.ones(len(kf_a)), grid, sigma_frames)
+
+        def at(frames):
+            return np.column_stack([np.interp(frames, grid, line[:, i]) for i in range(3)])
+        at_a = at(kf_a)
         mean = at_a.mean(0)  # a turn the whole flight shares is the mount's, or the similarity's: not the map's shape
         dev = np.linalg.norm(at_a - mean, axis=1)
         self.bend_deg = float(np.degrees(dev.max()))
         # each keyframe's fitted turn against its own noise (the attitudes' accuracy through the line's weights)
-        if not (dev >= self.BEND_MIN_SIGMAS * self.sigma_att * line_noise(kf_a, sigma_frames)).any():
+        noise = self.sigma_att * np.interp(kf_a, grid, line_noise(kf_a, grid, sigma_frames))
+        if not (dev >= self.BEND_MIN_SIGMAS * noise).any():
             return None
         self.bend_corrected = True
-        G = Rotation.from_rotvec(drift_offsets(kf_a, turn, w, kf, sigma_frames) - mean).as_matrix()
+        G = Rotation.from_rotvec(at(kf) - mean).as_matrix()
         # the path laid again from its turned steps (each turned by its ends' mean turn), then put back where it was
         # on average: the similarity's placement stays
         steps = np.einsum("nij,nj->ni", 0.5 * (G[1:] + G[:-1]), np.diff(C, axis=0))
         off_kf = np.vstack([C[:1], C[0] + np.cumsum(steps, axis=0)]) - C
         off_kf -= off_kf.mean(0)
         off = np.column_stack([np.interp(q, kf, off_kf[:, i]) for i in range(3)])
-        rot = Rotation.from_rotvec(drift_offsets(kf_a, turn, w, q, sigma_frames) - mean).as_matrix()
+        rot = Rotation.from_rotvec(at(q) - mean).as_matrix()
         return (off_kf, G), (off, rot)
 
     def _drift(self, kf, C, q, sigma_frames) -> np.ndarray:
