@@ -44,13 +44,15 @@ def apples_enu(pipe, A: list) -> np.ndarray:
     frames = np.unique(np.concatenate(seen))
     off, rot = assoc.correction(frames, _drift_sigma_frames(pipe))
     centre = assoc.to_enu(np.array([pipe.apples.frames.poses[f].centre for f in frames]))
-    at = {f: k for k, f in enumerate(frames.tolist())}
+    # every (apple, view) pair at once: the apple moved with that view's camera, then the mean over its views
+    n_views = np.array([len(fs) for fs in seen])
+    apple = np.repeat(np.arange(len(A)), n_views)
+    k = np.searchsorted(frames, np.concatenate(seen))
     X = assoc.to_enu(X)
-    out = np.empty_like(X)
-    for i, fs in enumerate(seen):
-        k = np.array([at[f] for f in fs])
-        out[i] = (centre[k] + off[k] + np.einsum("nij,nj->ni", rot[k], X[i] - centre[k])).mean(0)
-    return out
+    moved = centre[k] + off[k] + np.einsum("nij,nj->ni", rot[k], X[apple] - centre[k])
+    out = np.zeros_like(X)
+    np.add.at(out, apple, moved)
+    return out / n_views[:, None]
 
 
 def _geodetic(pipe, enu: np.ndarray) -> np.ndarray:
