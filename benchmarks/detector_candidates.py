@@ -25,6 +25,8 @@ import sys
 import time
 from pathlib import Path
 
+from export.settings import TrainSettings
+
 CANDIDATES = ["resnet50", "resnet18", "mobilenet_v3_large"]
 HELDOUT = {"sim_720p": "heldout-720p.npz", "sim_4k": "heldout-4k.npz"}
 #: What a device run brings back: files and bytes under OUT.
@@ -36,7 +38,7 @@ def train_command(bb: str, data: Path, runs: Path, a, minutes: float) -> list[st
             "--sim-flight", str(data / "detector-train.npz"), "--backbone", bb, "--device", a.device,
             *(["--amp"] if a.amp else []), "--batch", str(a.batch), "--lr", str(a.lr), "--sim-crops", str(a.sim_crops),
             "--fit-minutes", str(minutes), "--max-minutes", str(minutes * 1.15), "--workers", str(a.workers),
-            "--checkpoint-every", "500", "--seed", str(a.seed)]
+            "--checkpoint-every", "500", "--seed", str(a.seed), "--add256-scale", *map(str, a.add256_scale)]
 
 
 def score(bb: str, runs: Path, data: Path, device: str) -> dict:
@@ -83,6 +85,8 @@ def main(argv=None) -> int:
     p.add_argument("--sim-crops", type=int, default=1500)
     p.add_argument("--workers", type=int, default=4)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--add256-scale", type=float, nargs=2, default=TrainSettings.add256_scale, metavar=("LO", "HI"),
+                   help="random scale range of ADD256 patches (export train's --add256-scale)")
     p.add_argument("--only", nargs="*", default=CANDIDATES)
     p.add_argument("--one-at-a-time", action="store_true", help="train the candidates one after another, each for "
                    "MINUTES / their number, instead of all at once")
