@@ -101,6 +101,18 @@ def test_colmap_sift_registers_too(reg_flight, tmp_path):
     assert res["rotation_error_median_deg"] < 0.5
 
 
+def test_a_matching_window_wider_than_the_revisits_gap_registers_every_keyframe(reg_base, tmp_path):
+    """Keyframes of the matching window are not matched again as revisits: with ``match_window`` 10 (the revisits
+    look 8 keyframes back) the same pair was written twice, and every keyframe from the ninth on failed on the
+    database's constraint."""
+    from ground.evaluation.register_flight import register_flight
+    from ground.poses.registration import RegistrationSettings
+
+    res = register_flight(reg_base, tmp_path / "w", every=1, settings=RegistrationSettings(match_window=10),
+                          progress=False, frames_limit=14)
+    assert res["registered_fraction"] == 1.0
+
+
 def test_finished_submodels_leave_memory_and_come_back_for_the_model_files(reg_flight, tmp_path):
     """Sub-models of 8 keyframes, one kept in memory: the older ones are written out, their poses kept, and the
     final model files hold every sub-model, read back."""

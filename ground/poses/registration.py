@@ -317,7 +317,9 @@ class IncrementalRegistrar:
         are verified on two threads)."""
         image_id, xy, desc = new
         pairs = [(prev_id, prev_xy, match_descriptors(prev_desc, desc)) for prev_id, prev_xy, prev_desc in self._recent]
-        revisit = self._revisit_candidates(name)
+        # a keyframe of the matching window is matched once (a pair written twice breaks the database's constraint)
+        recent = {prev_id for prev_id, _, _ in self._recent}
+        revisit = [o for o in self._revisit_candidates(name) if self._image_ids[o] not in recent]
         for old in revisit:
             old_id = self._image_ids[old]
             old_desc = unit_descriptors(self._db.read_descriptors(old_id).data)
