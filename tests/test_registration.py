@@ -102,9 +102,9 @@ def test_colmap_sift_registers_too(reg_flight, tmp_path):
 
 
 def test_a_matching_window_wider_than_the_revisits_gap_registers_every_keyframe(reg_base, tmp_path):
-    """Keyframes of the matching window are not matched again as revisits: with ``match_window`` 10 (the revisits
-    look 8 keyframes back) the same pair was written twice, and every keyframe from the ninth on failed on the
-    database's constraint."""
+    """Keyframes of the matching window are not matched again as revisits: with ``match_window`` 10 (the default; the
+    revisits look 8 keyframes back) the same pair was written twice, and every keyframe from the ninth on failed on
+    the database's constraint."""
     from ground.evaluation.register_flight import register_flight
     from ground.poses.registration import RegistrationSettings
 
@@ -148,12 +148,13 @@ def _offset_before_and_after(flight, out: Path, gap: range):
 
 
 def test_a_broken_chain_rejoins_the_same_map(gap_flight, tmp_path):
-    """Nine black keyframes in a row break the chain (matching only the previous keyframes): the keyframes after
-    them make a new sub-model, placed by their telemetry against the model's, and the flight stays one map."""
+    """Nine black keyframes in a row, more than the matching window (5 here), break the chain (matching only the
+    previous keyframes): the keyframes after them make a new sub-model, placed by their telemetry against the model's,
+    and the flight stays one map."""
     from ground.evaluation.register_flight import register_flight
     from ground.poses.registration import RegistrationSettings
 
-    res = register_flight(gap_flight.path, tmp_path / "r", every=1, settings=RegistrationSettings(revisit=False))
+    res = register_flight(gap_flight.path, tmp_path / "r", every=1, settings=RegistrationSettings(revisit=False, match_window=5))
     assert res["rejoined"] == 1 and res["submodels"] == 2
     before, after, n_after = _offset_before_and_after(gap_flight, tmp_path / "r", range(6, 15))
     assert n_after == 23 - 15  # every keyframe after the gap registered
@@ -166,10 +167,11 @@ def test_a_broken_chain_rejoins_the_same_map(gap_flight, tmp_path):
 
 def test_an_earlier_keyframe_of_the_same_place_bridges_the_gap(gap_flight, tmp_path):
     """With revisits, the first keyframe after the gap matches the keyframes before it that look at the same place:
-    the chain holds, one sub-model."""
+    the chain holds, one sub-model (the gap is wider than the matching window, 5 here)."""
     from ground.evaluation.register_flight import register_flight
+    from ground.poses.registration import RegistrationSettings
 
-    res = register_flight(gap_flight.path, tmp_path / "v", every=1)
+    res = register_flight(gap_flight.path, tmp_path / "v", every=1, settings=RegistrationSettings(match_window=5))
     assert res["revisits"] >= 1 and res["rejoined"] == 0 and res["submodels"] == 1
     before, after, n_after = _offset_before_and_after(gap_flight, tmp_path / "v", range(6, 15))
     assert n_after == 23 - 15
