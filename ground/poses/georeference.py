@@ -195,9 +195,6 @@ class AssociationFrame:
     #: The drift correction applies once the map has drifted this many times the GPS's stated accuracy (the spread
     #: of the corrections along the flight): below, what it would follow is mostly the GPS error's own wander.
     DRIFT_MIN_GPS_SIGMAS = 4.0
-    #: The bend correction applies once the map's turn along the flight spreads this many times the noise of the
-    #: attitudes' local mean (their stated accuracy over the keyframes the mean takes in).
-    BEND_MIN_SIGMAS = 4.0
 
     def __init__(self, mapper, telemetry: dict, camera=None, sigma_att_deg: float = 0.5):
         self.mapper = mapper
@@ -317,9 +314,10 @@ class AssociationFrame:
         and the map bends with it (0.25 m at the ends). The gimbal's tilt does not drift (gravity holds it): its
         disagreement with the map's cameras, fitted by a line around each frame (Gaussian, ``sigma_frames``), is the
         map's tilt there, known to the attitudes' accuracy over the keyframes the fit takes in. The turn about the
-        vertical is left: a compass's heading wanders. Each stretch of the map is turned back
-        by it, and the path is laid again from the turned steps between keyframes. It applies once that turn spreads
-        BEND_MIN_SIGMAS times its noise along the flight (``bend_deg``), on keyframes whose heading the log knows."""
+        vertical is left: a compass's heading wanders. Each stretch of the map is turned back by the share of that
+        turn which stands out of its noise (a Wiener gain, 1 - noise²/turn², none where the turn is within its noise),
+        and the path is laid again from the turned steps between keyframes; on keyframes whose heading the log knows.
+        ``bend_deg``: the fitted turn's largest departure from its mean along the flight."""
         if self.camera is None:
             return None
         ok = np.array([np.isfinite(self.tel[f].q_gimbal).all() and self.tel[f].heading_known for f in kf])
@@ -343,17 +341,23 @@ class AssociationFrame:
         self.bend_deg = float(np.degrees(dev.max()))
         # each keyframe's fitted turn against its own noise (the attitudes' accuracy through the line's weights)
         noise = self.sigma_att * np.interp(kf_a, grid, line_noise(kf_a, grid, sigma_frames))
-        if not (dev >= self.BEND_MIN_SIGMAS * noise).any():
+        # each stretch is turned back by the share of its fitted turn that stands out of the noise (a Wiener gain:
+        # the turn's power over the turn's and the noise's), not all or nothing
+        gain_a = np.clip(1.0 - (noise / np.maximum(dev, 1e-12)) ** 2, 0.0, 1.0)
+        if not (gain_a > 0).any():
             return None
         self.bend_corrected = True
-        G = Rotation.from_rotvec(at(kf) - mean).as_matrix()
+
+        def turn_at(frames):
+            return (at(frames) - mean) * np.interp(frames, kf_a, gain_a)[:, None]
+        G = Rotation.from_rotvec(turn_at(kf)).as_matrix()
         # the path laid again from its turned steps (each turned by its ends' mean turn), then put back where it was
         # on average: the similarity's placement stays
         steps = np.einsum("nij,nj->ni", 0.5 * (G[1:] + G[:-1]), np.diff(C, axis=0))
         off_kf = np.vstack([C[:1], C[0] + np.cumsum(steps, axis=0)]) - C
         off_kf -= off_kf.mean(0)
         off = np.column_stack([np.interp(q, kf, off_kf[:, i]) for i in range(3)])
-        rot = Rotation.from_rotvec(at(q) - mean).as_matrix()
+        rot = Rotation.from_rotvec(turn_at(q)).as_matrix()
         return (off_kf, G), (off, rot)
 
     def _drift(self, kf, C, q, sigma_frames) -> np.ndarray:
