@@ -44,8 +44,8 @@ pycolmap.logging.minloglevel = 1
 
 @dataclass
 class RegistrationSettings:
-    #: Each keyframe is matched against this many previous ones. Ten rather than five: the wider baselines hold the
-    #: map's scale from one sub-model to the next (a 184-m pass: sub-models' scales spread 0.18 % instead of 0.43 %).
+    #: Each keyframe is matched against this many previous ones: the wider the baselines, the better the map's scale
+    #: holds along a long pass (each sub-model drifts less).
     match_window: int = 10
     #: Keyframes in one sub-model (a local pycolmap reconstruction) before the next one takes over.
     submodel_size: int = 60
