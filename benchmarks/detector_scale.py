@@ -21,6 +21,7 @@ import numpy as np
 
 from export.data import add256_split, load_sim_frames, read_rgb
 from export.metrics import evaluate_detections, iou
+from ground.evaluation.scoring import input_problem
 from onboard.detector import OnnxDetector
 from pomar.apple_scale import flight_radius_px, flight_telemetry, row_radius_px
 from pomar.countable import visible
@@ -91,6 +92,11 @@ def main(argv=None) -> int:
     p.add_argument("--by-size", action="store_true", help="also recall by apple radius, at each scale")
     p.add_argument("--bands", action="store_true", help="also a scale per image row, from the telemetry")
     a = p.parse_args(argv)
+    for f in a.flights:  # every flight checked before the first one takes minutes
+        problem = input_problem(f)
+        if problem:
+            print(f"error: {problem}", file=sys.stderr)
+            return 2
     det = OnnxDetector(a.model)
     print(f"model {det.path.name}: apple_radius_px {det.apple_radius_px}, threshold {det.score_thresh}")
     for f in a.flights:

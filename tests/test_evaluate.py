@@ -14,7 +14,7 @@ from ground.apples.association import AssociationParams
 from ground.evaluation.evaluate import Perturbation, evaluate, truth_detections
 from ground.evaluation.scoring import detected, input_problem, match
 from ground.apples.rows import direction_rows, kmeans_rows, row_direction
-from tests.conftest import BUNDLED
+from tests.conftest import BUNDLED, ROOT
 
 
 def test_rows_from_direction_and_gaps():
@@ -61,6 +61,15 @@ def test_a_benchmarks_inputs_are_judged_in_one_line(tmp_path):
         f"{tmp_path / 'journal.bin'}: no recorded stream there"
     (tmp_path / "journal.bin").write_bytes(b"")
     assert input_problem(BUNDLED) is None and input_problem(BUNDLED, tmp_path, "journal.bin") is None
+
+
+def test_the_detector_scale_benchmark_refuses_a_missing_flight_in_one_line(tmp_path):
+    """benchmarks/detector_scale.py checks every flight before it starts: a path that is no flight is one line naming
+    it, exit 2, no traceback."""
+    r = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "detector_scale.py"), str(BUNDLED),
+                        str(tmp_path / "nowhere")], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip().splitlines() == [f"error: {tmp_path / 'nowhere'}: not a flight directory (does not exist)"]
 
 
 def test_perturbation_is_deterministic_and_does_what_it_says(bundled_flight):
