@@ -24,8 +24,8 @@ import numpy as np
 
 from ground.link.envelope import ApplesSeen
 from ground.link.journal import Journal, read_journal_report
-from ground.outputs.tables import (apple_table, candidate_table, candidates_csv, harvest_correlation, pose_table,
-                                   poses_csv, read_harvest, rescue_folder, rows_summary, write_atomic,
+from ground.outputs.tables import (apple_table, candidate_table, candidates_csv, corrections, harvest_correlation,
+                                   pose_table, poses_csv, read_harvest, rescue_folder, rows_summary, write_atomic,
                                    write_json, write_map)
 from ground.pipeline import GroundPipeline, GroundSettings
 from pomar import wire
@@ -255,17 +255,19 @@ class GroundNode:
         self._last_refresh = time.monotonic()
         if self._trim is not None:  # hand freed heap back to the system: the map's arrays are rebuilt at each refresh
             self._trim(0)
-        table, direction = apple_table(self.pipe)
+        corr = corrections(self.pipe)  # the map's bend and drift at every posed frame, once for all the tables
+        table, direction = apple_table(self.pipe, corr)
         poses = self.pipe.poses
         origin = poses.origin if poses is not None else None
         self._was_failing, self.outputs_failed = self.outputs_failed is not None, None
         rows = self._written(lambda: write_map(out, table, direction, origin, self.settings.tree_spacing_m))
         if rows is None:
             rows = rows_summary(table, direction, origin)
-        cams = pose_table(self.pipe)
+        cams = pose_table(self.pipe, corr)
         self._written(lambda: write_atomic(out / "poses.csv", poses_csv(cams)))
         if final:
-            self._written(lambda: write_atomic(out / "candidates.csv", candidates_csv(candidate_table(self.pipe))))
+            candidates = candidate_table(self.pipe, corr)
+            self._written(lambda: write_atomic(out / "candidates.csv", candidates_csv(candidates)))
         report = self.report(table, rows, final)
         rr = self._rerun()
         if rr is not None and self.pipe.arrivals.released >= 0:

@@ -31,23 +31,34 @@ def _drift_sigma_frames(pipe) -> float:
     return pipe.s.drift_sigma_s * (pipe.fps or 0.0)
 
 
-def apples_enu(pipe, A: list) -> np.ndarray:
+def corrections(pipe) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The map's bend and drift corrections (:meth:`AssociationFrame.correction`) at every posed frame: (frames (n,),
+    ENU offsets (n, 3), ENU rotations (n, 3, 3)); None before the poses exist. A map refresh computes them once for
+    all its tables."""
+    if pipe.poses is None:
+        return None
+    frames = np.array(sorted(pipe.apples.frames.poses), int)
+    return (frames, *pipe.poses.assoc.correction(frames, _drift_sigma_frames(pipe)))
+
+
+def apples_enu(pipe, A: list, corr=None) -> np.ndarray:
     """(N, 3) ENU positions of these apples (ground.apples.association.Apple, in the association frame of a
     ground.pipeline.GroundPipeline): the map's similarity, then the corrections of the map's bend and drift
-    (:meth:`AssociationFrame.correction`) of the frames each apple was seen in, each moving it with its camera, and
-    averaged (an apple seen again on a later pass takes both stretches' corrections)."""
+    (:func:`corrections`, or ``corr`` if already computed) of the frames each apple was seen in, each moving it with
+    its camera, and averaged (an apple seen again on a later pass takes both stretches' corrections)."""
     X = np.array([a.X for a in A]).reshape(-1, 3)
     if pipe.poses is None or not len(X):
         return X
     assoc = pipe.poses.assoc
+    frames, off, rot = corr if corr is not None else corrections(pipe)
     seen = [[pipe.apples.frames.frame[o.frame] for o in a.observations] for a in A]
-    frames = np.unique(np.concatenate(seen))
-    off, rot = assoc.correction(frames, _drift_sigma_frames(pipe))
-    centre = assoc.to_enu(np.array([pipe.apples.frames.poses[f].centre for f in frames]))
+    k = np.searchsorted(frames, np.concatenate(seen))
+    used = np.unique(k)  # the posed frames these apples were seen in
+    centre = np.zeros((len(frames), 3))
+    centre[used] = assoc.to_enu(np.array([pipe.apples.frames.poses[f].centre for f in frames[used]]))
     # every (apple, view) pair at once: the apple moved with that view's camera, then the mean over its views
     n_views = np.array([len(fs) for fs in seen])
     apple = np.repeat(np.arange(len(A)), n_views)
-    k = np.searchsorted(frames, np.concatenate(seen))
     X = assoc.to_enu(X)
     moved = centre[k] + off[k] + np.einsum("nij,nj->ni", rot[k], X[apple] - centre[k])
     out = np.zeros_like(X)
@@ -62,14 +73,15 @@ def _geodetic(pipe, enu: np.ndarray) -> np.ndarray:
     return np.asarray(pipe.poses.origin.to_geodetic(enu)).reshape(-1, 3)
 
 
-def apple_table(pipe) -> tuple[dict[str, np.ndarray], float]:
+def apple_table(pipe, corr=None) -> tuple[dict[str, np.ndarray], float]:
     """The counted apples of a ground.pipeline.GroundPipeline as columns (APPLE_COLUMNS: ENU, WGS84, row 1..N left
-    to right looking along the row direction, radius in metres ...), and the rows' direction (rad)."""
+    to right looking along the row direction, radius in metres ...), and the rows' direction (rad). ``corr``: the
+    refresh's :func:`corrections`, if already computed."""
     from ground.apples.rows import direction_rows
 
     ids = pipe.apples.count.counted_ids()
     A = [pipe.apples.count.apples[i] for i in ids]
-    enu = apples_enu(pipe, A)
+    enu = apples_enu(pipe, A, corr)
     geo = _geodetic(pipe, enu)
     rows, direction = direction_rows(enu[:, :2]) if len(A) >= 2 else (np.zeros(len(A), int), 0.0)
     return {"id": np.array(ids, int), "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
@@ -82,12 +94,12 @@ def apple_table(pipe) -> tuple[dict[str, np.ndarray], float]:
             "last_frame": np.array([pipe.apples.frames.frame[a.last_frame] for a in A], int)}, direction
 
 
-def candidate_table(pipe) -> dict[str, np.ndarray]:
+def candidate_table(pipe, corr=None) -> dict[str, np.ndarray]:
     """Every apple the count was chosen from (the counting's checks, with each apple's position, ENU and WGS84, its
-    radius in metres and its first and last frame): candidates.csv's columns."""
+    radius in metres and its first and last frame): candidates.csv's columns. ``corr`` as for :func:`apple_table`."""
     c = pipe.apples.count.checks(all_expected=True)
     A = [pipe.apples.count.apples[i] for i in c["id"]]
-    enu = apples_enu(pipe, A)
+    enu = apples_enu(pipe, A, corr)
     geo = _geodetic(pipe, enu)
     radius = c.pop("radius") * pipe.metres_per_unit()
     return {**c, "radius_m": radius, "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
@@ -96,8 +108,9 @@ def candidate_table(pipe) -> dict[str, np.ndarray]:
             "last_frame": np.array([pipe.apples.frames.frame[a.last_frame] for a in A], int)}
 
 
-def pose_table(pipe) -> dict[str, np.ndarray]:
-    """Every mapped frame's camera: frame, capture time, source, centre (ENU and WGS84), ENU-to-camera quaternion."""
+def pose_table(pipe, corr=None) -> dict[str, np.ndarray]:
+    """Every mapped frame's camera: frame, capture time, source, centre (ENU and WGS84), ENU-to-camera quaternion.
+    ``corr`` as for :func:`apple_table`."""
     from scipy.spatial.transform import Rotation
 
     frames = sorted(pipe.apples.frames.poses)
@@ -106,7 +119,7 @@ def pose_table(pipe) -> dict[str, np.ndarray]:
         return {k: np.zeros(0) for k in ("frame", "t_unix", "source", "x", "y", "z", "lat", "lon", "alt",
                                          "qw", "qx", "qy", "qz", "sigma_m")}
     S = pipe.poses.assoc.assoc_to_enu()
-    off, rot = pipe.poses.assoc.correction(frames, _drift_sigma_frames(pipe))
+    _, off, rot = corr if corr is not None else corrections(pipe)
     C = S.apply(np.array([p.centre for p in P])) + off
     R = np.array([p.R for p in P]) @ S.R.T @ np.swapaxes(rot, 1, 2)  # ENU-to-camera, turned with the map's bend
     q = Rotation.from_matrix(R).as_quat()  # xyzw
