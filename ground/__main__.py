@@ -29,7 +29,8 @@ def _cmd_evaluate(args) -> int:
     from pomar.settings import from_options
 
     params = replace(from_options(AssociationParams(), args, EVALUATE_ASSOCIATION_FIELDS), seed=args.seed)
-    pert = Perturbation(args.noise_px, args.miss, args.fp, args.dup, args.min_visible, args.seed)
+    pert = from_options(Perturbation(args.noise_px, args.miss, args.fp, args.dup, args.min_visible, args.seed), args,
+                        ["pose_noise_deg", "pose_noise_m"])
     results = [evaluate(args.flight_dir, mode, params, pert, args.detections, args.poses, args.match_m,
                         baselines=(i == 0), truth_min_views=args.truth_min_views,
                         remove_pose_offset=args.remove_pose_offset) for i, mode in enumerate(args.mode)]
@@ -270,7 +271,7 @@ def main(argv=None) -> int:
     from ground.evaluation import scoring
     from pomar import countable
     from pomar.settings import add_options
-    from ground.evaluation.evaluate import __doc__ as evaluate_doc
+    from ground.evaluation.evaluate import Perturbation, __doc__ as evaluate_doc
     from pomar.flight import id_argument
 
     p = argparse.ArgumentParser(prog="python -m ground", description=__doc__,
@@ -286,6 +287,7 @@ def main(argv=None) -> int:
     e.add_argument("--miss", type=float, default=0.0, help="probability a detection is missed")
     e.add_argument("--fp", type=float, default=0.0, help="false positives per frame (Poisson mean)")
     e.add_argument("--dup", type=float, default=0.0, help="probability a detection is duplicated")
+    add_options(e, Perturbation(), ["pose_noise_deg", "pose_noise_m"])
     e.add_argument("--min-visible", type=float, default=countable.MIN_VISIBLE,
                    help="the truth's apples counted: at least this visible (fraction)")
     e.add_argument("--mode", nargs="+", default=["windowed"], choices=["offline", "windowed"])

@@ -86,6 +86,31 @@ def test_perturbation_is_deterministic_and_does_what_it_says(bundled_flight):
     assert 0.8 * 1.1 * n_clean * 0.9 < n_true < 0.8 * 1.1 * n_clean * 1.1  # misses, then duplicates
 
 
+def test_pose_noise_turns_and_moves_each_camera_as_asked_and_leaves_the_detections(bundled_flight):
+    from ground.evaluation.evaluate import projection_matrices
+
+    K_inv = np.linalg.inv(bundled_flight.camera().K_opencv)
+
+    def poses(Ps):
+        Rt = np.einsum("ij,njk->nik", K_inv, Ps)
+        return Rt[:, :, :3], -np.einsum("nji,nj->ni", Rt[:, :, :3], Rt[:, :, 3])
+
+    R0, C0 = poses(projection_matrices(bundled_flight, "truth"))
+    p = Perturbation(noise_px=1.0, seed=3, pose_noise_deg=0.05, pose_noise_m=0.01)
+    R1, C1 = poses(projection_matrices(bundled_flight, "truth", p))
+    assert np.array_equal(projection_matrices(bundled_flight, "truth", p), projection_matrices(bundled_flight, "truth", p))
+    turn = np.degrees(np.arccos(np.clip((np.einsum("nij,nij->n", R1, R0) - 1) / 2, -1, 1)))
+    shift = C1 - C0
+    # per axis sigma s: the turn's size is a chi with 3 degrees of freedom (mean 1.596 s); the shift's spread is s
+    assert 0.9 * 1.596 * 0.05 < turn.mean() < 1.1 * 1.596 * 0.05
+    assert 0.009 < shift.std() < 0.011 and abs(shift.mean()) < 0.002
+    # the detections' own perturbation does not change with the poses'
+    meta = bundled_flight.meta()
+    a, _ = truth_detections(bundled_flight, Perturbation(noise_px=1.0, seed=3), meta.frame_count, meta.width, meta.height)
+    b, _ = truth_detections(bundled_flight, p, meta.frame_count, meta.width, meta.height)
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
+
+
 def test_evaluate_cli_on_the_bundled_flight(tmp_path):
     out = tmp_path / "eval.json"
     r = subprocess.run([sys.executable, "-m", "ground", "evaluate", str(BUNDLED), "--noise-px", "0.5",

@@ -1,12 +1,13 @@
 """Score the association against a simulated flight's truth.
 
     python -m ground evaluate FLIGHT_DIR [--detections truth|FILE] [--poses truth|FILE] [--noise-px S]
-        [--miss P] [--fp N] [--dup P] [--mode offline|windowed] [--json OUT]
+        [--miss P] [--fp N] [--dup P] [--pose-noise-deg D] [--pose-noise-m M] [--mode offline|windowed] [--json OUT]
 
 Detections come from ``truth/detections.csv`` (apples at least ``--min-visible`` visible), perturbed
 deterministically from ``--seed``: pixel jitter, misses, false positives per frame (Poisson) and
 duplicate detections; or from a CSV ``frame,u,v[,score]`` (OpenCV pixel convention). Poses come
-from ``truth/frames.csv``, from the telemetry alone (GPS + gimbal), or a CSV with the same columns. Predicted apples are matched to truth
+from ``truth/frames.csv``, from the telemetry alone (GPS + gimbal), or a CSV with the same columns, each frame's pose
+perturbed on its own if asked (tracking's jitter: a random turn and a random shift of its centre). Predicted apples are matched to truth
 apples one-to-one (Hungarian) within ``--match-m`` (0.10 m).
 
 Truth counts: an apple is *visible in the flight* when it appears, at least ``--min-visible``
@@ -42,6 +43,10 @@ class Perturbation:
     dup: float = 0.0
     min_visible: float = MIN_VISIBLE
     seed: int = 0
+    #: Each frame's camera turned at random by this much (degrees, per axis, normal; each frame on its own).
+    pose_noise_deg: float = 0.0
+    #: Each frame's camera centre moved at random by this much (metres, per axis, normal; each frame on its own).
+    pose_noise_m: float = 0.0
 
 
 def truth_detections(flight: FlightDir, pert: Perturbation, n_frames: int, width: int, height: int):
@@ -89,7 +94,9 @@ def detections_from_file(path: Path, n_frames: int):
     return out, [np.full(len(x), -2) for x in out]
 
 
-def projection_matrices(flight: FlightDir, poses: str) -> np.ndarray:
+def projection_matrices(flight: FlightDir, poses: str, pert: Perturbation | None = None) -> np.ndarray:
+    """Every frame's camera matrix from ``poses`` ('truth', 'telemetry' or a CSV), each pose perturbed by ``pert``'s
+    pose noise (a random stream of its own: the detections' perturbation stays the same for a seed)."""
     cam = flight.camera()
     if poses == "truth":
         R, t = flight.truth_poses()
@@ -105,6 +112,13 @@ def projection_matrices(flight: FlightDir, poses: str) -> np.ndarray:
         q = np.stack([fr[k][order] for k in ("qw", "qx", "qy", "qz")], 1)
         R = quat_wxyz_to_rotation(q).as_matrix()
         t = np.stack([fr[k][order] for k in ("tx", "ty", "tz")], 1)
+    if pert is not None and (pert.pose_noise_deg or pert.pose_noise_m):
+        from scipy.spatial.transform import Rotation
+
+        rng = np.random.default_rng([pert.seed, 1])
+        C = -np.einsum("nji,nj->ni", R, t) + rng.normal(0, pert.pose_noise_m, (len(R), 3))
+        R = Rotation.from_rotvec(rng.normal(0, np.radians(pert.pose_noise_deg), (len(R), 3))).as_matrix() @ R
+        t = -np.einsum("nij,nj->ni", R, C)
     K = cam.K_opencv
     return np.einsum("ij,njk->nik", K, np.concatenate([R, t[:, :, None]], axis=2))
 
@@ -119,7 +133,7 @@ def evaluate(flight_dir, mode: str = "windowed", params: AssociationParams | Non
     params = params or AssociationParams()
     pert = pert or Perturbation()
     meta = flight.meta()
-    Ps = projection_matrices(flight, poses)
+    Ps = projection_matrices(flight, poses, pert)
     n = min(meta.frame_count, len(Ps))
     if detections == "truth":
         xy, src = truth_detections(flight, pert, n, meta.width, meta.height)
