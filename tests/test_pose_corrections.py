@@ -47,6 +47,40 @@ def test_frames_follow_the_keyframes_the_mapper_moved(tmp_path):
         lp.close()
 
 
+def test_a_frame_given_its_pose_after_a_correction_agrees_with_the_frames_the_correction_moved(tmp_path):
+    lp = LivePoses(Camera.from_fov(1280, 720, 50.0), tmp_path)
+    try:
+        lp.assoc.frozen = lp.mapper.fit = IDENTITY  # model frame = association frame = ENU
+        R0 = np.eye(3)
+        kf = _pose(10, R0, (1.0, 0.0, 10.0), "registered")
+        lp.mapper.model_pose[10] = (kf.R, kf.t)
+        lp.mapper.kf_sorted[:] = [10]
+        # frames 11-14 tracked from keyframe 10 as it was handed over
+        for f in range(11, 15):
+            p = _pose(f, R0, (0.1 * f, 0.0, 10.0))
+            lp.tracking.tracked[f] = (p.R, p.t)
+            lp.tracking.anchors[f] = (10, kf.R, kf.t)
+        given = {f: lp.pose(f) for f in (10, 11, 12)}  # released before the mapper moved the keyframe
+        assert np.allclose(given[12].centre, (1.2, 0.0, 10.0))
+        # the mapper moves keyframe 10 by 30 cm and 0.5 degrees (a re-anchoring after an outage)
+        turn = Rotation.from_euler("x", 0.5, degrees=True).as_matrix()
+        moved = _pose(10, R0 @ turn, kf.centre + [0.0, 0.3, 0.0], "registered")
+        lp.mapper.model_pose[10] = (moved.R, moved.t)
+        given.update(lp.corrected(given, range(10, 13)))  # the correction round: the frames released so far
+        late = lp.pose(13)  # released after it, tracked before it
+        # the late frame sits where the corrected frames' motion puts it: one step on from frame 12, not 30 cm away
+        assert np.linalg.norm(late.centre - given[12].centre - (given[12].centre - given[11].centre)) < 1e-6
+        assert np.allclose(late.R, given[12].R)
+        # its pose relative to the keyframe is the one tracking gave
+        R13, t13 = lp.tracking.tracked[13]
+        assert np.allclose(late.R @ moved.R.T, R13 @ kf.R.T)
+        # a frame tracked from a keyframe the map has not (or no longer) got keeps its tracked pose
+        lp.tracking.anchors[14] = (99, kf.R, kf.t)
+        assert np.allclose(lp.pose(14).t, lp.tracking.tracked[14][1])
+    finally:
+        lp.close()
+
+
 def test_drift_correction_applies_only_where_the_map_drifted_beyond_the_gps_wander(tmp_path):
     """The GPS's gate of AssociationFrame.correction: a map rigid within the GPS's stated accuracy is left as it is (what a
     correction would follow there is the GPS error's wander); a map that bent away from the GPS is taken back to it."""

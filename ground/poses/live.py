@@ -127,10 +127,20 @@ class LivePoses:
         return self.mapper.attempts >= self.mapper.settings.first_model_tries
 
     def _model_frame_pose(self, frame: int, model_pose) -> tuple[np.ndarray, np.ndarray, str] | None:
+        """A registered frame's pose in the model now; a tracked frame's, carried along as the mapper has since moved
+        the keyframe it was tracked from (its pose relative to that keyframe kept): a frame given its pose after a
+        correction round must agree with the frames that round corrected, or the tracks across them split."""
         if frame in model_pose:
             return (*model_pose[frame], "registered")
         if frame in self.tracking.tracked:
-            return (*self.tracking.tracked[frame], "tracked")
+            R, t = self.tracking.tracked[frame]
+            anchor = self.tracking.anchors.get(frame)
+            if anchor is not None and anchor[0] in model_pose:
+                k, R_then, t_then = anchor
+                R_now, t_now = model_pose[k]
+                rel = R @ R_then.T  # the keyframe's camera to the frame's
+                R, t = rel @ R_now, rel @ (t_now - t_then) + t
+            return (R, t, "tracked")
         return None
 
     def _neighbours(self, frame: int, kf_sorted: list[int]) -> tuple[int, int] | None:

@@ -210,6 +210,9 @@ class ImageTracking:
         self.init_spacing_s = init_spacing_s
         self._t_init = float("-inf")  # capture time of the last image handed to the mapper for the first model
         self.tracked: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # tracked frames, model frame
+        # each tracked frame's newest reference then: (its frame, R, t) as handed over, to carry the frame along when
+        # the mapper moves that keyframe (bundle adjustment, a re-anchoring) before the frame's pose is given
+        self.anchors: dict[int, tuple[int, np.ndarray, np.ndarray]] = {}
         self.failed_frames: list[int] = []  # frames with an image that tracking could not place
         self.processed = -1  # the newest frame whose image went through tracking
         self._last_image = -1
@@ -304,7 +307,7 @@ class ImageTracking:
             if frame == self._retry:
                 self._retry = None
                 self.retried += 1
-            self._record(r)
+            self._record(r, self.tracker)
             # while the mapper is at work on the last proposal, a frame is not proposed, unless the map is falling
             # behind (then it is due, and the frames after it wait); never one older than what it has mapped already
             if r.R is not None and r.keyframe and frame > self.mapper.processed:
@@ -341,12 +344,16 @@ class ImageTracking:
         for ref in near:
             tracker.set_reference(ref)
         grey = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY) if image_bgr.ndim == 3 else image_bgr
-        self._record(tracker.track(frame, grey))
+        self._record(tracker.track(frame, grey), tracker)
 
-    def _record(self, r: TrackResult) -> None:
-        """A frame's tracking result: its pose, or a flag (the frame then gets an interpolated or telemetry pose)."""
+    def _record(self, r: TrackResult, tracker: Tracker) -> None:
+        """A frame's tracking result: its pose and the reference it was tracked from, or a flag (the frame then gets an
+        interpolated or telemetry pose)."""
         if r.R is not None:
             self.tracked[r.frame] = (r.R, r.t)
+            ref = tracker.ref
+            if ref is not None:
+                self.anchors[r.frame] = (ref.frame, ref.R, ref.t)
         else:
             self.failed_frames.append(r.frame)
             log.info("frame %d: tracking failed (%s)", r.frame, r.why)
@@ -382,3 +389,4 @@ class ImageTracking:
         """Drop the tracked poses older than ``frame`` (memory stays bounded over long flights)."""
         for f in [f for f in self.tracked if f < frame]:
             del self.tracked[f]
+            self.anchors.pop(f, None)
