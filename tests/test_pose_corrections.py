@@ -19,7 +19,7 @@ def _pose(frame: int, R: np.ndarray, c, source: str = "tracked") -> Pose:
 def test_frames_follow_the_keyframes_the_mapper_moved(tmp_path):
     lp = LivePoses(Camera.from_fov(1280, 720, 50.0), tmp_path)
     try:
-        lp.assoc.frozen = IDENTITY  # model frame = association frame
+        lp.assoc.frozen = lp.mapper.fit = IDENTITY  # model frame = association frame = ENU
         R0 = np.eye(3)
         given = {f: _pose(f, R0, (0.1 * f, 0.0, 10.0), "telemetry" if f == 12 else "tracked") for f in range(0, 101)}
         # the mapper has since moved keyframe 10 by 2 cm and keyframe 20 by 6 cm and 0.2 degrees
@@ -77,6 +77,46 @@ def test_a_frame_given_its_pose_after_a_correction_agrees_with_the_frames_the_co
         # a frame tracked from a keyframe the map has not (or no longer) got keeps its tracked pose
         lp.tracking.anchors[14] = (99, kf.R, kf.t)
         assert np.allclose(lp.pose(14).t, lp.tracking.tracked[14][1])
+    finally:
+        lp.close()
+
+
+def test_a_tracked_frame_is_corrected_with_the_keyframe_it_was_tracked_from_and_no_other(tmp_path):
+    """Frame 14 was tracked from keyframe 10; keyframe 20, mapped later, is moved by the mapper (a new keyframe's first
+    placement corrected). Frame 14 keeps its pose: it was measured against keyframe 10's points. When keyframe 10 moves,
+    frame 14 moves with it, its pose relative to the keyframe kept. A frame interpolated between tracked ones follows
+    them."""
+    lp = LivePoses(Camera.from_fov(1280, 720, 50.0), tmp_path)
+    try:
+        lp.assoc.frozen = lp.mapper.fit = IDENTITY  # model frame = association frame = ENU
+        R0 = np.eye(3)
+        kf = {k: _pose(k, R0, (0.1 * k, 0.0, 10.0), "registered") for k in (10, 20)}
+        lp.mapper.model_pose.update({k: (p.R, p.t) for k, p in kf.items()})
+        lp.mapper.kf_sorted[:] = [10, 20]
+        for f in (12, 14):
+            p = _pose(f, R0, (0.1 * f, 0.0, 10.0))
+            lp.tracking.tracked[f] = (p.R, p.t)
+            lp.tracking.anchors[f] = (10, kf[10].R, kf[10].t)
+        given = {f: lp.pose(f) for f in (10, 12, 13, 14, 20)}
+        assert given[13].source == "interpolated" and np.allclose(given[13].centre, (1.3, 0.0, 10.0))
+
+        moved20 = _pose(20, R0, kf[20].centre + [0.0, 0.06, 0.0], "registered")
+        lp.mapper.model_pose[20] = (moved20.R, moved20.t)
+        out = lp.corrected(given, range(10, 21))
+        assert set(out) == {20}, sorted(out)  # the keyframe after them has no say on frames tracked from keyframe 10
+
+        turn = Rotation.from_euler("x", 0.5, degrees=True).as_matrix()
+        moved10 = _pose(10, R0 @ turn, kf[10].centre + [0.0, 0.03, 0.0], "registered")
+        lp.mapper.model_pose[10] = (moved10.R, moved10.t)
+        out = lp.corrected(given, range(10, 21))
+        for f in (12, 14):  # carried along with keyframe 10: the pose relative to it is the one tracking measured
+            R, t = lp.tracking.tracked[f]
+            assert np.allclose(out[f].R @ moved10.R.T, R @ kf[10].R.T)
+            assert np.allclose(out[f].R @ (moved10.centre - out[f].centre), R @ (kf[10].centre - given[f].centre))
+            assert out[f].source == "tracked"
+        # the interpolated frame halfway between the two tracked frames, as they are now
+        assert np.allclose(out[13].centre, (out[12].centre + out[14].centre) / 2)
+        assert out[13].source == "interpolated"
     finally:
         lp.close()
 

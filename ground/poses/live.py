@@ -134,14 +134,18 @@ class LivePoses:
             return (*model_pose[frame], "registered")
         if frame in self.tracking.tracked:
             R, t = self.tracking.tracked[frame]
-            anchor = self.tracking.anchors.get(frame)
-            if anchor is not None and anchor[0] in model_pose:
-                k, R_then, t_then = anchor
+            if self._carried(frame, model_pose):
+                k, R_then, t_then = self.tracking.anchors[frame]
                 R_now, t_now = model_pose[k]
                 rel = R @ R_then.T  # the keyframe's camera to the frame's
                 R, t = rel @ R_now, rel @ (t_now - t_then) + t
             return (R, t, "tracked")
         return None
+
+    def _carried(self, frame: int, model_pose) -> bool:
+        """Whether a tracked frame's pose follows the keyframe it was tracked from (that keyframe is in the map)."""
+        anchor = self.tracking.anchors.get(frame)
+        return anchor is not None and anchor[0] in model_pose
 
     def _neighbours(self, frame: int, kf_sorted: list[int]) -> tuple[int, int] | None:
         """The nearest posed frames (registered or tracked) before and after ``frame``, within max_interp_gap."""
@@ -186,12 +190,32 @@ class LivePoses:
         """The keyframes the mapper placed or moved since the last call."""
         return self.mapper.take_moved()
 
+    def _held_pose(self, frame: int, source: str, model_pose, kf_sorted) -> Pose | None:
+        """The pose ``frame`` (given from ``source``) would be given now, from what is still held of it: a keyframe's
+        in the model, a tracked frame's carried along with the keyframe it was tracked from, an interpolated frame's
+        between its neighbours as they are now. None once that is forgotten (:meth:`forget_before`)."""
+        own = self._model_frame_pose(frame, model_pose)
+        between = None
+        if own is None and source == "interpolated":
+            ab = self._neighbours(frame, kf_sorted)
+            if ab is None:
+                return None
+            between = (ab[0], self._model_frame_pose(ab[0], model_pose), ab[1], self._model_frame_pose(ab[1], model_pose))
+            if any(p is None or (p[2] == "tracked" and not self._carried(f, model_pose))
+                   for f, p in ((between[0], between[1]), (between[2], between[3]))):
+                return None
+        elif own is None or (own[2] == "tracked" and not self._carried(frame, model_pose)):
+            return None
+        return self.assoc.frame_pose(frame, own, between, None, self.cam, float(np.degrees(self.sigma_att)))
+
     def corrected(self, given: dict[int, Pose], frames) -> dict[int, Pose]:
         """The poses given earlier for ``frames`` (from ``given``), moved as the mapper has since moved the keyframes
-        about them (bundle adjustment, a re-anchoring on an earlier pass): a keyframe to its pose now, another frame by
-        the corrections of the keyframes on either side of it, interpolated (rotation by slerp, centre linearly), or
-        of the nearest one. Telemetry poses, and any pose before the association frame was fixed, stay as they were;
-        only the poses that changed are returned."""
+        about them (bundle adjustment, a re-anchoring on an earlier pass): each to the pose it would be given now
+        (:meth:`_held_pose`), so that a tracked frame keeps the pose relative to its keyframe that tracking measured
+        (the keyframe after it, placed later and moved by its own errors, has no say). A frame whose tracking is
+        forgotten moves by the corrections of the keyframes on either side of it, interpolated (rotation by slerp,
+        centre linearly), or of the nearest one. Telemetry poses, and any pose before the association frame was fixed,
+        stay as they were; only the poses that changed are returned."""
         if self.assoc.frozen is None:
             return {}
         model_pose, kf_sorted, _ = self.mapper.registered()
@@ -211,6 +235,13 @@ class LivePoses:
         Q = Rotation.from_matrix(np.einsum("nji,njk->nik", R_was, R_now))  # R_now = R_was @ Q
         out = {}
         for f in frames:
+            p = given[f]
+            held = self._held_pose(f, p.source, model_pose, kf_sorted) if p.source != "apples" else None
+            if held is not None:
+                dc, turn = held.centre - p.centre, Rotation.from_matrix(p.R.T @ held.R).magnitude()
+                if np.linalg.norm(dc) >= self.MIN_CORRECTION_M or turn >= self.MIN_CORRECTION_RAD:
+                    out[f] = Pose(f, held.R, held.t, p.source, p.sigma_m, p.sigma_deg)
+                continue
             j = bisect.bisect_left(kfs, f)
             a, b = (j, j) if j < len(kfs) and kfs[j] == f else (j - 1, j)
             near = [i for i in dict.fromkeys((a, b)) if 0 <= i < len(kfs) and abs(kfs[i] - f) <= self.MAX_CORRECTION_GAP]
@@ -222,7 +253,6 @@ class LivePoses:
                 dc = (1 - w) * dC[a] + w * dC[b]
             else:
                 q, dc = Q[near[0]], dC[near[0]]
-            p = given[f]
             R = p.R @ q.as_matrix()
             c = p.centre + dc
             if np.linalg.norm(dc) < self.MIN_CORRECTION_M and q.magnitude() < self.MIN_CORRECTION_RAD:
