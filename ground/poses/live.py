@@ -173,11 +173,15 @@ class LivePoses:
         tracked, else interpolated between its nearest posed frames, else its telemetry's; None without either."""
         model_pose, kf_sorted, _ = self.mapper.registered()
         own = self._model_frame_pose(frame, model_pose)
-        ab = self._neighbours(frame, kf_sorted) if own is None else None
-        between = None if ab is None else (ab[0], self._model_frame_pose(ab[0], model_pose),
-                                           ab[1], self._model_frame_pose(ab[1], model_pose))
+        between = self._between(frame, model_pose, kf_sorted) if own is None else None
         return self.assoc.frame_pose(frame, own, between, self.tel.get(frame), self.cam,
                                      float(np.degrees(self.sigma_att)))
+
+    def _between(self, frame: int, model_pose, kf_sorted):
+        """(a, pose at a, b, pose at b) of the nearest posed frames around ``frame`` (:meth:`_neighbours`), or None."""
+        ab = self._neighbours(frame, kf_sorted)
+        return None if ab is None else (ab[0], self._model_frame_pose(ab[0], model_pose),
+                                        ab[1], self._model_frame_pose(ab[1], model_pose))
 
     # -- corrections of poses already given
     #: A frame is corrected by keyframes at most this many frames away.
@@ -197,12 +201,9 @@ class LivePoses:
         own = self._model_frame_pose(frame, model_pose)
         between = None
         if own is None and source == "interpolated":
-            ab = self._neighbours(frame, kf_sorted)
-            if ab is None:
-                return None
-            between = (ab[0], self._model_frame_pose(ab[0], model_pose), ab[1], self._model_frame_pose(ab[1], model_pose))
-            if any(p is None or (p[2] == "tracked" and not self._carried(f, model_pose))
-                   for f, p in ((between[0], between[1]), (between[2], between[3]))):
+            between = self._between(frame, model_pose, kf_sorted)
+            if between is None or any(p is None or (p[2] == "tracked" and not self._carried(f, model_pose))
+                                      for f, p in ((between[0], between[1]), (between[2], between[3]))):
                 return None
         elif own is None or (own[2] == "tracked" and not self._carried(frame, model_pose)):
             return None
