@@ -66,7 +66,7 @@ def candidates(flight: FlightDir, journal: Path) -> tuple[list[dict], dict[str, 
                 keep = np.asarray(m.scores) >= pipe.s.min_score
                 boxes[m.frame] = np.asarray(m.boxes, float).reshape(-1, 4)[keep]
                 scores[m.frame] = np.asarray(m.scores)[keep]
-            pipe.feed(m)
+            pipe.take(m)
         pipe.finish()
         checks = pipe.apples.count.checks(all_expected=True)
         out = []

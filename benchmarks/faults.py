@@ -262,8 +262,10 @@ def table(results: list[dict], title: str) -> None:
         if "f1" not in r:
             print(f"{r['fault']:<16} {r.get('skipped') or 'no report (exit %s)' % r.get('exit_code')}")
             continue
-        dc = 100 * (r["count"] - ref["count"]) / ref["count"] if ref else float("nan")
-        print(f"{r['fault']:<16}{r['f1']:>7.3f}{r['f1'] - ref.get('f1', 0):>+8.3f}{r['count']:>7d}{dc:>+10.1f}"
+        # without clean runs there is nothing to compare with: the differences are left blank
+        df1 = f"{r['f1'] - ref['f1']:>+8.3f}" if ref else f"{'-':>8}"
+        dc = f"{100 * (r['count'] - ref['count']) / ref['count']:>+10.1f}" if ref else f"{'-':>10}"
+        print(f"{r['fault']:<16}{r['f1']:>7.3f}{df1}{r['count']:>7d}{dc}"
               f"{r['delay_p95_s'] or float('nan'):>13.2f}  {(r['user_saw'] or ['-'])[0][:90]}")
 
 

@@ -57,7 +57,7 @@ def main() -> None:
         pipe = GroundPipeline(Path(work), GroundSettings(mapping="inline"))
         t0 = time.perf_counter()
         for i, m in enumerate(msgs):
-            pipe.feed(m)
+            pipe.take(m)
             if isinstance(m, wire.FrameMessage):
                 snap.append([m.frame, time.perf_counter() - t0, *stage_seconds(pipe)])
             if i % 200 == 0:

@@ -2,16 +2,18 @@
 
     pipe = GroundPipeline(workdir)
     for msg in messages:          # pomar.wire messages, in any order, repeats allowed
-        for event in pipe.feed(msg):
+        for event in pipe.take(msg):
             ...                   # FrameEvent: a frame went through the association (its pose, new apples)
     pipe.finish()
     pipe.apples.count.apples      # id -> Apple (association frame); ground.outputs.tables.apple_table(pipe): ENU, WGS84
 
-A frame goes down once and comes back once: the arrivals (:class:`ground.link.arrivals.Arrivals`) put the messages in
-frame order; the poses (:class:`ground.poses.live.LivePoses`) take the telemetry and the images, and say when a
-frame's pose can be decided and what it is; the apples (:class:`ground.apples.live.LiveApples`) take the posed frame's
-detections and give back the apples it confirmed. An image that does not decode or track is logged, and its frame
-gets an interpolated or telemetry pose: nothing stops the flight.
+The camera message opens a stream (:meth:`GroundPipeline.start`); its frame, keyframe and status messages are fed
+(:meth:`GroundPipeline.feed`); ``take`` does either. A frame goes down once and comes back once: the arrivals
+(:class:`ground.link.arrivals.Arrivals`) put the messages in frame order; the poses
+(:class:`ground.poses.live.LivePoses`) take the telemetry and the images, and say when a frame's pose can be decided
+and what it is; the apples (:class:`ground.apples.live.LiveApples`) take the posed frame's detections and give back
+the apples it confirmed. An image that does not decode or track is logged, and its frame gets an interpolated or
+telemetry pose: nothing stops the flight.
 """
 
 from __future__ import annotations
@@ -112,7 +114,6 @@ class GroundPipeline:
         self.fps = float("nan")  # the drone's frame rate, from its camera message
         self._kf_width_said: int | None = None  # the keyframes' width, as the camera message says it
         self.flight_id = self.drone_id = None
-        self.status: wire.StatusMessage | None = None
         if self.s.mapping not in ("stream", "inline", "process"):
             raise ValueError(f"GroundSettings.mapping must be 'stream', 'inline' or 'process', got {self.s.mapping!r}")
         self.arrivals = Arrivals(self.s.max_wait_s)
@@ -121,7 +122,7 @@ class GroundPipeline:
         # live, the mapping process starts now: its imports would otherwise hold up the first model
         self._mapping_worker = MappingWorker() if self.s.mapping == "process" else None
         self._kf_for_event: dict[int, bytes] = {}  # images tracked, kept for their frame's event
-        self._counts = {"bad_keyframes": 0, "frames_without_pose": 0, "onboard_restarts": 0,
+        self._counts = {"bad_keyframes": 0, "frames_without_pose": 0,
                         "registered": 0, "tracked": 0, "interpolated": 0, "apples": 0, "telemetry": 0}
         self.seconds = {"poses": 0.0, "association": 0.0, "corrections": 0.0}
         self._last_correction = -float("inf")
@@ -130,59 +131,51 @@ class GroundPipeline:
     @property
     def counters(self) -> dict[str, int]:
         """What came and what became of it: the arrivals' counts, then the poses' and the apples'."""
-        c = self._counts
-        return {**self.arrivals.counters, "bad_keyframes": c["bad_keyframes"],
-                "onboard_restarts": c["onboard_restarts"],
+        c, a = self._counts, dict(self.arrivals.counters)
+        restarts = a.pop("onboard_restarts")
+        return {**a, "bad_keyframes": c["bad_keyframes"], "onboard_restarts": restarts,
                 "frames_without_pose": c["frames_without_pose"], "detections": self.apples.detections,
                 **{k: c[k] for k in ("registered", "tracked", "interpolated", "apples", "telemetry")}}
 
     # -- inputs
-    def feed(self, msg, step: bool = True) -> list[FrameEvent]:
-        """Take one message; ``step=False`` only stores it (the node feeds what has queued up, then steps
-        once for all of them)."""
-        if isinstance(msg, wire.CameraMessage):
-            self._start(msg)
-        elif isinstance(msg, (wire.FrameMessage, wire.KeyframeMessage)):
-            self.arrivals.take(msg)
-        elif isinstance(msg, wire.StatusMessage):
-            self._take_status(msg)
+    def take(self, msg, step: bool = True) -> list[FrameEvent]:
+        """Any message of a stream: its camera message opens it (:meth:`start`), the others are fed (:meth:`feed`)."""
+        return self.start(msg, step) if isinstance(msg, wire.CameraMessage) else self.feed(msg, step)
+
+    def start(self, msg: wire.CameraMessage, step: bool = True) -> list[FrameEvent]:
+        """The stream's opening (its camera message): the camera, and the profile the stream asks for. Frames that
+        came before it go on now (``step``)."""
+        if self.camera is None:
+            camera = Camera.from_dict(msg.camera, source=f"camera message of {msg.flight_id}/{msg.drone_id}")
+            self.flight_id, self.drone_id = msg.flight_id, msg.drone_id
+            self.fps = msg.fps
+            self._kf_width_said = msg.keyframe_width or None
+            said = stream_profile(msg.paced)
+            if self.s.mapping == "stream":
+                self.s = replace(self.s, **PROFILES[said])
+                if self.s.mapping == "process" and self._mapping_worker is None:
+                    self._mapping_worker = MappingWorker()
+                log.info("profile %s, from the stream (%s): mapping %s", said, "paced" if msg.paced else
+                         "every frame, as fast as taken" if msg.paced is False else "it does not say", self.s.mapping)
+            else:
+                log.info("mapping %s, as set (the stream asks for the %s profile)", self.s.mapping, said)
+            # the poses are made in step(), once the first keyframe tells the keyframes' width (or, if the frames
+            # cannot wait for it, from what the camera message says)
+            self.camera = self.apples.camera = camera
         return self.step() if step else []
 
-    def _take_status(self, msg: wire.StatusMessage) -> None:
-        """The drone's newest status (an older one, from its history, changes nothing). A status that starts at
-        another frame than the one before is a node started again mid-flight: said once per restart, and counted. So is
-        the first status heard, where frames before the one it starts at came (sent by a node before it, whose statuses
-        were lost: the link drops what it cannot carry)."""
-        if self.status is not None and msg.t < self.status.t:
-            return
-        a = self.arrivals
-        if (msg.first_frame != self.status.first_frame if self.status is not None
-                else msg.first_frame > 0 and a.arrived_from(0) > a.arrived_from(msg.first_frame)):
-            self._counts["onboard_restarts"] += 1
-            log.warning("the drone's onboard node started again: it sends from frame %d on (frames not sent meanwhile "
-                        "are gaps); the flight goes on", msg.first_frame)
-        self.status = msg
+    def feed(self, msg: wire.FrameMessage | wire.KeyframeMessage | wire.StatusMessage,
+             step: bool = True) -> list[FrameEvent]:
+        """Take one message of the stream's body (its opening is :meth:`start`'s): the arrivals put it in frame order,
+        whatever order it came in; ``step=False`` only stores it (the node feeds what has queued up, then steps once
+        for all of them)."""
+        self.arrivals.take(msg)
+        return self.step() if step else []
 
-    def _start(self, msg: wire.CameraMessage) -> None:
-        """The camera message: the camera, and the profile the stream asks for."""
-        if self.camera is not None:
-            return
-        self.camera = self.apples.camera = Camera.from_dict(
-            msg.camera, source=f"camera message of {msg.flight_id}/{msg.drone_id}")
-        self.fps = msg.fps
-        self.flight_id, self.drone_id = msg.flight_id, msg.drone_id
-        self._kf_width_said = msg.keyframe_width or None
-        said = stream_profile(msg.paced)
-        if self.s.mapping == "stream":
-            self.s = replace(self.s, **PROFILES[said])
-            if self.s.mapping == "process" and self._mapping_worker is None:
-                self._mapping_worker = MappingWorker()
-            log.info("profile %s, from the stream (%s): mapping %s", said, "paced" if msg.paced else
-                     "every frame, as fast as taken" if msg.paced is False else "it does not say", self.s.mapping)
-        else:
-            log.info("mapping %s, as set (the stream asks for the %s profile)", self.s.mapping, said)
-        # the poses are made in step(), once the first keyframe tells the keyframes' width (or, if the frames
-        # cannot wait for it, from what the camera message says)
+    @property
+    def status(self) -> wire.StatusMessage | None:
+        """The drone's newest status message."""
+        return self.arrivals.status
 
     def hold_gaps(self, seconds: float) -> None:
         """See :meth:`ground.link.arrivals.Arrivals.hold_gaps`."""
@@ -239,30 +232,36 @@ class GroundPipeline:
         return self.s.mapping != "inline" and self.arrivals.stalled()
 
     def _release(self, final: bool) -> list[FrameEvent]:
-        """Every frame whose pose can be decided, in order: its pose, then its apples."""
+        """Every frame whose pose can be decided, in order, each through :meth:`_frame`."""
         events = []
         poses = self.poses
         for msg in self.arrivals.release(lambda f: poses.ready(f, final, self._stalled()), final,
                                          lambda: poses.mapper.has_model):
-            f = msg.frame
-            pose = poses.pose(f)
-            placed = self.apples.place(msg) if pose is not None and pose.source == "telemetry" else None
-            if placed is not None:  # no image placed it: the apples it sees did
-                pose = Pose(f, *placed, "apples", *APPLES_SIGMA)
-            new: list[Apple] = []
-            if pose is None:
-                self._counts["frames_without_pose"] += 1
-                log.warning("frame %d: no pose (no registration and no position telemetry): skipped", f)
-            else:
-                self._counts[pose.source] += 1
-                t0 = time.perf_counter()
-                new = self.apples.add(msg, pose, self.arrivals.steps, poses.assoc.metres_per_unit())
-                self.seconds["association"] += time.perf_counter() - t0
-            events.append(FrameEvent(f, msg.t_capture, pose, msg, new, self._kf_for_event.pop(f, None)))
-            for k in [k for k in self._kf_for_event if k < f]:
-                del self._kf_for_event[k]
-            poses.forget_before(f - 4 * self.s.association.k - 2 * self.s.max_interp_gap)
+            events.append(self._frame(msg))
+            poses.forget_before(msg.frame - 4 * self.s.association.k - 2 * self.s.max_interp_gap)
         return events
+
+    def _frame(self, msg: wire.FrameMessage) -> FrameEvent:
+        """One frame, released in order, goes down once: the poses give its pose (where only telemetry would, the
+        apples it sees place it), then the apples take its detections with that pose and give back those it
+        confirmed."""
+        f = msg.frame
+        pose = self.poses.pose(f)
+        placed = self.apples.place(msg) if pose is not None and pose.source == "telemetry" else None
+        if placed is not None:  # no image placed it: the apples it sees did
+            pose = Pose(f, *placed, "apples", *APPLES_SIGMA)
+        new: list[Apple] = []
+        if pose is None:
+            self._counts["frames_without_pose"] += 1
+            log.warning("frame %d: no pose (no registration and no position telemetry): skipped", f)
+        else:
+            self._counts[pose.source] += 1
+            t0 = time.perf_counter()
+            new = self.apples.take_frame(msg, pose, self.arrivals.steps, self.poses.assoc.metres_per_unit())
+            self.seconds["association"] += time.perf_counter() - t0
+        for k in [k for k in self._kf_for_event if k < f]:
+            del self._kf_for_event[k]
+        return FrameEvent(f, msg.t_capture, pose, msg, new, self._kf_for_event.pop(f, None))
 
     def _correct(self, now: bool = False) -> None:
         """The mapper moved keyframes (bundle adjustment, a re-anchoring on an earlier pass): the frames released about

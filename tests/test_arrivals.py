@@ -51,10 +51,10 @@ def test_a_restarted_node_is_counted_from_the_frames_when_the_statuses_before_it
         return pipe
 
     pipe = pipe_with([*range(10), *range(12, 20)])
-    pipe._take_status(wire.StatusMessage("flight", "drone", time.time(), 8, 8, state="finished", first_frame=12))
+    pipe.feed(wire.StatusMessage("flight", "drone", time.time(), 8, 8, state="finished", first_frame=12))
     assert pipe.counters["onboard_restarts"] == 1
-    pipe._take_status(wire.StatusMessage("flight", "drone", time.time() + 1, 8, 8, state="finished", first_frame=12))
+    pipe.feed(wire.StatusMessage("flight", "drone", time.time() + 1, 8, 8, state="finished", first_frame=12))
     assert pipe.counters["onboard_restarts"] == 1  # the same node again
     late_ground = pipe_with(range(12, 20))  # nothing came before the node's first frame
-    late_ground._take_status(wire.StatusMessage("flight", "drone", time.time(), 8, 8, first_frame=12))
+    late_ground.feed(wire.StatusMessage("flight", "drone", time.time(), 8, 8, first_frame=12))
     assert late_ground.counters["onboard_restarts"] == 0

@@ -258,8 +258,8 @@ def test_pipeline_survives_bad_keyframes_and_late_frames(replay_test_flight, tmp
     pipe = GroundPipeline(tmp_path / "work", GroundSettings())
     events = []
     for m in msgs + msgs[:5]:  # repeats at the end
-        events += pipe.feed(m)
-    events += pipe.feed(late)
+        events += pipe.take(m)
+    events += pipe.take(late)
     events += pipe.finish()
     assert [e.frame for e in events] == list(range(20))
     assert all(e.pose is not None for e in events)
@@ -306,7 +306,7 @@ def test_every_frame_tracked_keyframes_mapped_and_a_failed_track_falls_back_flag
     pipe = GroundPipeline(tmp_path / "work", GroundSettings())
     events = []
     for m in msgs:
-        events += pipe.feed(m)
+        events += pipe.take(m)
     events += pipe.finish()
     assert [e.frame for e in events] == list(range(20)) and all(e.pose is not None for e in events)
     src = {e.frame: e.pose.source for e in events}
@@ -328,7 +328,7 @@ def test_lock_step_repeats_bit_for_bit(replay_test_flight, tmp_path):
     for k, batched in enumerate((False, True)):
         pipe = GroundPipeline(tmp_path / f"work{k}", GroundSettings())
         for m in msgs:
-            pipe.feed(m, step=not batched)
+            pipe.take(m, step=not batched)
         pipe.finish()
         poses = {f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.apples.frames.poses.items()}
         runs.append((poses, {i: a.X.copy() for i, a in pipe.apples.count.apples.items()}))
@@ -355,10 +355,10 @@ def test_lock_step_keeps_its_poses_when_the_images_come_late_on_a_busy_machine(r
         pipe = GroundPipeline(tmp_path / f"work{k}", GroundSettings(mapping=mapping, max_wait_s=0.2))
         if k == 0:
             for m in msgs:
-                pipe.feed(m)
+                pipe.take(m)
         else:
             for m in rest:
-                pipe.feed(m)
+                pipe.take(m)
             time.sleep(0.5)  # longer than max_wait_s, and the frames flew 4 s past the first one
             pipe.step()
             if mapping == "process":  # live: released without waiting for the images that did not come
@@ -367,7 +367,7 @@ def test_lock_step_keeps_its_poses_when_the_images_come_late_on_a_busy_machine(r
             else:
                 assert pipe.arrivals.released == -1, pipe.counters
             for m in images:
-                pipe.feed(m)
+                pipe.take(m)
         pipe.finish()
         runs.append(({f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.apples.frames.poses.items()},
                      {i: a.X.copy() for i, a in pipe.apples.count.apples.items()}, pipe.counters))
@@ -394,11 +394,11 @@ def test_lock_step_waits_for_the_keyframes_the_frames_announce_when_the_link_bri
     for k in range(2):
         pipe = GroundPipeline(tmp_path / f"work{k}", GroundSettings(mapping="inline"))
         for m in (msgs if k == 0 else [m for m in msgs if m not in late]):
-            pipe.feed(m)
+            pipe.take(m)
         if k == 1:
             assert pipe.arrivals.kf_awaited == {0, 2} and pipe.arrivals.released == -1, pipe.counters
             for m in late:
-                pipe.feed(m)
+                pipe.take(m)
             assert not pipe.arrivals.kf_awaited
         pipe.finish()
         runs.append(({f: np.concatenate([p.R.ravel(), p.t]) for f, p in pipe.apples.frames.poses.items()},
@@ -461,7 +461,7 @@ def test_a_ground_does_not_end_the_flight_while_an_announced_keyframe_is_missing
 
     pipe = GroundPipeline(tmp_path / "in-order", GroundSettings(mapping="inline"))
     for m in msgs:
-        pipe.feed(m)
+        pipe.take(m)
     pipe.finish()  # the same stream in order: the same poses by source
     assert rep["frames"]["frames"] == n and all(rep["frames"][k] == pipe.counters[k]
                                                 for k in ("registered", "tracked", "interpolated", "telemetry"))
@@ -525,7 +525,7 @@ def test_mapping_in_its_own_process_maps_every_frame(replay_test_flight, tmp_pat
     pipe = GroundPipeline(tmp_path / "work", GroundSettings(mapping="process"))
     events = []
     for m in msgs:  # at the flight's 5 fps, as the drone sends them
-        events += pipe.feed(m)
+        events += pipe.take(m)
         time.sleep(0.1)
     events += pipe.finish()
     assert [e.frame for e in events] == list(range(20)) and all(e.pose is not None for e in events)
@@ -544,7 +544,7 @@ def _fed_at_flight_pace(flight, tmp_path, sig):
     pipe = GroundPipeline(tmp_path / "work", GroundSettings(mapping="process"))
     events, hit = [], None
     for m in msgs:
-        events += pipe.feed(m)
+        events += pipe.take(m)
         mapper = pipe.poses.mapper if pipe.poses is not None else None
         if hit is None and mapper is not None and mapper.has_model and mapper.answered >= 4:
             hit = mapper._proc.pid
@@ -619,7 +619,7 @@ def test_apples_need_fewer_strong_views_when_frames_come_sparser(replay_test_fli
     for every in (1, 2, 4):
         pipe = GroundPipeline(tmp_path / f"work-{every}", GroundSettings(counting=CountingSettings(confirm_views=3)))
         for m in _onboard_messages(replay_test_flight, every=every, keyframe_every=0):
-            pipe.feed(m)
+            pipe.take(m)
         pipe.finish()
         needed[every] = pipe.apples.count.views_needed(pipe.arrivals.steps)
     assert needed == {1: 3, 2: 2, 4: 2}
@@ -675,10 +675,10 @@ def test_a_resumed_ground_waits_for_the_frames_its_history_brings(replay_test_fl
         pipe = GroundPipeline(tmp_path / f"work-{hold}", GroundSettings())
         events = []
         for m in journal:
-            events += pipe.feed(m)
+            events += pipe.take(m)
         pipe.hold_gaps(hold)
         for m in live + history:  # the live frames first
-            events += pipe.feed(m)
+            events += pipe.take(m)
         events += pipe.finish()
         assert pipe.counters["late_frames"] == want_late, (hold, pipe.counters)
         if hold:
@@ -750,7 +750,7 @@ def _mapped_with_a_process(flight, out, msgs, kill_after_keyframes: int | None =
     pipe = GroundPipeline(out / "work", GroundSettings(mapping="process"))
     killed = None
     for m in msgs:
-        pipe.feed(m)
+        pipe.take(m)
         mapper = pipe.poses.mapper if pipe.poses is not None else None
         if mapper is None:
             continue
@@ -877,7 +877,7 @@ def test_frames_after_the_keyframes_stop_are_placed_by_the_apples_they_see(tmp_p
         out.mkdir()
         pipe = GroundPipeline(out / "work", GroundSettings(mapping="inline"))
         for m in stream:
-            pipe.feed(m)
+            pipe.take(m)
         pipe.finish()
         (out / "apples.csv").write_text(apples_csv(apple_table(pipe)[0]))
         (out / "poses.csv").write_text(poses_csv(pose_table(pipe)))

@@ -3,7 +3,7 @@ go to the counting, and a frame's corrected pose moves the apples seen in it.
 
     apples = LiveApples(association_params, counting_settings, min_score)
     apples.camera = camera                                  # once the camera message came
-    new = apples.add(msg, pose, steps, metres_per_unit)      # a released frame: the apples it confirmed
+    new = apples.take_frame(msg, pose, steps, metres_per_unit)  # a released frame: the apples it confirmed
     apples.repose(corrected_poses, steps, metres_per_unit)  # frame -> corrected pose
     apples.finish(steps, metres_per_unit)                   # end of the flight
     apples.count.apples                                     # id -> Apple (association frame)
@@ -38,7 +38,7 @@ class LiveApples:
     def camera(self, camera) -> None:
         self.count.camera = camera
 
-    def add(self, msg: wire.FrameMessage, pose, steps, metres_per_unit: float) -> list[Apple]:
+    def take_frame(self, msg: wire.FrameMessage, pose, steps, metres_per_unit: float) -> list[Apple]:
         """A posed frame's detections (``steps``: the frame-index steps between the last frames released); returns
         the apples it confirmed."""
         keep = np.asarray(msg.scores) >= self.min_score

@@ -1,7 +1,7 @@
 """Frames in order: the stream's frame and keyframe messages, de-duplicated, and handed on in frame index order.
 
     arrivals = Arrivals()
-    arrivals.take(msg)                          # a wire.FrameMessage or wire.KeyframeMessage: any order, repeats allowed
+    arrivals.take(msg)                          # a frame, keyframe or status message: any order, repeats allowed
     arrivals.fresh()                            # the frame messages taken since the last call (their telemetry)
     for frame, jpeg in arrivals.images(...):    # keyframe images in frame order, once they may go on
         ...
@@ -35,7 +35,9 @@ class Arrivals:
         self.keyframes: dict[int, bytes] = {}  # keyframe images waiting to go on
         self._kf_seen: set[int] = set()
         self.kf_awaited: set[int] = set()  # keyframes their frame messages announced that have not come yet
-        self.counters = {"frames": 0, "keyframes": 0, "late_frames": 0, "gaps": 0, "missing_frames": 0}
+        self.counters = {"frames": 0, "keyframes": 0, "late_frames": 0, "gaps": 0, "missing_frames": 0,
+                         "onboard_restarts": 0}
+        self.status: wire.StatusMessage | None = None  # the drone's newest status
         self.frame_times: dict[int, float] = {}  # frame -> capture time
         self._late: list[int] = []  # the frames that came after a later one was released
         self.newest_t = float("-inf")  # the latest capture time of any frame received
@@ -61,9 +63,12 @@ class Arrivals:
         return sum(f >= first for f in self.frame_times) + sum(f >= first for f in self._late)
 
     # -- in
-    def take(self, msg: wire.FrameMessage | wire.KeyframeMessage) -> None:
+    def take(self, msg: wire.FrameMessage | wire.KeyframeMessage | wire.StatusMessage) -> None:
         if isinstance(msg, wire.KeyframeMessage):
             self._take_keyframe(msg)
+            return
+        if isinstance(msg, wire.StatusMessage):
+            self._take_status(msg)
             return
         if msg.frame <= self.released or msg.frame in self.pending:
             if msg.frame <= self.released:
@@ -100,6 +105,20 @@ class Arrivals:
         self._last_kf_capture = self.frame_times.get(msg.frame, self.newest_t)
         self.keyframes[msg.frame] = msg.jpeg
         self.counters["keyframes"] += 1
+
+    def _take_status(self, msg: wire.StatusMessage) -> None:
+        """The drone's newest status (an older one, from its history, changes nothing). A status that starts at
+        another frame than the one before is a node started again mid-flight: said once per restart, and counted. So is
+        the first status heard, where frames before the one it starts at came (sent by a node before it, whose statuses
+        were lost: the link drops what it cannot carry)."""
+        if self.status is not None and msg.t < self.status.t:
+            return
+        if (msg.first_frame != self.status.first_frame if self.status is not None
+                else msg.first_frame > 0 and self.arrived_from(0) > self.arrived_from(msg.first_frame)):
+            self.counters["onboard_restarts"] += 1
+            log.warning("the drone's onboard node started again: it sends from frame %d on (frames not sent meanwhile "
+                        "are gaps); the flight goes on", msg.first_frame)
+        self.status = msg
 
     def fresh(self) -> list[wire.FrameMessage]:
         """The frame messages taken since the last call, in the order they came."""

@@ -140,7 +140,7 @@ class GroundNode:
         self.messages += 1
         self.apples_seen.take(msg)
         try:
-            events = self.pipe.feed(msg, step)
+            events = self.pipe.take(msg, step)
         except Exception as exc:  # never stop on one bad message: log it, keep the state
             log.exception("message %s failed: %s", type(msg).__name__, exc)
             self.errors.append(f"{type(msg).__name__}: {exc}")
