@@ -1,4 +1,5 @@
-"""Frames in order: the stream's frame and keyframe messages, de-duplicated, and handed on in frame index order.
+"""Frames in order: the stream's frame and keyframe messages, de-duplicated, and handed on in frame index order; its
+status messages, the newest kept, with the drone's restarts counted.
 
     arrivals = Arrivals()
     arrivals.take(msg)                          # a frame, keyframe or status message: any order, repeats allowed
