@@ -467,6 +467,27 @@ def test_a_ground_does_not_end_the_flight_while_an_announced_keyframe_is_missing
                                                 for k in ("registered", "tracked", "interpolated", "telemetry"))
 
 
+def test_frames_that_come_before_the_camera_message_go_on_once_it_comes(replay_test_flight, tmp_path):
+    """The link keeps no order between its streams: a ground may hear frames, keyframes and statuses before the
+    camera message that opens the stream. They wait in the arrivals (nothing is released without a camera), and
+    once the camera message comes the flight maps as if it had come first."""
+    from ground.pipeline import GroundPipeline, GroundSettings
+    from pomar import wire
+
+    msgs = _onboard_messages(replay_test_flight, keyframe_every=2)
+    camera = next(m for m in msgs if isinstance(m, wire.CameraMessage))
+    late = GroundPipeline(tmp_path / "late", GroundSettings(mapping="inline"))
+    assert all(late.take(m) == [] for m in msgs if m is not camera)  # stored, nothing released
+    events = late.take(camera) + late.finish()
+    in_order = GroundPipeline(tmp_path / "in-order", GroundSettings(mapping="inline"))
+    for m in msgs:
+        in_order.take(m)
+    in_order.finish()
+    assert [e.frame for e in events] == sorted(m.frame for m in msgs if isinstance(m, wire.FrameMessage))
+    assert late.counters == in_order.counters
+    assert len(late.apples.count.counted_ids()) == len(in_order.apples.count.counted_ids()) > 0
+
+
 def test_a_drone_whose_node_restarted_mid_flight_ends_the_flight_when_it_says(replay_test_flight, tmp_path):
     """Over real zenoh: the onboard node dies after frame 9 and a new one takes up the flight at frame 12 (the frames
     between were taken while none ran). The new node's 'finished' counts only its own frames, from the first it sent
