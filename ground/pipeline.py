@@ -131,9 +131,8 @@ class GroundPipeline:
     @property
     def counters(self) -> dict[str, int]:
         """What came and what became of it: the arrivals' counts, then the poses' and the apples'."""
-        c, a = self._counts, dict(self.arrivals.counters)
-        restarts = a.pop("onboard_restarts")
-        return {**a, "bad_keyframes": c["bad_keyframes"], "onboard_restarts": restarts,
+        c = self._counts
+        return {**self.arrivals.counters, "bad_keyframes": c["bad_keyframes"],
                 "frames_without_pose": c["frames_without_pose"], "detections": self.apples.detections,
                 **{k: c[k] for k in ("registered", "tracked", "interpolated", "apples", "telemetry")}}
 
