@@ -124,8 +124,11 @@ def _cmd_replay(args) -> int:
     from ground.evaluation.scoring import format_evaluation
     from ground.replay import BUNDLED, ReplayError, replay
 
-    flight = args.flight_dir or BUNDLED
-    out = Path(args.out or f"out/replay/{Path(args.video).stem if args.video else Path(flight).name}")
+    # a recorded stream without a flight directory is a flight of its own: the stream says what it is
+    flight = args.flight_dir or (None if args.recorded else BUNDLED)
+    # (its output folder then defaults to out/replay/<its flight id>, which replay reads from the stream)
+    name = Path(args.video).stem if args.video else Path(flight).name if flight else None
+    out = Path(args.out) if args.out else Path(f"out/replay/{name}") if name else None
     if args.recorded and (args.video or args.log):
         print("error: --recorded plays a recorded stream: no --video or --log with it", file=sys.stderr)
         return 2
@@ -156,6 +159,7 @@ def _cmd_replay(args) -> int:
     except ReplayError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
+    out = out or Path(f"out/replay/{rep['flight_id']}")
     print()
     print(f"flight {rep['flight_id']}: {rep['apples']} apples in {len(rep['rows'])} rows; "
           f"{rep['frames']['frames']} frames ({rep['frames']['registered']} registered, "
@@ -303,7 +307,8 @@ def main(argv=None) -> int:
     rp = sub.add_parser("replay", help="replay a recorded flight through the onboard and ground nodes (zenoh on loopback)",
                         description=__import__("ground.replay", fromlist=["x"]).__doc__,
                         formatter_class=argparse.RawDescriptionHelpFormatter)
-    rp.add_argument("flight_dir", nargs="?", help="flight directory (default: the bundled replay_data/demo-flight)")
+    rp.add_argument("flight_dir", nargs="?", help="flight directory (default: the bundled replay_data/demo-flight; "
+                                                  "with --recorded, none: the stream alone, nothing to score against)")
     rp.add_argument("--out", help="output folder (default out/replay/<flight>)")
     rp.add_argument("--realtime", action="store_true", help="frames at the video's rate, newest first (drops counted)")
     rp.add_argument("--detector", choices=["onnx", "truth-replay"], default="onnx")
@@ -318,8 +323,8 @@ def main(argv=None) -> int:
     rp.add_argument("--keyframe-width", type=int, default=960)
     rp.add_argument("--every", type=int, default=1, help="onboard processes every Nth frame")
     rp.add_argument("--quiet", action="store_true", help="no progress lines")
-    rp.add_argument("--recorded", help="play this recorded stream (a ground's journal.bin; the flight directory gives "
-                                       "the truth to score against) instead of running the onboard node")
+    rp.add_argument("--recorded", help="play this recorded stream (a ground's journal.bin; a flight directory given "
+                                       "beside it gives the truth to score against) instead of running the onboard node")
     rp.add_argument("--speed", type=float, default=1.0,
                     help="with --recorded: S x the recording's capture-time pace (1 = real time, 0 = as fast as it goes)")
     rp.add_argument("--video", help="replay a video of your own: with --log and --camera, the flight is built from "
@@ -350,7 +355,8 @@ def main(argv=None) -> int:
     g.add_argument("--drone-id", action="append", type=id_argument("drone id"),
                    help="map this drone's messages (repeatable); others are counted and ignored (default: the first "
                         "drone heard)")
-    g.add_argument("--out", default="out/ground")
+    g.add_argument("--out", default="out/ground", help="output folder: the map files, report.json, the journal (journal.bin) "
+                                                     "and the recording (default out/ground)")
     g.add_argument("--connect", action="append", help="zenoh endpoint of the onboard node (default tcp/127.0.0.1:7447)")
     g.add_argument("--listen", action="append",
                    help="zenoh endpoint to listen on (default: none, the ground only connects; never every interface "

@@ -1,6 +1,7 @@
 """Replay a recorded flight through both processes, as if live: onboard node + ground node over zenoh on loopback.
 
     python -m ground replay [FLIGHT_DIR] [--out DIR] [--realtime] [--detector onnx|truth-replay]
+    python -m ground replay [FLIGHT_DIR] --recorded JOURNAL --speed 0 --out DIR   # a ground's journal, lock-step
 
 Starts ``python -m onboard run`` (listening on a free 127.0.0.1 port) and ``python -m ground run``
 (connecting to it) as two processes, shows the ground's progress, waits for the ground to finish,
@@ -8,7 +9,8 @@ then stops the onboard node by its PID. Lock-step (default): every frame is proc
 the machine goes; ``--realtime``: frames come at the video's rate and the onboard node takes the
 newest one, dropping what it cannot keep up with. With the flight's ``truth/``, the map is scored
 against it and the scores go to ``report.json`` under ``evaluation``, next to ``wall_seconds``,
-``flight_seconds`` and ``realtime_factor``.
+``flight_seconds`` and ``realtime_factor``. With ``--recorded`` the recording's player stands in for the onboard
+node; without a flight directory the stream alone says which flight it is, and nothing is scored.
 """
 
 from __future__ import annotations
@@ -83,15 +85,38 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def recording_extent(recorded) -> tuple[str, int, float]:
+    """A recorded stream's flight id, frame count and capture-time length (s), from the stream alone."""
+    from ground.link.player import PlayerError, load_recording
+    from pomar import wire
+
+    try:
+        rec = load_recording(recorded)
+    except PlayerError as exc:
+        raise ReplayError(str(exc)) from None
+    t = sorted(t for t, _, _, m in rec.items if isinstance(m, wire.FrameMessage))
+    period = (t[-1] - t[0]) / (len(t) - 1) if len(t) > 1 else 0.0
+    return rec.flight_id, rec.frames, t[-1] - t[0] + period
+
+
 def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: str = "onnx", model=None,
            keyframe_every: int | None = None, keyframe_width: int = 960, every: int = 1, rrd: bool = True,
            ground_args: list[str] | None = None, onboard_args: list[str] | None = None, timeout_s: float = 3600,
            quiet: bool = False, recorded=None, speed: float = 1.0) -> dict:
     """Both processes over zenoh on loopback; with ``recorded`` (a journal.bin), the recording's player
-    (``python -m ground play``, at ``speed`` x its capture-time pace) stands in for the onboard node."""
-    flight = FlightDir(flight_dir)
-    meta = flight.meta()
-    out = Path(out_dir or f"out/replay/{flight.path.name}")
+    (``python -m ground play``, at ``speed`` x its capture-time pace) stands in for the onboard node; with
+    ``flight_dir`` None it alone says what the flight is (a flight of your own, with no truth to score against)."""
+    flight = FlightDir(flight_dir) if flight_dir is not None else None
+    if flight is not None:
+        meta = flight.meta()
+        flight_id, frame_count, flight_s = meta.flight_id, meta.frame_count, meta.frame_count / meta.fps
+        name = flight.path.name
+    elif recorded is not None:
+        flight_id, frame_count, flight_s = recording_extent(recorded)
+        name = flight_id
+    else:
+        raise ReplayError("a replay needs a flight directory, or a recorded stream (--recorded)")
+    out = Path(out_dir or f"out/replay/{name}")
     if recorded is not None and Path(recorded).resolve() == (out / "journal.bin").resolve():
         raise ReplayError(f"{recorded} is the journal this replay would write: give another --out")
     try:  # nothing is computed yet: an output folder it cannot write is refused at once
@@ -104,21 +129,22 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     py = sys.executable
-    onboard_cmd = [py, "-m", "onboard", "run", str(flight.path), "--listen", endpoint, "--detector", detector,
-                   "--keyframe-width", str(keyframe_width), "--every", str(every), "--linger", "600",
-                   "--summary", str(out / "onboard.json")]
-    if keyframe_every is not None:  # else the onboard node's default: a keyframe every 0.2 s of capture time
-        onboard_cmd += ["--keyframe-every", str(keyframe_every)]
-    if realtime:  # still waits for its ground: a replay has no reason to start before the ground listens
-        onboard_cmd += ["--realtime", "--wait-for-ground", "30"]
-    if model:
-        onboard_cmd += ["--model", str(model)]
-    onboard_cmd += onboard_args or []
     if recorded is not None:  # the recording's player instead of the onboard node; the ground maps it live
         onboard_cmd = [py, "-m", "ground", "play", str(recorded), "--listen", endpoint, "--speed", str(speed),
-                       "--flight-id", meta.flight_id, "--linger", "600", "--summary", str(out / "onboard.json")]
-    ground_cmd = [py, "-m", "ground", "run", "--flight-id", meta.flight_id, "--connect", endpoint, "--out", str(out),
-                  "--fresh", "--expected-frames", str(-(-meta.frame_count // every))] + ([] if rrd else ["--no-rrd"]) \
+                       "--flight-id", flight_id, "--linger", "600", "--summary", str(out / "onboard.json")]
+    else:
+        onboard_cmd = [py, "-m", "onboard", "run", str(flight.path), "--listen", endpoint, "--detector", detector,
+                       "--keyframe-width", str(keyframe_width), "--every", str(every), "--linger", "600",
+                       "--summary", str(out / "onboard.json")]
+        if keyframe_every is not None:  # else the onboard node's default: a keyframe every 0.2 s of capture time
+            onboard_cmd += ["--keyframe-every", str(keyframe_every)]
+        if realtime:  # still waits for its ground: a replay has no reason to start before the ground listens
+            onboard_cmd += ["--realtime", "--wait-for-ground", "30"]
+        if model:
+            onboard_cmd += ["--model", str(model)]
+        onboard_cmd += onboard_args or []
+    ground_cmd = [py, "-m", "ground", "run", "--flight-id", flight_id, "--connect", endpoint, "--out", str(out),
+                  "--fresh", "--expected-frames", str(-(-frame_count // every))] + ([] if rrd else ["--no-rrd"]) \
         + ([] if realtime or (recorded is not None and speed > 0) else ["--mapping", "inline"]) \
         + (ground_args or [])  # lock-step (and --speed 0): mapping inline, deterministic
     env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -158,7 +184,7 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
                 if not quiet:
                     sys.stderr.write(line)
                 if time.monotonic() - t0 > timeout_s:
-                    raise TimeoutError(f"replay of {flight.path} ran past {timeout_s:.0f} s")
+                    raise TimeoutError(f"replay of {recorded or flight.path} ran past {timeout_s:.0f} s")
             ground.wait()
     finally:
         stopping.set()
@@ -177,7 +203,7 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
     if onboard_error and not summary.get("frames_processed"):
         raise ReplayError(f"the onboard node failed before it sent a frame: {onboard_error} (log: {out / 'onboard.log'})")
     ground = procs.get("ground")
-    rescued = rescue_folder(meta.flight_id, ground.pid) if ground is not None else None
+    rescued = rescue_folder(flight_id, ground.pid) if ground is not None else None
     if ground is not None and ground.returncode == 1 and (rescued / "report.json").is_file():
         # the output folder refused the map files (a full disk): the ground wrote them there, and said so
         log.warning("the map files are in %s, not in %s: its disk refused them; this replay's report goes there too",
@@ -186,9 +212,8 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
     elif ground is None or ground.returncode != 0:
         raise ReplayError(f"the ground node failed (exit {ground.returncode if ground else None}); see {out / 'ground.log'}")
     report = json.loads((out / "report.json").read_text())
-    flight_s = meta.frame_count / meta.fps
     report.update(wall_seconds=wall, flight_seconds=flight_s, realtime_factor=flight_s / wall,
-                  replay={"flight": str(flight.path), "realtime": realtime, "detector": detector,
+                  replay={"flight": str(flight.path) if flight is not None else None, "realtime": realtime, "detector": detector,
                           "keyframe_every": keyframe_every, "keyframe_width": keyframe_width, "every": every,
                           "recorded": str(recorded) if recorded is not None else None,
                           "speed": speed if recorded is not None else None})
@@ -197,7 +222,7 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
     report["onboard_exit_code"] = onboard.returncode
     if onboard_error:  # the map holds what came before the onboard node stopped
         report["onboard_error"] = onboard_error
-    if flight.has_truth:
+    if flight is not None and flight.has_truth:
         report["evaluation"] = evaluate_map(flight, out)
     write_json(out / "report.json", report)
     report["out"] = str(out)

@@ -3,6 +3,8 @@ process, at its capture-time pace; bad recordings refused with a message naming 
 
 from __future__ import annotations
 
+import json
+
 import msgpack
 import pytest
 
@@ -22,6 +24,39 @@ def test_recorded_stream_at_real_time_maps_as_the_lock_step_replay(replayed_test
     assert 0.5 * ref["apples"] - 2 <= rep["apples"] <= 1.5 * ref["apples"] + 2, (rep["apples"], ref["apples"])
     assert rep["timings"]["frame_delay_p95_s"] is not None
     assert abs(sum(rep["pose_shares"].values()) - 1.0) < 1e-9
+
+
+def test_readme_after_the_flight_command_maps_a_recorded_stream_alone(replayed_test_flight, tmp_path):
+    """README's "After the flight" command, as written, in a folder holding a ground's journal where it says: the
+    stream alone (no flight directory) gives the map its flight's lock-step replay gives, byte for byte, with nothing
+    to score against."""
+    import re
+    import shlex
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from ground.replay import replay
+
+    flight, out, _ = replayed_test_flight
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = re.search(r"```bash\n(.*?)```", text[text.index("**After the flight.**"):], re.S).group(1)
+    (cmd,) = [line for line in block.splitlines() if line.strip()]
+    argv = shlex.split(cmd)
+    assert argv[:4] == [".venv/bin/python", "-m", "ground", "replay"] and "--recorded" in argv, cmd
+    journal = tmp_path / argv[argv.index("--recorded") + 1]
+    journal.parent.mkdir(parents=True)
+    shutil.copy(out / "journal.bin", journal)
+    r = subprocess.run([sys.executable] + argv[1:], cwd=tmp_path, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    final = tmp_path / argv[argv.index("--out") + 1]
+    ref = replay(flight.path, tmp_path / "with-flight", recorded=out / "journal.bin", speed=0, quiet=True)
+    assert (final / "apples.csv").read_bytes() == (tmp_path / "with-flight" / "apples.csv").read_bytes()
+    rep = json.loads((final / "report.json").read_text())
+    assert rep["flight_id"] == "sim-replay-test" and rep["final"] and rep["frames"]["frames"] == 20
+    assert "evaluation" not in rep and "evaluation" in ref and rep["replay"]["flight"] is None
+    assert rep["flight_seconds"] == pytest.approx(20 / 5, rel=0.01)
 
 
 def test_live_pose_corrections_wait_for_their_period_and_still_come(replayed_test_flight, tmp_path):
