@@ -88,15 +88,12 @@ def free_port() -> int:
 def recording_extent(recorded) -> tuple[str, int, float]:
     """A recorded stream's flight id, frame count and capture-time length (s), from the stream alone."""
     from ground.link.player import PlayerError, load_recording
-    from pomar import wire
 
     try:
         rec = load_recording(recorded)
     except PlayerError as exc:
         raise ReplayError(str(exc)) from None
-    t = sorted(t for t, _, _, m in rec.items if isinstance(m, wire.FrameMessage))
-    period = (t[-1] - t[0]) / (len(t) - 1) if len(t) > 1 else 0.0
-    return rec.flight_id, rec.frames, t[-1] - t[0] + period
+    return rec.flight_id, rec.frames, rec.seconds
 
 
 def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: str = "onnx", model=None,
@@ -213,7 +210,8 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
         raise ReplayError(f"the ground node failed (exit {ground.returncode if ground else None}); see {out / 'ground.log'}")
     report = json.loads((out / "report.json").read_text())
     report.update(wall_seconds=wall, flight_seconds=flight_s, realtime_factor=flight_s / wall,
-                  replay={"flight": str(flight.path) if flight is not None else None, "realtime": realtime, "detector": detector,
+                  replay={"flight": str(flight.path) if flight is not None else None, "realtime": realtime,
+                          "detector": detector,
                           "keyframe_every": keyframe_every, "keyframe_width": keyframe_width, "every": every,
                           "recorded": str(recorded) if recorded is not None else None,
                           "speed": speed if recorded is not None else None})

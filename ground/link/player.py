@@ -44,6 +44,13 @@ class Recording:
     undecodable: int = 0
     problems: list[str] = field(default_factory=list)
 
+    @property
+    def seconds(self) -> float:
+        """The flight's capture-time length: its frames' span and one frame period more (a flight's frames / fps)."""
+        t = [t for t, _, _, m in self.items if isinstance(m, wire.FrameMessage)]
+        span = max(t) - min(t)
+        return span + span / (len(t) - 1) if len(t) > 1 else 0.0
+
 
 def load_recording(path, flight_id: str | None = None) -> Recording:
     """Read and check a recording; schedule every message on the flight's capture-time clock."""
@@ -126,7 +133,6 @@ def play(rec: Recording, publisher, speed: float = 1.0, progress_s: float = 5.0)
                                                    "end of a recording without a finished status").encode())
         sent["status"] += 1
     wall = time.monotonic() - start
-    flight_s = rec.items[-1][0] if rec.items else 0.0
     return {"recording": str(rec.path), "flight": rec.flight_id, "drone": rec.drone_id, "speed": speed,
-            "frames_processed": sent["frames"], "sent": sent, "seconds": wall, "flight_seconds": flight_s,
+            "frames_processed": sent["frames"], "sent": sent, "seconds": wall, "flight_seconds": rec.seconds,
             "problems": rec.problems, "error": None}
