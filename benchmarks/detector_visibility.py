@@ -48,18 +48,27 @@ def model_detections(flight: FlightDir, det, scaling, score: float, every: int) 
     return centres
 
 
+def band_shares(vis: np.ndarray, found: np.ndarray, min_count: int = 20) -> np.ndarray:
+    """The share found in each band of EDGES (NaN where the band holds fewer than ``min_count`` apples)."""
+    return np.array([found[(vis >= lo) & (vis < hi)].mean() if ((vis >= lo) & (vis < hi)).sum() >= min_count
+                     else np.nan for lo, hi in zip(EDGES[:-1], EDGES[1:])])
+
+
+def crossing(share: np.ndarray, level: float = 0.5) -> float:
+    """The visibility at which the shares per band (:func:`band_shares`) cross ``level`` (linear between the bands'
+    middles); NaN if never."""
+    mids = np.array([(lo + min(hi, 1.0)) / 2 for lo, hi in zip(EDGES[:-1], EDGES[1:])])
+    ok = np.isfinite(share)
+    mids, share = mids[ok], share[ok]
+    for x0, y0, x1, y1 in zip(mids, share, mids[1:], share[1:]):
+        if y0 < level <= y1:
+            return float(x0 + (level - y0) * (x1 - x0) / (y1 - y0))
+    return float("nan")
+
+
 def half_found(vis: np.ndarray, found: np.ndarray) -> float:
     """The visibility at which the share found crosses one half (linear between the bands' middles); NaN if never."""
-    mids, share = [], []
-    for lo, hi in zip(EDGES[:-1], EDGES[1:]):
-        sel = (vis >= lo) & (vis < hi)
-        if sel.sum() >= 20:
-            mids.append((lo + min(hi, 1.0)) / 2)
-            share.append(found[sel].mean())
-    for (x0, y0), (x1, y1) in zip(zip(mids, share), zip(mids[1:], share[1:])):
-        if y0 < 0.5 <= y1:
-            return float(x0 + (0.5 - y0) * (x1 - x0) / (y1 - y0))
-    return float("nan")
+    return crossing(band_shares(vis, found))
 
 
 def main(argv=None) -> int:

@@ -316,3 +316,36 @@ def test_the_kept_checkpoint_is_the_shipped_models_weights():
     assert len(want) >= 20
     matched = iou(want, boxes).max(axis=1) >= 0.7
     assert matched.mean() >= 0.9, f"{matched.sum()} of {len(want)} torch boxes found in the shipped file"
+
+
+def test_the_visibility_probe_judges_rules_on_the_flight_left_out(small_flight, replay_test_flight, tmp_path):
+    """benchmarks/visibility_probe.py as a user runs it: the kept checkpoint's detections on two simulated flights,
+    each flight judged by rules fitted on the other; a second run reads the cached features and prints the same
+    table; bad input is one line naming it."""
+    import subprocess
+    import sys
+
+    args = [sys.executable, "benchmarks/visibility_probe.py", f"{small_flight.path}:2", f"{replay_test_flight.path}:2",
+            "--cache", str(tmp_path / "cache"), "--threads", "1"]
+    r = subprocess.run(args, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    # the two flights share a folder name ("flight"), so each is named with its parent's
+    names = [f"{p.parent.name}/{p.name}," for p in (small_flight.path, replay_test_flight.path)]
+    rows = [line for line in r.stdout.splitlines() if line.startswith(tuple(names))]
+    assert len(rows) == 6 and sum("fitted" in line for line in rows) == 4, r.stdout
+    caches = sorted((tmp_path / "cache").iterdir())
+    assert len(caches) == 2
+    for c in caches:
+        z = np.load(c)
+        assert z["feat"].shape == (len(z["score"]), 1024) and (z["score"] >= 0.3).all()
+        # each truth apple-frame's detection, where it has one, is one of that flight's detections, and it lies on
+        # an apple: the visible share recorded for the detection is the apple's, or another's it also lies on
+        assert len(z["t_vis"]) == len(z["t_apple"]) == len(z["t_det"]) and z["t_det"].max() < len(z["score"])
+        hit = z["t_det"] >= 0
+        assert hit.any() and (z["vis"][z["t_det"][hit]] > 0).mean() > 0.95
+    r2 = subprocess.run(args, capture_output=True, text=True, timeout=600)
+    assert r2.returncode == 0 and r2.stdout == r.stdout and "frames/s" not in r2.stderr
+    bad = subprocess.run([*args[:2], f"{small_flight.path}:x", str(small_flight.path)], capture_output=True, text=True)
+    assert bad.returncode == 2 and "FLIGHT:EVERY" in bad.stderr and "Traceback" not in bad.stderr
+    bad = subprocess.run([*args[:2], str(tmp_path), str(small_flight.path)], capture_output=True, text=True)
+    assert bad.returncode == 2 and bad.stderr.startswith("error: ") and len(bad.stderr.strip().splitlines()) == 1
