@@ -108,9 +108,12 @@ def logistic(X: np.ndarray, y: np.ndarray, l2: float):
     """A logistic rule fitted on standardised ``X`` (L-BFGS, L2 penalty ``l2``): a function of new rows to P(y)."""
     import torch
 
+    X = X.astype(np.float64)
     mu, sd = X.mean(0), X.std(0) + 1e-6
-    Xt, yt = torch.from_numpy((X - mu) / sd), torch.from_numpy(y.astype(np.float32))
-    lin = torch.nn.Linear(X.shape[1], 1)
+    Xt, yt = torch.from_numpy((X - mu) / sd), torch.from_numpy(y.astype(np.float64))
+    lin = torch.nn.Linear(X.shape[1], 1, dtype=torch.float64)
+    torch.nn.init.zeros_(lin.weight)  # from zero, not at random: the same rule every run
+    torch.nn.init.zeros_(lin.bias)
     opt = torch.optim.LBFGS(lin.parameters(), max_iter=500, line_search_fn="strong_wolfe")
 
     def closure():
@@ -120,7 +123,7 @@ def logistic(X: np.ndarray, y: np.ndarray, l2: float):
         return loss
 
     opt.step(closure)
-    return lambda Z: torch.sigmoid(lin(torch.from_numpy((Z - mu) / sd))[:, 0]).detach().numpy()
+    return lambda Z: torch.sigmoid(lin(torch.from_numpy((Z.astype(np.float64) - mu) / sd))[:, 0]).detach().numpy()
 
 
 def inputs(z, with_features: bool) -> np.ndarray:
@@ -153,7 +156,8 @@ def main(argv=None) -> int:
     ap.add_argument("flights", nargs="+", type=flight_spec, metavar="FLIGHT[:EVERY]",
                     help="simulated flights (at least two), each run every EVERY-th frame (default 1)")
     ap.add_argument("--checkpoint", type=Path, default=ROOT / "export" / "checkpoint",
-                    help="the torch checkpoint (default: the shipped model's, export/checkpoint)")
+                    help="the torch checkpoint (default: the shipped model's, export/checkpoint); frames are scaled "
+                         "to the shipped model's apple size (its metadata's apple_radius_px)")
     ap.add_argument("--cache", type=Path, default=ROOT / "out" / "bench" / "visibility-probe",
                     help="folder of each flight's features (NAME-PATHHASH-eEVERY.npz), reused when there")
     ap.add_argument("--l2", type=float, default=1e-2, help="the probe's L2 penalty (standardised features)")
