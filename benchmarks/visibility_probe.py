@@ -45,9 +45,9 @@ def flight_features(flight: FlightDir, every: int, model, target_px: float) -> d
     """Per detection of ``model`` (a torch Faster R-CNN) on every ``every``-th frame: box-head features, score and
     the visible share of the truth apple it lies on; per truth apple-frame: its apple, visible share and the index of
     the nearest detection on it (-1: none)."""
-    import cv2
     import torch
 
+    from onboard.detector import boxes_before_resize, resized
     from pomar.apple_scale import ScalePolicy, flight_radius_px
     from pomar.video import iter_frames
 
@@ -62,10 +62,8 @@ def flight_features(flight: FlightDir, every: int, model, target_px: float) -> d
             continue
         s = policy.scale(float(radius[idx]))
         rgb = np.ascontiguousarray(bgr[..., ::-1])
-        h, w = rgb.shape[:2]
-        if s != 1.0:
-            rgb = cv2.resize(rgb, (max(1, round(w * s)), max(1, round(h * s))),
-                             interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
+        if s != 1.0:  # as the onboard node gives the detector the frame
+            rgb, factors = resized(rgb, s)
         with torch.no_grad():
             images, _ = model.transform([torch.from_numpy(rgb).permute(2, 0, 1).float() / 255])
             feats = model.backbone(images.tensors)
@@ -74,24 +72,26 @@ def flight_features(flight: FlightDir, every: int, model, target_px: float) -> d
             keep = out["scores"] >= MIN_SCORE
             boxes, scores = out["boxes"][keep], out["scores"][keep]
             f = model.roi_heads.box_head(model.roi_heads.box_roi_pool(feats, [boxes], images.image_sizes))
-        b = boxes.numpy().astype(float)
-        sx, sy = w / rgb.shape[1], h / rgb.shape[0]
-        # the box centres in the full frame's pixels (OpenCV's resize maps pixel centres)
-        cx = ((b[:, 0] + b[:, 2]) / 2 + 0.5) * sx - 0.5
-        cy = ((b[:, 1] + b[:, 3]) / 2 + 0.5) * sy - 0.5
+        b = boxes.numpy()
+        b = (boxes_before_resize(b, factors) if s != 1.0 else b).astype(float)  # in the full frame's pixels
+        cx, cy = (b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2
         rows = np.flatnonzero(td["frame"] == idx)
+        # detections x the frame's truth apples: each detection the visible share of its nearest apple where it lies on it,
+        # each apple the nearest detection on it
+        d = np.hypot(cx[:, None] - td["u"][rows][None], cy[:, None] - td["v"][rows][None])
+        on = on_apple(d, td["r_px"][rows][None])
         vis = np.zeros(len(b))
         if len(rows) and len(b):
-            d = np.hypot(cx[:, None] - td["u"][rows][None], cy[:, None] - td["v"][rows][None])
             j = d.argmin(1)
-            on = on_apple(d[np.arange(len(b)), j], td["r_px"][rows][j])
-            vis[on] = td["visible_fraction"][rows][j[on]]
-        for k in rows:
-            d = np.hypot(cx - td["u"][k], cy - td["v"][k])
-            on = np.flatnonzero(on_apple(d, td["r_px"][k]))
-            apple["apple"].append(td["apple_id"][k])
-            apple["vis"].append(td["visible_fraction"][k])
-            apple["det"].append(n + on[d[on].argmin()] if len(on) else -1)
+            hit = on[np.arange(len(b)), j]
+            vis[hit] = td["visible_fraction"][rows][j[hit]]
+            nearest = np.where(on, d, np.inf).argmin(0)
+            found = np.where(on.any(0), n + nearest, -1)
+        else:
+            found = np.full(len(rows), -1)
+        apple["apple"].extend(td["apple_id"][rows])
+        apple["vis"].extend(td["visible_fraction"][rows])
+        apple["det"].extend(found)
         det["feat"].append(f.numpy().astype(np.float16))
         det["score"].append(scores.numpy())
         det["vis"].append(vis)
@@ -181,8 +181,6 @@ def main(argv=None) -> int:
             data[name] = dict(np.load(cache))
             continue
         if model is None:
-            import json
-
             import torch
 
             from export.model import load_checkpoint
@@ -192,7 +190,7 @@ def main(argv=None) -> int:
                 torch.set_num_threads(a.threads)
             model = load_checkpoint(a.checkpoint)[0].eval()
             target = read_metadata(default_model_path()).get("apple_radius_px")
-            print(f"checkpoint {a.checkpoint}, {json.dumps({'apple_radius_px': target})}", file=sys.stderr)
+            print(f"checkpoint {a.checkpoint}, frames scaled to apples of {target} px", file=sys.stderr)
         data[name] = flight_features(FlightDir(path), every, model, float(target))
         cache.parent.mkdir(parents=True, exist_ok=True)
         np.savez(cache, **data[name])

@@ -122,13 +122,13 @@ def _cmd_play(args) -> int:
 
 def _cmd_replay(args) -> int:
     from ground.evaluation.scoring import format_evaluation
-    from ground.replay import BUNDLED, ReplayError, replay
+    from ground.replay import BUNDLED, ReplayError, default_out, replay
 
     # a recorded stream without a flight directory is a flight of its own: the stream says what it is
     flight = args.flight_dir or (None if args.recorded else BUNDLED)
-    # (its output folder then defaults to out/replay/<its flight id>, which replay reads from the stream)
+    # (its output folder then defaults to that of its flight id, which replay reads from the stream)
     name = Path(args.video).stem if args.video else Path(flight).name if flight else None
-    out = Path(args.out) if args.out else Path(f"out/replay/{name}") if name else None
+    out = Path(args.out) if args.out else default_out(name) if name else None
     if args.recorded and (args.video or args.log):
         print("error: --recorded plays a recorded stream: no --video or --log with it", file=sys.stderr)
         return 2
@@ -159,7 +159,7 @@ def _cmd_replay(args) -> int:
     except ReplayError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
-    out = out or Path(f"out/replay/{rep['flight_id']}")
+    out = out or default_out(rep["flight_id"])
     print()
     print(f"flight {rep['flight_id']}: {rep['apples']} apples in {len(rep['rows'])} rows; "
           f"{rep['frames']['frames']} frames ({rep['frames']['registered']} registered, "

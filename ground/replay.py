@@ -85,6 +85,11 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def default_out(name: str) -> Path:
+    """Where a replay writes when no folder is given: out/replay/<the flight's folder name, or its id>."""
+    return Path("out/replay") / name
+
+
 def recording_extent(recorded) -> tuple[str, int, float]:
     """A recorded stream's flight id, frame count and capture-time length (s), from the stream alone."""
     from ground.link.player import PlayerError, load_recording
@@ -113,7 +118,7 @@ def replay(flight_dir=BUNDLED, out_dir=None, realtime: bool = False, detector: s
         name = flight_id
     else:
         raise ReplayError("a replay needs a flight directory, or a recorded stream (--recorded)")
-    out = Path(out_dir or f"out/replay/{name}")
+    out = Path(out_dir) if out_dir else default_out(name)
     if recorded is not None and Path(recorded).resolve() == (out / "journal.bin").resolve():
         raise ReplayError(f"{recorded} is the journal this replay would write: give another --out")
     try:  # nothing is computed yet: an output folder it cannot write is refused at once

@@ -30,6 +30,23 @@ MODEL_ENV = "POMAR_DETECTOR"
 DEFAULT_MODEL = Path(__file__).resolve().parent / "models" / "apple-detector.onnx"
 
 
+def resized(rgb: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """An image resized by ``scale`` as the detector is given it (pomar.apple_scale), and the factors (x, y, x, y)
+    its width and height were resized by, for :func:`boxes_before_resize`."""
+    import cv2
+
+    h, w = rgb.shape[:2]
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    small = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
+    return small, np.array([size[0] / w, size[1] / h, size[0] / w, size[1] / h], np.float32)
+
+
+def boxes_before_resize(boxes: np.ndarray, factors: np.ndarray) -> np.ndarray:
+    """Boxes found in a :func:`resized` image, in the original image's pixels. OpenCV's resize maps pixel centres:
+    x_small = (x + 0.5) * s - 0.5."""
+    return ((np.asarray(boxes, np.float32) + 0.5) / factors - 0.5).astype(np.float32)
+
+
 class ModelError(RuntimeError):
     """A model file that is missing, corrupt or not one of ours; the message names the file."""
 
@@ -140,15 +157,9 @@ class OnnxDetector:
         if rgb.ndim != 3 or rgb.shape[2] != 3:
             raise ValueError(f"expected an HxWx3 image, got shape {rgb.shape}")
         if scale != 1.0:
-            import cv2
-
-            h, w = rgb.shape[:2]
-            size = (max(1, round(w * scale)), max(1, round(h * scale)))
-            small = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR)
+            small, factors = resized(rgb, scale)
             boxes, scores = self.detect_rgb(small, score_thresh)
-            s = np.array([size[0] / w, size[1] / h, size[0] / w, size[1] / h], np.float32)
-            # OpenCV's resize maps pixel centres: x_small = (x + 0.5) * s - 0.5
-            return ((boxes + 0.5) / s - 0.5).astype(np.float32), scores
+            return boxes_before_resize(boxes, factors), scores
         thresh = self.score_thresh if score_thresh is None else score_thresh
         h, w = rgb.shape[:2]
         all_b, all_s = [], []
