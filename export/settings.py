@@ -10,8 +10,8 @@ from pathlib import Path
 
 from pomar.countable import MIN_VISIBLE
 
-#: The backbones ``export.model`` builds.
-BACKBONE_NAMES = ["resnet18", "resnet50", "mobilenet_v3_large"]
+#: The backbones ``export.model`` builds (mobilenet_v2 and efficientnet_lite0 from ImageNet weights).
+BACKBONE_NAMES = ["mobilenet_v2", "efficientnet_lite0", "resnet18", "resnet50", "mobilenet_v3_large"]
 
 
 @dataclass
@@ -20,12 +20,22 @@ class TrainSettings:
     out: Path = Path("out/export/resnet18")
     #: ADD256 folder (default: $POMAR_ADD256, then the workplace's shared copy).
     add256: str | None = None
+    #: AppleBBCH76 folder (default: $POMAR_APPLEBBCH76, then the workplace's shared copy); its held-out photos are
+    #: never trained on.
+    applebbch76: str | None = None
+    #: AppleBBCH76 training tiles drawn per epoch (0: AppleBBCH76 not used, neither to train nor to validate).
+    bbch_tiles: int = 600
     #: Simulated flight folders, or packs of export pack (.npz), to crop training patches from (repeatable).
     sim_flight: list[Path] = field(default_factory=list, metadata={"action": "append", "type": Path})
+    #: Held-out simulated flights or packs to validate on after each epoch, every 5th frame at its own size
+    #: (repeatable).
+    val_flight: list[Path] = field(default_factory=list, metadata={"action": "append", "type": Path})
     #: The Faster R-CNN's backbone.
-    backbone: str = field(default="resnet18", metadata={"choices": BACKBONE_NAMES})
-    #: Channels of the feature pyramid's levels.
-    fpn_channels: int = 128
+    backbone: str = field(default="mobilenet_v2", metadata={"choices": BACKBONE_NAMES})
+    #: Channels of the feature pyramid's levels (the RPN's and the pyramid's cost on the finest level).
+    fpn_channels: int = 48
+    #: Width of the box head's two fully connected layers.
+    head_width: int = 256
     #: Epochs: each the ADD256 training split plus sim_crops simulated crops.
     epochs: int = 8
     #: Images per iteration.

@@ -1,19 +1,25 @@
-"""Train the apple detector from scratch on ADD256 (+ crops of simulated flights), with checkpoints and resume.
+"""Train the apple detector on real apples (ADD256, AppleBBCH76) and crops of simulated flights, checkpointed.
 
-    python -m export train --out out/export/r18 [--add256 DIR] [--sim-flight DIR|PACK.npz ...] [--epochs N] [--resume]
+    python -m export train --out out/export/mv2 [--backbone mobilenet_v2] [--add256 DIR] [--applebbch76 DIR]
+                           [--sim-flight DIR|PACK.npz ...] [--val-flight DIR|PACK.npz ...] [--epochs N] [--resume]
                            [--init CKPT]   # a second cycle from trained weights (a .pt or a folder of fp16 parts)
                            [--device auto|cpu|cuda] [--amp] [--fit-minutes M]
+
+A new run of a pretrained backbone (``mobilenet_v2``, ``efficientnet_lite0``) starts from its ImageNet weights,
+checked by hash (``export.pretrained``); the others start from random weights.
 
 The same command trains on a GPU where one is present (``--device auto``) and on the CPU otherwise; ``--amp``
 runs the forward pass in bfloat16 (mixed precision; no loss scaling needed). Augmentation runs in
 ``--workers`` loader processes, so a GPU is not left waiting on one CPU core.
 
-Each epoch is the ADD256 training split (1,025 patches) plus ``--sim-crops`` random crops of the
-simulated flights' frames, augmented (scale, crops, flips, 90° rotations, colour). The learning rate
+Each epoch is ADD256's training patches (the official split without its held-back photos), ``--bbch-tiles``
+AppleBBCH76 tiles of its training photos, and ``--sim-crops`` random crops of the simulated flights' frames, augmented
+(scale, crops, flips, 90° rotations, colour, white balance, exposure, blur, noise, JPEG). The learning rate
 warms up, then follows a cosine to the last iteration. ``last.pt`` is written every
 ``--checkpoint-every`` iterations and at each epoch's end (atomically), so a killed run resumes
-where it stopped with ``--resume``; after each epoch the ADD256 test split is scored (AP@0.5) and
-the best epoch kept as ``best.pt``.
+where it stopped with ``--resume``. After each epoch the validation sets are scored (AP@0.5): ADD256's held-back
+photos, AppleBBCH76's held-out photos and the ``--val-flight``s; their mean (``val_ap50``) keeps the best epoch as
+``best.pt``. ADD256's test split is never scored here: ``export evaluate`` scores it once, at the end.
 """
 
 from __future__ import annotations
@@ -30,9 +36,10 @@ import cv2
 import numpy as np
 import torch
 
-from export.data import Augment, DataError, load_add256, load_sim_frames
+from export.data import Augment, DataError, load_add256, load_applebbch76, load_sim_frames
 from export.metrics import evaluate_detections
-from export.model import load_checkpoint, make
+from export.model import is_pretrained, load_checkpoint, make
+from export.pretrained import WeightsError, weights_path
 from export.settings import TRAIN_FIELDS, TrainSettings
 from pomar.settings import from_options
 
@@ -49,18 +56,23 @@ def target(boxes: np.ndarray) -> dict:
 
 
 class EpochPlan:
-    """The (deterministic from seed and epoch) list of training items of one epoch."""
+    """The (deterministic from seed and epoch) list of training items of one epoch: every ADD256 patch, ``bbch_tiles``
+    AppleBBCH76 tiles drawn without replacement and ``sim_crops`` crops of simulated frames."""
 
-    def __init__(self, n_add256: int, n_sim_frames: int, sim_crops: int, seed: int):
+    def __init__(self, n_add256: int, n_sim_frames: int, sim_crops: int, seed: int, n_bbch: int = 0,
+                 bbch_tiles: int = 0):
         self.n_add, self.n_sim, self.sim_crops, self.seed = n_add256, n_sim_frames, sim_crops if n_sim_frames else 0, seed
+        self.n_bbch, self.bbch_tiles = n_bbch, min(bbch_tiles, n_bbch)
 
     def __len__(self):
-        return self.n_add + self.sim_crops
+        return self.n_add + self.sim_crops + self.bbch_tiles
 
     def items(self, epoch: int) -> list[tuple[str, int]]:
         rng = np.random.default_rng([self.seed, epoch])
         items = [("add256", i) for i in range(self.n_add)]
         items += [("sim", int(i)) for i in rng.integers(0, max(self.n_sim, 1), self.sim_crops)]
+        if self.bbch_tiles:  # drawn after the simulated crops, so that a plan without AppleBBCH76 stays as it was
+            items += [("bbch", int(i)) for i in rng.choice(self.n_bbch, self.bbch_tiles, replace=False)]
         return [items[i] for i in rng.permutation(len(items))]
 
 
@@ -87,8 +99,9 @@ class EpochItems(torch.utils.data.Dataset):
     """One epoch's augmented training items, each from its own seed (seed, epoch, position): the same on a resume,
     whatever the number of loader processes."""
 
-    def __init__(self, items, add, sim, seed: int, epoch: int, add256_scale):
+    def __init__(self, items, add, sim, seed: int, epoch: int, add256_scale, bbch=()):
         self.items, self.add, self.sim, self.seed, self.epoch, self.add256_scale = items, add, sim, seed, epoch, add256_scale
+        self.bbch = bbch
 
     def __len__(self):
         return len(self.items)
@@ -98,6 +111,8 @@ class EpochItems(torch.utils.data.Dataset):
         aug = Augment(rng=np.random.default_rng([self.seed, self.epoch, k]))
         if kind == "add256":
             img, b = aug(self.add[i].image, self.add[i].boxes, scale=self.add256_scale)
+        elif kind == "bbch":  # resized by its curators to ADD256's apple size: the same scales
+            img, b = aug(self.bbch[i].image, self.bbch[i].boxes, scale=self.add256_scale)
         else:
             img, b = aug(self.sim[i].image, self.sim[i].boxes, scale=(0.8, 1.25))
         return to_tensor(img), target(b)
@@ -126,8 +141,23 @@ def score_samples(model, samples, score_thresh: float = 0.5, device=torch.device
     return evaluate_detections(predict(model, samples, device, amp), [(s.boxes, s.ignore) for s in samples], score_thresh)
 
 
-def score_add256_test(model, test, score_thresh: float = 0.5, device=torch.device("cpu"), amp: bool = False) -> dict:
-    return score_samples(model, test, score_thresh, device, amp)
+def validation_sets(add256, applebbch76, val_flights, use_bbch: bool) -> dict[str, list]:
+    """The sets models are chosen on, by name: ADD256's held-back photos, AppleBBCH76's held-out photos, and every 5th
+    frame of each held-out simulated flight (at its own size). Never ADD256's test split."""
+    sets = {"add256_held_back": load_add256(add256, "held-back")}
+    if use_bbch:
+        sets["applebbch76_held_out"] = load_applebbch76(applebbch76, "held-out")
+    for f in val_flights:
+        sets[f"sim:{Path(f).stem}"] = load_sim_frames(f, every=5)
+    return {k: v for k, v in sets.items() if v}
+
+
+def score_validation(model, sets: dict, device=torch.device("cpu"), amp: bool = False) -> dict:
+    """Each validation set's AP@0.5 and P/R/F1, and their mean AP (``val_ap50``), which picks the best epoch."""
+    m = {k: score_samples(model, v, device=device, amp=amp) for k, v in sets.items()}
+    out = {"val_ap50": round(float(np.mean([x["ap50"] for x in m.values()])), 4) if m else 0.0}
+    out.update(m)
+    return out
 
 
 def save_atomic(obj, path: Path):
@@ -161,15 +191,21 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
         # the fork: cv2.setNumThreads inside a forked worker hangs.
         cv2.setNumThreads(1)
     torch.manual_seed(seed)
+    fresh = not (resume and (out / "last.pt").is_file()) and init is None
+    if fresh and is_pretrained(backbone):
+        weights_path(backbone)  # missing or different ImageNet weights stop the run before the data is read
     add = load_add256(add256, "training")
-    test = load_add256(add256, "test")
+    bbch = load_applebbch76(s.applebbch76, "training") if s.bbch_tiles else []
     sim = [x for f in sim_flights for x in load_sim_frames(f, s.min_visible)]
-    log.info("data: %d ADD256 patches, %d simulated frames (%d crops/epoch), %d test patches; %s%s, %d loader processes",
-             len(add), len(sim), sim_crops if sim else 0, len(test), dev, " bfloat16 autocast" if amp else "", workers)
-    plan = EpochPlan(len(add), len(sim), sim_crops, seed)
+    val = validation_sets(add256, s.applebbch76, s.val_flight, bool(s.bbch_tiles))
+    log.info("data: %d ADD256 patches, %d AppleBBCH76 tiles (%d/epoch), %d simulated frames (%d crops/epoch); "
+             "validation: %s; %s%s, %d loader processes", len(add), len(bbch), min(s.bbch_tiles, len(bbch)), len(sim),
+             sim_crops if sim else 0, ", ".join(f"{k} {len(v)}" for k, v in val.items()), dev,
+             " bfloat16 autocast" if amp else "", workers)
+    plan = EpochPlan(len(add), len(sim), sim_crops, seed, len(bbch), s.bbch_tiles)
     per_epoch = math.ceil(len(plan) / batch)
     total = epochs * per_epoch
-    config = dict(backbone=backbone, fpn_channels=fpn_channels)
+    config = dict(backbone=backbone, fpn_channels=fpn_channels, head_width=s.head_width)
     last = out / "last.pt"
     if resume and last.is_file():
         model, ckpt = load_checkpoint(last)
@@ -185,7 +221,9 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
         opt = torch.optim.SGD(model.parameters(), lr=lr, momentum=0.9, weight_decay=1e-4)
         it, history, best = 0, [], -1.0
     else:
-        model = make(config)
+        model = make(config, imagenet=is_pretrained(backbone))
+        if is_pretrained(backbone):
+            log.info("%s: ImageNet weights, checked", backbone)
         opt = torch.optim.SGD(model.parameters(), lr=lr, momentum=0.9, weight_decay=1e-4)
         it, history, best = 0, [], -1.0
     model.to(dev)
@@ -193,9 +231,11 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
         for k, v in state.items():
             if torch.is_tensor(v):
                 state[k] = v.to(dev)
-    run_info = dict(backbone=backbone, fpn_channels=fpn_channels, epochs=epochs, batch=batch, lr=lr,
-                    sim_crops=sim_crops, seed=seed, sim_flights=[str(f) for f in sim_flights],
-                    add256_train=len(add), sim_frames=len(sim), iterations=total,
+    run_info = dict(backbone=backbone, fpn_channels=fpn_channels, head_width=s.head_width, epochs=epochs, batch=batch,
+                    lr=lr, sim_crops=sim_crops, seed=seed, sim_flights=[str(f) for f in sim_flights],
+                    add256_train=len(add), applebbch76_train=len(bbch), bbch_tiles=plan.bbch_tiles,
+                    sim_frames=len(sim), iterations=total, validation={k: len(v) for k, v in val.items()},
+                    imagenet=is_pretrained(config["backbone"]),
                     init=str(init) if init is not None else None, add256_scale=list(add256_scale),
                     min_visible=s.min_visible)
 
@@ -209,7 +249,7 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
     stop = False
     while it < total and not stop:
         epoch, pos = divmod(it, per_epoch)
-        items = EpochItems(plan.items(epoch), add, sim, seed, epoch, add256_scale)
+        items = EpochItems(plan.items(epoch), add, sim, seed, epoch, add256_scale, bbch)
         rest = torch.utils.data.Subset(items, range(pos * batch, len(items)))
         loader = torch.utils.data.DataLoader(rest, batch_size=batch, num_workers=workers, collate_fn=collate,
                                              pin_memory=dev.type == "cuda")
@@ -249,12 +289,13 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
                 checkpoint(last)
             end_of_epoch = it % per_epoch == 0 or it == total
             if end_of_epoch:
-                m = score_add256_test(model, test, device=dev, amp=amp)
-                m.update(epoch=math.ceil(it / per_epoch), iteration=it, minutes=round((time.time() - t0) / 60, 1))
+                m = {"epoch": math.ceil(it / per_epoch), "iteration": it,
+                     "minutes": round((time.time() - t0) / 60, 1), **score_validation(model, val, device=dev, amp=amp)}
                 history.append(m)
-                log.info("ADD256 test after epoch %d: AP50 %.3f P %.3f R %.3f", m["epoch"], m["ap50"], m["precision"], m["recall"])
-                if m["ap50"] > best:
-                    best = m["ap50"]
+                log.info("validation after epoch %d: AP50 %.3f (%s)", m["epoch"], m["val_ap50"],
+                         ", ".join(f"{k} {m[k]['ap50']:.3f}" for k in val))
+                if m["val_ap50"] > best:
+                    best = m["val_ap50"]
                     checkpoint(out / "best.pt")
                 checkpoint(last)
                 (out / "history.json").write_text(json.dumps(history, indent=1))
@@ -270,7 +311,7 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
 def run(args) -> int:
     try:
         train(from_options(TrainSettings(), args, TRAIN_FIELDS))
-    except (TrainingError, DataError) as e:
+    except (TrainingError, DataError, WeightsError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     return 0

