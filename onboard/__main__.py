@@ -15,6 +15,7 @@ from pathlib import Path
 
 from onboard.node import NodeSettings
 from onboard.numbering import default_state_dir
+from pomar.countable import PUBLISH_SCORE
 from pomar.settings import add_options
 from pomar.telemetry import mount_arguments
 
@@ -128,7 +129,8 @@ def _detector(args, flight_dir=None):
         from onboard.detector import ModelError, OnnxDetector
 
         try:
-            return OnnxDetector(args.model, providers=args.providers, score_thresh=args.score_thresh,
+            thresh = PUBLISH_SCORE if args.score_thresh is None else args.score_thresh
+            return OnnxDetector(args.model, providers=args.providers, score_thresh=thresh,
                                 tile_size=args.tile_size, threads=args.threads)
         except ModelError as exc:
             print(f"error: {exc}", file=sys.stderr)
@@ -181,7 +183,9 @@ def _detector_options(r):
     r.add_argument("--model", help="ONNX model (default: $POMAR_DETECTOR, else the shipped onboard/models/apple-detector.onnx)")
     r.add_argument("--providers", nargs="+", help="onnxruntime execution providers, in order of preference "
                    "(default CPUExecutionProvider; e.g. CUDAExecutionProvider TensorrtExecutionProvider)")
-    r.add_argument("--score-thresh", type=float, help="detection score threshold (default: the model's)")
+    r.add_argument("--score-thresh", type=float, help="publish the detections scored at least this (default "
+                   f"{PUBLISH_SCORE}, pomar.countable.PUBLISH_SCORE: weaker than the count's confirm score, they "
+                   "extend tracks)")
     r.add_argument("--tile-size", type=int, default=1344, help="frames larger than this are tiled")
     r.add_argument("--threads", type=int, help="onnxruntime intra-op threads")
     add_options(r, NodeSettings(), SCALE_FIELDS)

@@ -47,10 +47,11 @@ def camera_message(flight_id: str, drone_id: str, camera: dict, image_width: int
                    keyframe_width: int, paced: bool, detector) -> wire.CameraMessage:
     """The message that opens a drone's stream, the same from every source: its camera (camera.json's content), frame
     rate, start, the keyframes' width, whether frames come at the video's pace, and the detector's envelope (the
-    smallest apple radius it finds reliably, 0 where its model does not say)."""
+    smallest apple radius it finds reliably, 0 where its model does not say) and the score it publishes from."""
     return wire.CameraMessage(flight_id, drone_id, camera, fps, start_unix,
                               sent_keyframe_width(keyframe_width, image_width), paced=paced,
-                              min_apple_radius_px=getattr(detector, "min_apple_radius_px", None) or 0.0)
+                              min_apple_radius_px=getattr(detector, "min_apple_radius_px", None) or 0.0,
+                              score_thresh=getattr(detector, "score_thresh", None))
 
 
 def encode_jpeg(img: np.ndarray, width: int, quality: int) -> bytes:

@@ -25,6 +25,11 @@ MIN_VIEWS = 3
 #: In the detector's scores, apples less visible than MIN_VISIBLE but at least this visible are ignored (neither
 #: found nor missed); training takes them as background.
 IGNORE_ABOVE = 0.05
+#: The onboard node publishes the detections scored at least this, whichever way it is started (``onboard run``,
+#: ``onboard live``, ``ground replay``'s node): those under the count's confirm score (ground.apples.counting) extend
+#: the tracks, and the count decides which apples count. The camera message says what the drone sent; a ground given
+#: less says so in its log and report.json.
+PUBLISH_SCORE = 0.7
 
 
 def visible(visible_fraction) -> np.ndarray:

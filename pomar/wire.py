@@ -392,13 +392,17 @@ class CameraMessage:
     #: The smallest apple radius (px, as the detector sees it) the drone's detector finds reliably: its model's
     #: envelope (``min_apple_radius_px``); 0: not said. The ground counts the frames whose apples reached it smaller.
     min_apple_radius_px: float = 0.0
+    #: The drone publishes detections scored at least this (pomar.countable.PUBLISH_SCORE unless told otherwise);
+    #: None: not said (a truth stand-in, or a node before it).
+    score_thresh: float | None = None
 
     def encode(self) -> bytes:
         return msgpack.packb({"v": SCHEMA_VERSION, "type": "camera", "flight": self.flight_id, "drone": self.drone_id,
                               "camera": self.camera, "fps": self.fps, "start": self.video_start_unix,
                               "kfw": int(self.keyframe_width),
                               **({} if self.paced is None else {"paced": bool(self.paced)}),
-                              **({"minr": float(self.min_apple_radius_px)} if self.min_apple_radius_px else {})},
+                              **({"minr": float(self.min_apple_radius_px)} if self.min_apple_radius_px else {}),
+                              **({} if self.score_thresh is None else {"pubs": float(self.score_thresh)})},
                              use_bin_type=True)
 
     @property
@@ -433,7 +437,8 @@ class CameraMessage:
         return cls(_str("flight", d["flight"]), _str("drone", d["drone"]), dict(d["camera"]), fps,
                    _float("camera message: start", d.get("start", 0.0), 0.0, 2.0**33),
                    _int("camera message: keyframe width", d.get("kfw", 0), 0, MAX_IMAGE_SIDE), paced,
-                   _float("camera message: min apple radius", d.get("minr", 0.0), 0.0, 1000.0))
+                   _float("camera message: min apple radius", d.get("minr", 0.0), 0.0, 1000.0),
+                   None if d.get("pubs") is None else _float("camera message: published score", d["pubs"], 0.0, 1.0))
 
 
 _TYPES = {"frame": FrameMessage, "keyframe": KeyframeMessage, "status": StatusMessage, "camera": CameraMessage}

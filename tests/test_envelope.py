@@ -52,3 +52,25 @@ def test_a_drone_that_does_not_state_its_envelope_gets_sizes_but_no_flags():
 def test_the_shipped_model_states_its_envelope_below_its_working_size():
     meta = json.loads((Path(__file__).resolve().parents[1] / "onboard/models/apple-detector.json").read_text())
     assert 0 < meta["min_apple_radius_px"] < meta["apple_radius_px"]
+
+
+def test_a_drone_that_publishes_fewer_detections_than_the_tracks_need_is_said_once(caplog):
+    """The onboard node publishes from pomar.countable.PUBLISH_SCORE by default, from every entry point; a drone
+    started with a higher --score-thresh leaves out detections the tracks need: the log says so once, the report too."""
+    import subprocess
+    import sys
+
+    from pomar.countable import PUBLISH_SCORE
+
+    seen = ApplesSeen()
+    seen.take(wire.decode(wire.CameraMessage("f", "d", CAM, 10.0, score_thresh=PUBLISH_SCORE).encode()))
+    assert seen.detections() == {"published_from": PUBLISH_SCORE, "needed_from": PUBLISH_SCORE, "short": False}
+    with caplog.at_level(logging.WARNING, logger="ground.link.envelope"):
+        for _ in range(2):  # a restarted drone sends its camera message again
+            seen.take(wire.decode(wire.CameraMessage("f", "d", CAM, 10.0, score_thresh=0.9).encode()))
+    assert seen.detections()["short"] and seen.detections()["published_from"] == 0.9
+    assert len([m for m in caplog.messages if "publishes detections scored 0.90" in m]) == 1
+    # every entry point that starts an onboard node says the same default in its help
+    for argv in (["onboard", "run", "--help"], ["onboard", "live", "--help"]):
+        out = subprocess.run([sys.executable, "-m", *argv], capture_output=True, text=True, timeout=60).stdout
+        assert f"(default {PUBLISH_SCORE}, pomar.countable.PUBLISH_SCORE" in " ".join(out.split())

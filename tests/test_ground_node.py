@@ -817,22 +817,26 @@ def test_a_mapping_process_killed_mid_flight_is_restarted_and_the_map_holds(tmp_
     assert "restarted" in text and "joined the map by" in text
 
 
-def test_one_lock_step_stream_gives_the_same_map_through_every_entry_point(replay_test_flight, tmp_path):
+@pytest.mark.parametrize("detector", ["truth-replay", "onnx"])
+def test_one_lock_step_stream_gives_the_same_map_through_every_entry_point(replay_test_flight, tmp_path, detector):
     """The ground takes its profile from the stream, not from how it was started: a lock-step stream gives the same
     apples.csv, byte for byte, through `ground replay`, `onboard run` + `ground run`, and its recording played at
     --speed 0; the ground says at start which profile the stream asked for. (The bundled flight gave 221 apples one
-    way and 202 the other when the start chose.)"""
+    way and 202 the other when the start chose.) With the shipped detector too: every entry point's onboard node
+    publishes the same detections (pomar.countable.PUBLISH_SCORE; `ground replay` once published from 0.7 and
+    `onboard run` from the model's 0.9, 207 apples against 196 on the bundled flight)."""
     from ground.replay import free_port
+    from pomar.countable import PUBLISH_SCORE
 
     flight = replay_test_flight.path
-    r = subprocess.run([sys.executable, "-m", "ground", "replay", str(flight), "--detector", "truth-replay",
+    r = subprocess.run([sys.executable, "-m", "ground", "replay", str(flight), "--detector", detector,
                         "--out", str(tmp_path / "replay"), "--quiet"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     onboard_log = tmp_path / "onboard.log"
     with open(onboard_log, "w") as olog:
         onboard = subprocess.Popen([sys.executable, "-m", "onboard", "run", str(flight), "--listen", endpoint,
-                                    "--detector", "truth-replay", "--wait-for-ground", "30", "--linger", "3"],
+                                    "--detector", detector, "--wait-for-ground", "30", "--linger", "3"],
                                    stdout=olog, stderr=subprocess.STDOUT)
         try:
             g = subprocess.run([sys.executable, "-m", "ground", "run", "--flight-id",
@@ -856,7 +860,12 @@ def test_one_lock_step_stream_gives_the_same_map_through_every_entry_point(repla
                 + onboard_log.read_text()[-2000:])
     assert (tmp_path / "run" / "apples.csv").read_bytes() == first, why()
     assert (tmp_path / "played" / "apples.csv").read_bytes() == first
-    assert json.loads((tmp_path / "run" / "report.json").read_text())["registration"]["mapping"] == "inline"
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    assert report["registration"]["mapping"] == "inline"
+    if detector == "onnx":  # the drone said what it sent, and it was what the tracks need
+        assert report["detections"] == {"published_from": pytest.approx(PUBLISH_SCORE), "needed_from": PUBLISH_SCORE,
+                                        "short": False}
+        assert json.loads((tmp_path / "replay" / "report.json").read_text())["detections"] == report["detections"]
 
 
 def test_a_mapping_process_that_stops_answering_is_taken_for_dead_and_restarted(replay_test_flight, tmp_path,

@@ -352,3 +352,16 @@ def test_a_camera_message_carries_the_detectors_smallest_reliable_apple():
     d["minr"] = -1.0
     with pytest.raises(wire.WireError, match="min apple radius"):
         wire.CameraMessage.decode(msgpack.packb(d))
+
+
+def test_a_camera_message_carries_the_score_the_drone_publishes_from():
+    cam = {"model": "PINHOLE", "width": 8, "height": 6, "params": [1, 1, 4, 3]}
+    assert wire.CameraMessage.decode(wire.CameraMessage("f", "d", cam, 10.0, score_thresh=0.7).encode()
+                                     ).score_thresh == pytest.approx(0.7)
+    assert wire.CameraMessage.decode(wire.CameraMessage("f", "d", cam, 10.0).encode()).score_thresh is None
+    import msgpack
+
+    d = msgpack.unpackb(wire.CameraMessage("f", "d", cam, 10.0, score_thresh=0.7).encode())
+    d["pubs"] = 1.5
+    with pytest.raises(wire.WireError, match="published score"):
+        wire.CameraMessage.decode(msgpack.packb(d))

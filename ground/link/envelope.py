@@ -1,8 +1,10 @@
-"""The apples' size as the drone's detector saw them, frame by frame, against the smallest it finds reliably.
+"""What the drone's detector gives the ground, against what the ground needs: the apples' size, frame by frame,
+against the smallest it finds reliably; and the score it publishes detections from, against PUBLISH_SCORE.
 
     seen = ApplesSeen()
-    seen.take(msg)          # every message: the camera message gives fx and the detector's minimum, frames the rest
+    seen.take(msg)          # every message: the camera message gives fx, the detector's minimum and its published score
     seen.report()           # median radius (px), the minimum, the frames below it
+    seen.detections()       # the score the drone published from, the one the ground needs, and whether it fell short
 
 A frame's apples reach the detector at the radius the telemetry foresees (height above take-off, the camera's angle
 off nadir, the lens: pomar.apple_scale) times the scale the frame was resized by. Below the detector's envelope (its
@@ -19,6 +21,7 @@ import numpy as np
 from pomar import wire
 from pomar.apple_scale import expected_radius_px, off_nadir_deg
 from pomar.camera import Camera
+from pomar.countable import PUBLISH_SCORE
 
 log = logging.getLogger(__name__)
 
@@ -30,11 +33,18 @@ class ApplesSeen:
         self.radii: list[float] = []  # per frame with a foreseeable size: the radius the detector saw (px)
         self.below: list[int] = []  # frames whose apples reached the detector under min_px
         self._warned = False
+        self.published_from: float | None = None  # the drone's published score (None: not said)
 
     def take(self, msg) -> None:
         if isinstance(msg, wire.CameraMessage):
             self.fx = Camera.from_dict(msg.camera, source="camera message").fx  # the wire checked it already
             self.min_px = float(msg.min_apple_radius_px or 0.0)
+            if msg.score_thresh is not None and msg.score_thresh != self.published_from:
+                self.published_from = float(msg.score_thresh)
+                if self.short():
+                    log.warning("the drone publishes detections scored %.2f and more: the tracks need them from %.2f "
+                                "(pomar.countable.PUBLISH_SCORE), so apples seen weakly in some views may go uncounted "
+                                "(start the onboard node without --score-thresh)", self.published_from, PUBLISH_SCORE)
         elif isinstance(msg, wire.FrameMessage) and np.isfinite(self.fx):
             tel = msg.telemetry
             r = float(np.asarray(expected_radius_px(self.fx, tel.height, off_nadir_deg(tel.q_gimbal))).reshape(-1)[0])
@@ -49,6 +59,13 @@ class ApplesSeen:
                     log.warning("frame %d: apples reach the detector at a radius of %.1f px, below the %.1f px it "
                                 "finds reliably: it misses most of them (fly lower, or use a longer lens)", msg.frame,
                                 r, self.min_px)
+
+    def short(self) -> bool:
+        """Whether the drone left out detections the ground's tracks need."""
+        return self.published_from is not None and self.published_from > PUBLISH_SCORE
+
+    def detections(self) -> dict:
+        return {"published_from": self.published_from, "needed_from": PUBLISH_SCORE, "short": self.short()}
 
     def report(self) -> dict:
         r = np.asarray(self.radii, float)

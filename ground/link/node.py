@@ -312,6 +312,8 @@ class GroundNode:
             "frames": counters, "gaps": p.arrivals.gaps[:100],
             # the apples' radius as the drone's detector saw them, and the frames under the smallest it finds reliably
             "apple_size": self.apples_seen.report(),
+            # the score the drone published detections from, against the one the tracks need
+            "detections": self.apples_seen.detections(),
             # what share of the mapped frames got each kind of pose
             "pose_shares": {k: counters[k] / posed for k in POSE_SOURCES},
             "registration": {
