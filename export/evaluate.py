@@ -2,7 +2,8 @@
 
     python -m export evaluate [--model FILE.onnx] [--sim-flight DIR] [--json OUT]
 
-Datasets: the ADD256 test split (114 patches, 267 apples), and every ``--sim-every``-th frame of each
+Datasets: the ADD256 test split (114 patches, 267 apples), AppleBBCH76's held-out photos (641 tiles of 51 photos,
+at their own size, as ADD256's) where the dataset is found, and every ``--sim-every``-th frame of each
 held-out simulated flight, where apples at least ``--min-visible`` visible are the truth and the
 barely visible ones (5 % up to that) are ignored: found or not, they count neither way. Reports
 COCO-style AP@0.5 and precision/recall/F1 at the operating threshold, per dataset, and the
@@ -18,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from export.data import add256_split, load_sim_frames, read_rgb
+from export.data import DataError, add256_split, applebbch76_split, load_sim_frames, read_rgb, yolo_boxes
 from export.metrics import evaluate_detections
 from pomar.countable import MIN_VISIBLE
 
@@ -43,8 +44,25 @@ def score(detector, samples, score_thresh: float, progress_name: str) -> dict:
     return m
 
 
+def applebbch76_held_out(root):
+    """(image, boxes, None) of AppleBBCH76's held-out tiles, or None where the dataset is not found (and not asked
+    for: a folder given that is not one is an error)."""
+    try:
+        tiles = applebbch76_split(root, "held-out")
+    except DataError:
+        if root is not None:
+            raise
+        return None
+
+    def items():
+        for p in tiles:
+            img = read_rgb(p)
+            yield img, yolo_boxes(p.parent.parent / "labels" / f"{p.stem}.txt", img.shape[1], img.shape[0]), None
+    return items()
+
+
 def evaluate(model=None, add256=None, sim_flights=(), sim_every: int = 5, min_visible: float = MIN_VISIBLE,
-             score_thresh: float | None = None, detector_scale: str = "auto") -> dict:
+             score_thresh: float | None = None, detector_scale: str = "auto", applebbch76=None) -> dict:
     """Scores on ADD256's test split (its patches at their own size) and on simulated flights, whose frames are
     rescaled as the onboard node does (``detector_scale``: auto from each frame's telemetry, off, or a factor)."""
     from onboard.detector import OnnxDetector
@@ -57,6 +75,9 @@ def evaluate(model=None, add256=None, sim_flights=(), sim_every: int = 5, min_vi
     out = {"model": str(det.path), "score_thresh": thresh, "detector_scale": detector_scale}
     test = ((read_rgb(p), b, None) for p, b in add256_split(add256, "test"))
     out["add256_test"] = score(det, test, thresh, "ADD256 test")
+    bbch = applebbch76_held_out(applebbch76)
+    if bbch is not None:
+        out["applebbch76_held_out"] = score(det, bbch, thresh, "AppleBBCH76 held out")
     for f in sim_flights:
         key = "sim" if f == sim_flights[0] else f"sim:{Path(f).name}"  # the first is the headline
         if str(f).endswith(".npz"):  # a pack of export pack: its frames and boxes as packed, at their own size
@@ -74,11 +95,11 @@ def evaluate(model=None, add256=None, sim_flights=(), sim_every: int = 5, min_vi
 
 def print_table(res: dict):
     print(f"model {res['model']}  (score threshold {res['score_thresh']})")
-    print(f"{'dataset':<16}{'images':>7}{'apples':>8}{'AP50':>7}{'P':>7}{'R':>7}{'F1':>7}{'s/img':>8}{'partial':>9}")
+    print(f"{'dataset':<21}{'images':>7}{'apples':>8}{'AP50':>7}{'P':>7}{'R':>7}{'F1':>7}{'s/img':>8}{'partial':>9}")
     for k, m in res.items():
         if isinstance(m, dict):
             partial = f"{m['ignored_found']:>9.3f}" if "ignored_found" in m else f"{'-':>9}"
-            print(f"{k:<16}{m['images']:>7}{m['apples']:>8}{m['ap50']:>7.3f}{m['precision']:>7.3f}"
+            print(f"{k:<21}{m['images']:>7}{m['apples']:>8}{m['ap50']:>7.3f}{m['precision']:>7.3f}"
                   f"{m['recall']:>7.3f}{m['f1']:>7.3f}{m['seconds_per_image']:>8.3f}{partial}")
     if any(isinstance(m, dict) and "ignored_found" in m for m in res.values()):
         print("partial: the share of the apples less visible than the definition asks (the ignored ones) that a "
@@ -118,8 +139,11 @@ def run(args) -> int:
     if args.val_flight or args.val_add256:
         samples, chosen_on = validation_samples(args)
         thresh = choose_threshold(args.model, samples, chosen_on)
-    res = evaluate(args.model, args.add256, args.sim_flight, args.sim_every, args.min_visible, thresh,
-                   args.detector_scale)
+    try:
+        res = evaluate(args.model, args.add256, args.sim_flight, args.sim_every, args.min_visible, thresh,
+                       args.detector_scale, args.applebbch76)
+    except DataError as exc:
+        raise SystemExit(f"export evaluate: {exc}") from None
     if chosen_on:
         res["score_thresh_chosen_on"] = chosen_on
     print_table(res)

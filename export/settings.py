@@ -125,6 +125,9 @@ class EvaluateSettings:
     model: Path | None = field(default=None, metadata={"type": Path})
     #: ADD256 folder (default: $POMAR_ADD256, then the workplace's shared copy).
     add256: str | None = None
+    #: AppleBBCH76 folder whose held-out photos are scored too (default: $POMAR_APPLEBBCH76, then the workplace's
+    #: shared copy; none there: not scored).
+    applebbch76: str | None = None
     #: Held-out simulated flights to score on (every sim_every-th frame), or packs of export pack (.npz: their boxes
     #: as packed, frames at their own size).
     sim_flight: list[Path] = field(default_factory=list, metadata={"action": "append", "type": Path})

@@ -197,9 +197,10 @@ def _applebbch76_like(folder, frames, size: int = 160):
     (folder / "images").mkdir(parents=True)
     (folder / "labels").mkdir()
     for photo, s in zip((1, 5), frames):
-        img = s.image[-size:, -size:]
         h, w = s.image.shape[:2]
-        b = s.boxes - np.array([w - size, h - size] * 2, np.float32)
+        y0, x0 = (h - size) // 2, (w - size) // 2  # the frame's middle, where the rows' apples are
+        img = s.image[y0:y0 + size, x0:x0 + size]
+        b = s.boxes - np.array([x0, y0] * 2, np.float32)
         b = b[(b[:, 0] >= 0) & (b[:, 1] >= 0) & (b[:, 2] < size) & (b[:, 3] < size)]
         cv2.imwrite(str(folder / "images" / f"DSC_{photo:04d}_plot_0.jpg"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
         yolo = [f"0 {(x1 + x2 + 1) / 2 / size:.6f} {(y1 + y2 + 1) / 2 / size:.6f} {(x2 - x1) / size:.6f} "
@@ -484,3 +485,32 @@ def test_the_held_out_photos_are_fixed_by_their_number_and_never_trained_on():
     assert len(held) == 641 and len(train) == 2528
     assert {add256_photo(p.name) % 10 for p, _ in a_held} == {0} and all(add256_photo(p.name) % 10 for p, _ in a_train)
     assert len(a_train) + len(a_held) == 1025
+
+
+def test_export_evaluate_scores_the_held_out_applebbch76_photos(tiny_onnx, tmp_path):
+    """``export evaluate`` scores AppleBBCH76's held-out photos beside ADD256's test split (through onnxruntime, the
+    file that ships); a folder that is not AppleBBCH76 is one line naming it."""
+    import subprocess
+    import sys
+
+    from export.data import load_sim_frames
+    from tests.conftest import BUNDLED
+
+    _, path, _, _ = tiny_onnx
+    frames = load_sim_frames(BUNDLED, every=30)
+    add = _add256_like(tmp_path / "add256", frames)
+    bbch = _applebbch76_like(tmp_path / "applebbch76", frames)
+
+    def evaluate(folder):
+        return subprocess.run([sys.executable, "-m", "export", "evaluate", "--model", str(path), "--add256", str(add),
+                               "--applebbch76", str(folder), "--json", str(tmp_path / "m.json")],
+                              capture_output=True, text=True, timeout=300)
+
+    r = evaluate(bbch)
+    assert r.returncode == 0, r.stderr[-2000:]
+    m = json.loads((tmp_path / "m.json").read_text())
+    assert m["add256_test"]["images"] == 2 and m["applebbch76_held_out"]["images"] == 1  # photo 5 only
+    assert m["applebbch76_held_out"]["apples"] > 0 and "applebbch76_held_out" in r.stdout
+    r = evaluate(tmp_path / "nowhere")
+    assert r.returncode == 1 and r.stderr.strip() == (f"export evaluate: {tmp_path / 'nowhere'}: not an AppleBBCH76 "
+                                                      "folder (needs images/ and labels/)")
