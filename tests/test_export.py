@@ -239,7 +239,7 @@ def test_training_runs_with_mixed_precision_on_the_cpu_from_a_pack_and_continues
     history = json.loads((tmp_path / "run" / "history.json").read_text())
     assert history[-1]["iteration"] == 3
     assert history[-1]["add256_held_back"]["images"] == 1 and history[-1]["applebbch76_held_out"]["images"] == 1
-    assert history[-1]["sim:sim"]["images"] == 1  # every 5th frame of the two packed
+    assert history[-1]["sim:sim"]["images"] == 2  # a pack: every frame it holds
     assert "add256_test" not in history[-1]  # the test split is scored once, at the end, by export evaluate
     ckpt = torch.load(tmp_path / "run" / "last.pt", weights_only=False)
     assert all(torch.isfinite(v).all() for v in ckpt["model"].values() if v.is_floating_point())
