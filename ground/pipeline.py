@@ -18,6 +18,7 @@ telemetry pose: nothing stops the flight.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from dataclasses import dataclass, field, replace
@@ -117,6 +118,7 @@ class GroundPipeline:
         if self.s.mapping not in ("stream", "inline", "process"):
             raise ValueError(f"GroundSettings.mapping must be 'stream', 'inline' or 'process', got {self.s.mapping!r}")
         self.arrivals = Arrivals(self.s.max_wait_s)
+        self._work_depth = 0  # nesting of take() and step(): their time lengthens a hold of the gaps
         self.poses: LivePoses | None = None
         self.apples = LiveApples(self.s.association, self.s.counting, self.s.min_score)
         # live, the mapping process starts now: its imports would otherwise hold up the first model
@@ -138,8 +140,24 @@ class GroundPipeline:
 
     # -- inputs
     def take(self, msg, step: bool = True) -> list[FrameEvent]:
-        """Any message of a stream: its camera message opens it (:meth:`start`), the others are fed (:meth:`feed`)."""
-        return self.start(msg, step) if isinstance(msg, wire.CameraMessage) else self.feed(msg, step)
+        """Any message of a stream: its camera message opens it (:meth:`start`), the others are fed (:meth:`feed`).
+        The time it takes lengthens a hold of the gaps under way (the ground's work is not the link's wait)."""
+        with self._working():
+            return self.start(msg, step) if isinstance(msg, wire.CameraMessage) else self.feed(msg, step)
+
+    @contextlib.contextmanager
+    def _working(self):
+        """Time spent in :meth:`take` and :meth:`step` (the outermost call only) goes to the arrivals' hold."""
+        if self._work_depth:
+            yield
+            return
+        self._work_depth += 1
+        t0 = time.monotonic()
+        try:
+            yield
+        finally:
+            self._work_depth -= 1
+            self.arrivals.worked(time.monotonic() - t0)
 
     def start(self, msg: wire.CameraMessage, step: bool = True) -> list[FrameEvent]:
         """The stream's opening (its camera message): the camera, and the profile the stream asks for. Frames that
@@ -185,6 +203,10 @@ class GroundPipeline:
         """Hand the waiting images to the poses (tracking; mapping keyframes), then release every frame whose pose
         can be decided. With ``on_events``, the frames released after each image go to it as they come (a backlog
         can take minutes: the map and the progress are shown meanwhile) and nothing is returned."""
+        with self._working():
+            return self._step(final, on_events)
+
+    def _step(self, final: bool, on_events) -> list[FrameEvent]:
         if self.camera is None:
             return []
         arrivals = self.arrivals

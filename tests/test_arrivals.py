@@ -58,3 +58,32 @@ def test_a_restarted_node_is_counted_from_the_frames_when_the_statuses_before_it
     late_ground = pipe_with(range(12, 20))  # nothing came before the node's first frame
     late_ground.feed(wire.StatusMessage("flight", "drone", time.time(), 8, 8, first_frame=12))
     assert late_ground.counters["onboard_restarts"] == 0
+
+
+def test_a_hold_of_the_gaps_counts_the_links_wait_not_the_grounds_work(caplog):
+    """A resumed ground holds the frames after a gap while the publisher's history comes: the time it spends working
+    meanwhile does not count (on a slow laptop the history has as long to come), and when the hold runs out the log
+    says how long it waited."""
+    import logging
+
+    a = Arrivals(max_wait_s=10.0)
+    for f in (0, 1, 4, 5):  # frames 2 and 3 missing
+        a.take(_frame(f))
+    a.hold_gaps(0.3)
+
+    def released():
+        return [m.frame for m in a.release(lambda f: True, final=False, has_model=lambda: True)]
+
+    assert released() == [0, 1]
+    time.sleep(0.2)
+    a.worked(0.5)  # the ground was busy: the hold is that much longer
+    time.sleep(0.3)
+    assert released() == []  # 0.5 s since the hold began, but only 0.2 s of it waiting
+    with caplog.at_level(logging.INFO, logger="ground.link.arrivals"):
+        time.sleep(0.4)
+        assert released() == [4, 5]
+    assert [m for m in caplog.messages if "frames 2-3 missing after 0.3 s of waiting for the publisher's history "
+            "(and 0.5 s more while the ground worked)" in m]
+    a.worked(5.0)  # no hold under way: nothing to lengthen
+    a.take(_frame(7))
+    assert released() == [7]

@@ -50,6 +50,7 @@ class Arrivals:
         self._last_kf_capture = float("nan")  # capture time of the last keyframe's frame (or of the first frame)
         self._frames_since_kf: float | None = None  # when the first frame after the last keyframe came (monotonic)
         self._hold_gaps_until = 0.0  # until then (monotonic), a frame after a missing one waits for it
+        self._hold = (0.0, 0.0, True)  # the hold asked (s), the time the ground's own work added to it (s), said
         self.released = -1  # the last frame released
         self.steps: deque[int] = deque(maxlen=20)  # frame-index steps between the last frames released
         self.gaps: list[tuple[int, int]] = []  # (first, last) frame indices missing between released frames
@@ -127,10 +128,18 @@ class Arrivals:
         return out
 
     def hold_gaps(self, seconds: float) -> None:
-        """For the next ``seconds``, a frame after a missing one waits for it instead of leaving it to come late and
-        be dropped: a resumed ground gets the frames it missed from the publisher's history while the live ones
-        come too, in either order."""
+        """For the next ``seconds`` of waiting on the link, a frame after a missing one waits for it instead of leaving
+        it to come late and be dropped: a resumed ground gets the frames it missed from the publisher's history while
+        the live ones come too, in either order. The time the ground spends working meanwhile (:meth:`worked`) does not
+        count: on a slow laptop the history has as long to come as on a fast one."""
         self._hold_gaps_until = time.monotonic() + seconds
+        self._hold = (seconds, 0.0, False)
+
+    def worked(self, seconds: float) -> None:
+        """The ground spent ``seconds`` on a message: a hold of the gaps under way is that much longer."""
+        if time.monotonic() < self._hold_gaps_until:
+            self._hold_gaps_until += seconds
+            self._hold = (self._hold[0], self._hold[1] + seconds, False)
 
     # -- out
     def images(self, final: bool, wait_for_announced: bool) -> Iterator[tuple[int, bytes]]:
@@ -168,8 +177,15 @@ class Arrivals:
         delays are also kept for the frames that came after it)."""
         while self.pending:
             f = min(self.pending)
-            if not final and f > self.released + 1 and time.monotonic() < self._hold_gaps_until:
-                break
+            if not final and f > self.released + 1:
+                if time.monotonic() < self._hold_gaps_until:
+                    break
+                asked, worked, said = self._hold
+                if not said and asked:
+                    self._hold = (asked, worked, True)
+                    log.info("frames %d-%d missing after %.1f s of waiting for the publisher's history (and %.1f s more "
+                             "while the ground worked): the frames after them go on", self.released + 1, f - 1, asked,
+                             worked)
             if not ready(f):
                 break
             msg = self.pending.pop(f)

@@ -536,8 +536,10 @@ class MapperProcess:
         if self._closed or self._closing or self._given_up:
             return False
         if stalled:
-            log.error("the mapping process has answered nothing for %.0f s with a keyframe in work: stopped",
-                      time.monotonic() - self._last_progress)
+            secs = self._stats.get("seconds") or []
+            log.error("the mapping process has answered nothing for %.0f s with a keyframe in work: stopped (its limit: "
+                      "%g times its median %.2f s per keyframe, at least %g s)", time.monotonic() - self._last_progress,
+                      self.STALL_FACTOR, float(np.median(secs)) if secs else float("nan"), self.STALL_MIN_S)
             self._proc.kill()
             self._proc.join(5)
         self._poll()
