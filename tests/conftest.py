@@ -8,6 +8,15 @@ SMALL_CONFIG = ROOT / "sim" / "configs" / "small.toml"
 
 
 @pytest.fixture(scope="session")
+def slowness():
+    """How many times slower than the development machine this one runs at the start of the run (tests/machine.py):
+    a test of a wall-clock behaviour slows its clock by it."""
+    from tests.machine import slowness
+
+    return slowness()
+
+
+@pytest.fixture(scope="session")
 def bundled_flight():
     from pomar.flight import FlightDir
 

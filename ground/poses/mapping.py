@@ -736,6 +736,7 @@ class MapperProcess:
         if not self._closed and self._proc.is_alive():
             log.warning("the mapping process did not finish within %.0f s: stopped; the model files are not written",
                         timeout_s)
+            self._proc.kill()  # its time is up: not another wait
         self._proc.join(timeout=min(10.0, max(t_end - time.monotonic(), 0.5)))
         if self._proc.is_alive():
             self._proc.kill()
