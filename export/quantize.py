@@ -2,8 +2,9 @@
 
     python -m export quantize onboard/models/apple-detector.onnx --out out/export/int8/apple-detector.onnx
 
-The convolutions (and, with ``--ops Conv,Gemm``, the box head's fully connected layers) get int8
-weights, per output channel, and uint8 activations whose ranges are calibrated on training data only:
+The convolutions with their ReLU6 (Clip), the pyramid's Resize and MaxPool (and, with ``--ops ...,Gemm``, the box
+head's fully connected layers) get int8 weights, per output channel, and uint8 activations whose ranges are calibrated
+on training data only:
 ADD256 training patches and frames of a simulated training flight (never the scored test split nor the
 held-out flights). The graph is QDQ: onnxruntime fuses each QuantizeLinear/DequantizeLinear pair with
 its Conv into an integer kernel (VNNI on recent x86). The float model's metadata is copied with the
@@ -72,7 +73,7 @@ def float_model_metadata(model_path) -> dict:
     return meta
 
 
-def quantize(model_path, out_path, images, ops=("Conv",), fp16: bool = False) -> dict:
+def quantize(model_path, out_path, images, ops=("Conv", "Clip", "Resize", "MaxPool"), fp16: bool = False) -> dict:
     """Write the int8 model ``out_path`` (+ its ``.json`` metadata) calibrated on ``images`` (RGB uint8);
     ``fp16``: the weights left in float32 (the box head's, when only Conv is quantized) are stored as
     float16 with a Cast back, as ``python -m export onnx --fp16`` does."""
