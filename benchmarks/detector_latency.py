@@ -54,6 +54,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", type=Path)
     p.add_argument("--size", action="append", help="frame sizes WxH (default 1280x720 and 1920x1080)")
     p.add_argument("--scale", type=float, action="append", default=[], help="also time frames resized by this")
+    p.add_argument("--tile-size", type=int, help="frames larger than this are tiled (default: the detector's)")
     p.add_argument("--own-scale", action="store_true", help="also time each model at its own scale on the bundled "
                    "flight (its apple_radius_px over the flight's median apple radius)")
     args = p.parse_args(argv)
@@ -107,13 +108,22 @@ def own_scale(det) -> float:
     return round(policy_for(det, "auto").scale(float(np.median(flight_radius_px(FlightDir(BUNDLED))))), 3)
 
 
+def _short(path: Path) -> str:
+    """A model's path, relative to the repository where it lies inside it."""
+    try:
+        return str(Path(path).resolve().relative_to(ROOT))
+    except ValueError:
+        return str(path)
+
+
 def compare(args) -> int:
     """Several models in one run: each size and scale timed for every model in turn, medians, and each model's time
     as a ratio of the first model's."""
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.size] if args.size else SIZES
     frame = read_frame(BUNDLED / "video.mp4", 80)
-    dets = [OnnxDetector(m, threads=args.threads) for m in args.model]
-    res = {"models": [str(d.path) for d in dets], "threads": args.threads, "rows": []}
+    dets = [OnnxDetector(m, threads=args.threads, **({"tile_size": args.tile_size} if args.tile_size else {}))
+            for m in args.model]
+    res = {"models": [str(d.path) for d in dets], "threads": args.threads, "tile_size": dets[0].tile_size, "rows": []}
     for w, h in sizes:
         img = cv2.resize(frame, (w, h), interpolation=cv2.INTER_LINEAR)
         scales = [(f"x{sc:g}", [sc] * len(dets)) for sc in args.scale]
@@ -133,7 +143,7 @@ def compare(args) -> int:
                 row = {"size": f"{w}x{h}", "scale": label, "model": d.path.name, "model_path": str(d.path),
                        "factor": sc, "seconds": round(t, 4), "speedup_vs_first": round(med[0] / t, 2)}
                 res["rows"].append(row)
-                print(f"{w}x{h} {label:>6} (x{sc:.3g}) {d.path.parent.name}/{d.path.name}: {t:.3f} s/frame, "
+                print(f"{w}x{h} {label:>6} (x{sc:.3g}) {_short(d.path)}: {t:.3f} s/frame, "
                       f"{med[0] / t:.2f} times the first model's speed", flush=True)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
