@@ -43,17 +43,27 @@ class DataError(ValueError):
     """A dataset that is missing or malformed; the message names the file."""
 
 
-def find_add256(path: str | os.PathLike | None = None) -> Path:
-    """The ADD256 folder: ``path``, else ``$POMAR_ADD256``, else the workplace's shared copy."""
-    for cand in (path, os.environ.get(ADD256_ENV), ADD256_FALLBACK):
+def find_dataset(name: str, path, env: str, fallback: Path, needs: tuple[str, ...], option: str) -> Path:
+    """A dataset's folder: ``path``, else ``$env``, else the workplace's shared copy ``fallback``; it must hold
+    ``needs`` (files, or folders ending in /). One asked for that is not one, or none found: DataError naming it."""
+    def holds(root: Path) -> bool:
+        return all((root / n.rstrip("/")).is_dir() if n.endswith("/") else (root / n).is_file() for n in needs)
+
+    for cand in (path, os.environ.get(env), fallback):
         if cand is None:
             continue
         root = Path(cand)
-        if (root / "training.json").is_file() and (root / "images").is_dir():
+        if holds(root):
             return root
-        if cand is not ADD256_FALLBACK:
-            raise DataError(f"{root}: not an ADD256 folder (needs training.json, test.json and images/)")
-    raise DataError(f"ADD256 not found: pass --add256 DIR or set ${ADD256_ENV}")
+        if cand is not fallback:
+            raise DataError(f"{root}: not an {name} folder (needs {', '.join(needs[:-1])} and {needs[-1]})")
+    raise DataError(f"{name} not found: pass {option} DIR or set ${env}")
+
+
+def find_add256(path: str | os.PathLike | None = None) -> Path:
+    """The ADD256 folder: ``path``, else ``$POMAR_ADD256``, else the workplace's shared copy."""
+    return find_dataset("ADD256", path, ADD256_ENV, ADD256_FALLBACK, ("training.json", "images/"),
+                        "--add256")
 
 
 @dataclass
@@ -111,15 +121,8 @@ def load_add256(root, split: str) -> list[Sample]:
 
 def find_applebbch76(path: str | os.PathLike | None = None) -> Path:
     """The AppleBBCH76 folder (``images/``, ``labels/``): ``path``, else ``$POMAR_APPLEBBCH76``, else the shared copy."""
-    for cand in (path, os.environ.get(APPLEBBCH76_ENV), APPLEBBCH76_FALLBACK):
-        if cand is None:
-            continue
-        root = Path(cand)
-        if (root / "images").is_dir() and (root / "labels").is_dir():
-            return root
-        if cand is not APPLEBBCH76_FALLBACK:
-            raise DataError(f"{root}: not an AppleBBCH76 folder (needs images/ and labels/)")
-    raise DataError(f"AppleBBCH76 not found: pass --applebbch76 DIR or set ${APPLEBBCH76_ENV}")
+    return find_dataset("AppleBBCH76", path, APPLEBBCH76_ENV, APPLEBBCH76_FALLBACK, ("images/", "labels/"),
+                        "--applebbch76")
 
 
 def applebbch76_photo(name: str) -> int:
