@@ -35,8 +35,8 @@ LITE_MEAN, LITE_STD = (127 / 255,) * 3, (128 / 255,) * 3
 
 
 def _efficientnet_lite0(**_):
-    """EfficientNet-Lite0 (``efficientnet_lite_pytorch``) with its stem and blocks as one ``nn.Sequential``, whose
-    children are named so that the state dict keeps the ImageNet file's keys."""
+    """EfficientNet-Lite0's classifier (``efficientnet_lite_pytorch``), whose state dict has the ImageNet file's keys
+    (it builds its own BatchNorm: torchvision's arguments are ignored)."""
     from efficientnet_lite_pytorch import EfficientNet
 
     return EfficientNet.from_name("efficientnet-lite0")
@@ -51,18 +51,18 @@ class LiteBody(nn.Sequential):
 
 
 # name: (the classifier network's builder, its body from the network, the body's children at strides 4, 8, 16
-# and 32, their channels, ImageNet weights, input mean and std)
+# and 32, their channels, input mean and std); which start from ImageNet weights is export.pretrained.IMAGENET's
 BACKBONES = {
-    "resnet18": (resnet18, lambda n: n, ["layer1", "layer2", "layer3", "layer4"], [64, 128, 256, 512], False,
+    "resnet18": (resnet18, lambda n: n, ["layer1", "layer2", "layer3", "layer4"], [64, 128, 256, 512],
                  IMAGENET_MEAN, IMAGENET_STD),
-    "resnet50": (resnet50, lambda n: n, ["layer1", "layer2", "layer3", "layer4"], [256, 512, 1024, 2048], False,
+    "resnet50": (resnet50, lambda n: n, ["layer1", "layer2", "layer3", "layer4"], [256, 512, 1024, 2048],
                  IMAGENET_MEAN, IMAGENET_STD),
-    "mobilenet_v3_large": (mobilenet_v3_large, lambda n: n.features, ["3", "6", "12", "16"], [24, 40, 112, 960], False,
+    "mobilenet_v3_large": (mobilenet_v3_large, lambda n: n.features, ["3", "6", "12", "16"], [24, 40, 112, 960],
                            IMAGENET_MEAN, IMAGENET_STD),
     # the last inverted residual of each stride; the 1x1 conv to 1,280 channels (classification only) is left out
-    "mobilenet_v2": (mobilenet_v2, lambda n: n.features[:18], ["3", "6", "13", "17"], [24, 32, 96, 320], True,
+    "mobilenet_v2": (mobilenet_v2, lambda n: n.features[:18], ["3", "6", "13", "17"], [24, 32, 96, 320],
                      IMAGENET_MEAN, IMAGENET_STD),
-    "efficientnet_lite0": (_efficientnet_lite0, LiteBody, ["2", "4", "10", "15"], [24, 40, 112, 320], True,
+    "efficientnet_lite0": (_efficientnet_lite0, LiteBody, ["2", "4", "10", "15"], [24, 40, 112, 320],
                            LITE_MEAN, LITE_STD),
 }
 ANCHOR_SIZES = ((8,), (16,), (32,), (64,), (128,))
@@ -71,7 +71,9 @@ ASPECT_RATIOS = (0.5, 1.0, 2.0)
 
 def is_pretrained(backbone: str) -> bool:
     """Whether ``backbone`` starts from ImageNet weights."""
-    return BACKBONES[backbone][4]
+    from export.pretrained import IMAGENET
+
+    return backbone in IMAGENET
 
 
 class NativeResolutionTransform(GeneralizedRCNNTransform):
@@ -102,8 +104,9 @@ def build_model(backbone: str = "resnet18", fpn_channels: int = 128, detections_
     ImageNet weights (``export.pretrained``); otherwise randomly initialised (a checkpoint's weights go on top)."""
     if backbone not in BACKBONES:
         raise ValueError(f"unknown backbone {backbone!r}; choose from {sorted(BACKBONES)}")
-    builder, body_of, layers, in_channels, pretrained, mean, std = BACKBONES[backbone]
-    net = builder(weights=None, norm_layer=nn.BatchNorm2d) if backbone != "efficientnet_lite0" else builder()
+    builder, body_of, layers, in_channels, mean, std = BACKBONES[backbone]
+    pretrained = is_pretrained(backbone)
+    net = builder(weights=None, norm_layer=nn.BatchNorm2d)
     if imagenet:
         from export.pretrained import imagenet_state_dict
 

@@ -536,10 +536,10 @@ class MapperProcess:
         if self._closed or self._closing or self._given_up:
             return False
         if stalled:
-            secs = self._stats.get("seconds") or []
-            log.error("the mapping process has answered nothing for %.0f s with a keyframe in work: stopped (its limit: "
-                      "%g times its median %.2f s per keyframe, at least %g s)", time.monotonic() - self._last_progress,
-                      self.STALL_FACTOR, float(np.median(secs)) if secs else float("nan"), self.STALL_MIN_S)
+            limit, median = self._stall_limit()
+            log.error("the mapping process has answered nothing for %.0f s with a keyframe in work: stopped (its limit "
+                      "%.0f s: %g times its median %.2f s per keyframe, at least %g s)",
+                      time.monotonic() - self._last_progress, limit, self.STALL_FACTOR, median, self.STALL_MIN_S)
             self._proc.kill()
             self._proc.join(5)
         self._poll()
@@ -560,12 +560,17 @@ class MapperProcess:
     #: median seconds per keyframe so far, and at least STALL_MIN_S (a first model takes several keyframes' time).
     STALL_MIN_S, STALL_FACTOR = 60.0, 20.0
 
+    def _stall_limit(self) -> tuple[float, float]:
+        """(seconds of silence taken for a stall, the median seconds per keyframe it follows from; nan before any)."""
+        secs = self._stats.get("seconds") or []
+        median = float(np.median(secs)) if secs else float("nan")
+        return max(self.STALL_MIN_S, self.STALL_FACTOR * median if secs else 0.0), median
+
     def _stalled(self) -> bool:
         quiet = time.monotonic() - self._last_progress
-        if self.answered >= self.sent or self._closing or quiet <= self.STALL_MIN_S:
+        if self.answered >= self.sent or self._closing:
             return False
-        secs = self._stats.get("seconds") or []
-        return quiet > (self.STALL_FACTOR * float(np.median(secs)) if secs else 0.0)
+        return quiet > self._stall_limit()[0]
 
     def _restart(self, death: dict) -> None:
         """A new mapping process, given the last keyframes first; the old one's unanswered keyframes are lost."""
