@@ -13,7 +13,7 @@ keep the chosen one's checkpoint. On the GPU machine or on this CPU.
 The candidates (``CANDIDATES``): Faster R-CNN on MobileNetV2 and EfficientNet-Lite0, from ImageNet, and today's
 ResNet-18 from scratch, each with its own pyramid and box head widths. Each runs ``python -m export train`` with the
 same data and schedule: ``--epochs N`` (the same iterations for all), or ``--minutes M`` (``--fit-minutes``: the same
-time; all at once on a GPU). Then each one's last checkpoint (not its best epoch) is scored on the validation sets
+time; all at once on a GPU). Then each one's last checkpoint (not its best epoch) is scored anew on the same validation sets
 (ADD256's held-back photos, AppleBBCH76's held-out photos, the held-out simulated frames at their own size); ADD256's
 test split is left for the end. ``candidates.json`` holds the figures; the chosen model's weights come back as fp16
 parts (``export.parts``) under ``OUT/<backbone>/``, with each run's log under ``OUT/logs``. Everything under OUT stays
@@ -51,10 +51,22 @@ def train_command(bb: str, data: Path, runs: Path, a, minutes: float) -> list[st
             "--checkpoint-every", "500", "--seed", str(a.seed), "--add256-scale", *map(str, a.add256_scale)]
 
 
-def score(bb: str, runs: Path, data: Path, device: str) -> dict:
+def evaluation_sets(data: Path) -> dict[str, list]:
+    """The sets every candidate is scored on, loaded once: export.train's validation sets (as its runs name them) and
+    the held-out packs. Scored anew for each, so that no candidate is judged on a set its run saw in another state."""
+    from export.data import load_sim_frames
+    from export.train import validation_sets
+
+    bbch = data / "applebbch76"
+    val = [data / "detector-val.npz"] if (data / "detector-val.npz").is_file() else []
+    sets = validation_sets(data / "add256", bbch if bbch.is_dir() else None, val, bbch.is_dir())
+    sets.update({name: load_sim_frames(data / pack) for name, pack in HELDOUT.items() if (data / pack).is_file()})
+    return sets
+
+
+def score(bb: str, runs: Path, sets: dict[str, list], device: str) -> dict:
     import torch
 
-    from export.data import load_sim_frames
     from export.model import load_checkpoint
     from export.train import pick_device, score_samples
 
@@ -66,11 +78,8 @@ def score(bb: str, runs: Path, data: Path, device: str) -> dict:
     model.to(dev)
     out = {"backbone": bb, "parameters_m": round(sum(p.numel() for p in model.parameters()) / 1e6, 2),
            "iterations": ckpt["iteration"], "epochs": ckpt["run"]["epochs"], "history": ckpt["history"]}
-    if ckpt["history"]:  # the last epoch's validation (sets named as in export.train.validation_sets)
-        out.update({k: v for k, v in ckpt["history"][-1].items() if isinstance(v, dict) or k == "val_ap50"})
-    for name, pack in HELDOUT.items():
-        if (data / pack).is_file():
-            out[name] = score_samples(model, load_sim_frames(data / pack), device=dev)
+    for name, samples in sets.items():
+        out[name] = score_samples(model, samples, device=dev)
     out["ckpt"] = ckpt
     del model
     if dev.type == "cuda":
@@ -126,8 +135,9 @@ def main(argv=None) -> int:
     print(f"trained in {(time.time() - t0) / 60:.1f} min: " + ", ".join(f"{b} rc {pr.returncode}" for b, pr in procs.items()),
           flush=True)
     results, ckpts = [], {}
+    sets = evaluation_sets(a.data)
     for bb in a.only:
-        r = score(bb, a.runs, a.data, a.device)
+        r = score(bb, a.runs, sets, a.device)
         ckpts[bb] = r.pop("ckpt", None)
         results.append(r)
         print(json.dumps({k: v for k, v in r.items() if k != "history"}), flush=True)
