@@ -9,9 +9,9 @@
 
 import argparse
 import logging
-import sys
 from pathlib import Path
 
+from pomar import cli
 from pomar.apple_scale import SCALE_HELP, scale_argument
 from pomar.countable import MIN_VISIBLE
 from pomar.settings import add_options
@@ -86,8 +86,8 @@ def main(argv=None) -> int:
         from export.quantize import run
     else:
         from export.evaluate import run
-    return run(args)
+    return cli.run(run, args)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    cli.exit_with(main)

@@ -14,13 +14,13 @@ import csv
 import json
 import logging
 import os
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from pomar.cli import InputError
 from pomar.countable import IGNORE_ABOVE, MIN_VISIBLE
 
 log = logging.getLogger(__name__)
@@ -39,7 +39,7 @@ ADD256_HELD_BACK_EVERY = 10
 APPLEBBCH76_HELD_OUT_EVERY = 5
 
 
-class DataError(ValueError):
+class DataError(InputError, ValueError):
     """A dataset that is missing or malformed; the message names the file."""
 
 
@@ -339,11 +339,7 @@ class Augment:
 
 
 def run_pack(args) -> int:
-    try:
-        samples = load_sim_frames(args.flight, every=args.every, limit=args.limit)
-    except DataError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    samples = load_sim_frames(args.flight, every=args.every, limit=args.limit)
     path = save_pack(samples, args.out, args.quality)
     print(f"{path}: {len(samples)} frames, {sum(len(s.boxes) for s in samples)} apples, "
           f"{path.stat().st_size / 1e6:.1f} MB")

@@ -21,6 +21,7 @@ import numpy as np
 
 from export.data import DataError, add256_split, applebbch76_split, load_sim_frames, read_rgb, yolo_boxes
 from export.metrics import evaluate_detections
+from pomar.cli import InputError
 from pomar.countable import MIN_VISIBLE
 
 log = logging.getLogger(__name__)
@@ -135,15 +136,12 @@ def validation_samples(args):
 def run(args) -> int:
     thresh, chosen_on = args.score_thresh, None
     if args.val_flight and args.val_add256:
-        raise SystemExit("export evaluate: --val-flight or --val-add256, not both")
+        raise InputError("--val-flight or --val-add256, not both")
     if args.val_flight or args.val_add256:
         samples, chosen_on = validation_samples(args)
         thresh = choose_threshold(args.model, samples, chosen_on)
-    try:
-        res = evaluate(args.model, args.add256, args.sim_flight, args.sim_every, args.min_visible, thresh,
-                       args.detector_scale, args.applebbch76)
-    except DataError as exc:
-        raise SystemExit(f"export evaluate: {exc}") from None
+    res = evaluate(args.model, args.add256, args.sim_flight, args.sim_every, args.min_visible, thresh,
+                   args.detector_scale, args.applebbch76)
     if chosen_on:
         res["score_thresh_chosen_on"] = chosen_on
     print_table(res)

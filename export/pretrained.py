@@ -18,6 +18,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from pomar.cli import InputError
+
 WEIGHTS_ENV = "POMAR_WEIGHTS"
 
 
@@ -47,7 +49,7 @@ IMAGENET = {
 }
 
 
-class WeightsError(RuntimeError):
+class WeightsError(InputError, RuntimeError):
     """ImageNet weights that are missing or are not the file expected; the message is one line saying what to do."""
 
 

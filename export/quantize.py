@@ -21,7 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
+from pomar.cli import InputError
+
 log = logging.getLogger(__name__)
+
+
+class QuantizeError(InputError, ValueError):
+    """A model or calibration input that cannot be quantized; the message names the file."""
 
 
 def calibration_images(add256=None, sim_flights=(), add256_count: int = 24, sim_count: int = 8, seed: int = 0):
@@ -42,34 +48,34 @@ def calibration_images(add256=None, sim_flights=(), add256_count: int = 24, sim_
         cap = cv2.VideoCapture(str(video))
         n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         if n <= 0:
-            raise ValueError(f"{video}: no frames to calibrate on")
+            raise QuantizeError(f"{video}: no frames to calibrate on")
         for i in np.linspace(0, n - 1, sim_count).round().astype(int):
             cap.set(cv2.CAP_PROP_POS_FRAMES, int(i))
             ok, bgr = cap.read()
             if not ok:
-                raise ValueError(f"{video}: cannot read frame {i}")
+                raise QuantizeError(f"{video}: cannot read frame {i}")
             images.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
         cap.release()
     if not images:
-        raise ValueError("no calibration images: give ADD256 or a simulated flight")
+        raise QuantizeError("no calibration images: give ADD256 or a simulated flight")
     return images
 
 
 def float_model_metadata(model_path) -> dict:
-    """The metadata of the float32 export at ``model_path``; ValueError naming the file if it is missing,
+    """The metadata of the float32 export at ``model_path``; QuantizeError naming the file if it is missing,
     already quantized, or an fp16 export (checked before any calibration image is read)."""
     from onboard.detector import read_metadata
 
     model_path = Path(model_path)
     if not model_path.is_file():
-        raise ValueError(f"{model_path}: model file not found")
+        raise QuantizeError(f"{model_path}: model file not found")
     meta = read_metadata(model_path)
     if "quantization" in meta:
-        raise ValueError(f"{model_path}: already quantized (from {meta['quantization'].get('from')}); quantize the "
+        raise QuantizeError(f"{model_path}: already quantized (from {meta['quantization'].get('from')}); quantize the "
                          "float32 export")
     if "float16" in str(meta.get("weights", "")):
         # the fp16 file casts its weights to float32 inside the graph: the quantizer sees no weight initialisers
-        raise ValueError(f"{model_path}: quantize a float32 export (python -m export onnx without --fp16)")
+        raise QuantizeError(f"{model_path}: quantize a float32 export (python -m export onnx without --fp16)")
     return meta
 
 
@@ -134,13 +140,7 @@ def quantize(model_path, out_path, images, ops=("Conv", "Clip", "Resize", "MaxPo
 
 
 def run(args) -> int:
-    from export.data import DataError
-    from onboard.detector import ModelError
-
-    try:
-        float_model_metadata(args.model)  # a wrong model is refused before the images are read
-        images = calibration_images(args.add256, args.sim_flight, args.add256_images, args.sim_frames, args.seed)
-        quantize(args.model, args.out, images, tuple(args.ops.split(",")), args.fp16)
-    except (ValueError, ModelError, DataError) as exc:  # a bad input file: say which, without a traceback
-        raise SystemExit(f"export quantize: {exc}") from None
+    float_model_metadata(args.model)  # a wrong model is refused before the images are read
+    images = calibration_images(args.add256, args.sim_flight, args.add256_images, args.sim_frames, args.seed)
+    quantize(args.model, args.out, images, tuple(args.ops.split(",")), args.fp16)
     return 0

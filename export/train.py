@@ -28,7 +28,6 @@ import json
 import logging
 import math
 import os
-import sys
 import time
 from pathlib import Path
 
@@ -36,11 +35,12 @@ import cv2
 import numpy as np
 import torch
 
-from export.data import Augment, DataError, load_add256, load_applebbch76, load_sim_frames
+from export.data import Augment, load_add256, load_applebbch76, load_sim_frames
 from export.metrics import evaluate_detections
 from export.model import is_pretrained, load_checkpoint, make
-from export.pretrained import WeightsError, weights_path
+from export.pretrained import weights_path
 from export.settings import TRAIN_FIELDS, TrainSettings
+from pomar.cli import InputError
 from pomar.settings import from_options
 
 log = logging.getLogger(__name__)
@@ -83,7 +83,7 @@ def lr_at(it: int, total: int, base: float, warmup: int = 300, final: float = 0.
     return base * (final + (1 - final) * 0.5 * (1 + math.cos(math.pi * min(t, 1.0))))
 
 
-class TrainingError(RuntimeError):
+class TrainingError(InputError, RuntimeError):
     """A training run that cannot start as asked (e.g. ``--device cuda`` without CUDA); the message says why."""
 
 
@@ -309,9 +309,5 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
 
 
 def run(args) -> int:
-    try:
-        train(from_options(TrainSettings(), args, TRAIN_FIELDS))
-    except (TrainingError, DataError, WeightsError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    train(from_options(TrainSettings(), args, TRAIN_FIELDS))
     return 0

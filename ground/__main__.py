@@ -16,6 +16,7 @@ import logging
 import os
 import sys
 
+from pomar import cli
 from pomar.apple_scale import SCALE_HELP, scale_argument
 from pathlib import Path
 
@@ -64,18 +65,15 @@ def _settings(args):
     from pomar.settings import from_options
 
     g = GroundSettings()  # mapping "stream": the stream's profile
-    try:
-        return replace(from_options(g, args, GROUND_FIELDS),
-                       association=from_options(g.association, args, ASSOCIATION_FIELDS),
-                       registration=from_options(g.registration, args, REGISTRATION_FIELDS),
-                       tracking=from_options(g.tracking, args, TRACKING_FIELDS),
-                       counting=from_options(g.counting, args, COUNTING_FIELDS))
-    except ValueError as exc:  # a bad combination of options: say so, without a traceback
-        raise SystemExit(f"ground: {exc}") from None
+    return replace(from_options(g, args, GROUND_FIELDS),
+                   association=from_options(g.association, args, ASSOCIATION_FIELDS),
+                   registration=from_options(g.registration, args, REGISTRATION_FIELDS),
+                   tracking=from_options(g.tracking, args, TRACKING_FIELDS),
+                   counting=from_options(g.counting, args, COUNTING_FIELDS))
 
 
 def _cmd_run(args) -> int:
-    from ground.link.node import run_ground
+    from ground.node import run_ground
     from pomar.transport import DEFAULT_ENDPOINT
 
     connect = args.connect or (None if args.listen or args.zenoh_config else [DEFAULT_ENDPOINT])
@@ -138,11 +136,7 @@ def _cmd_replay(args) -> int:
         if args.flight_dir or not (args.log and args.camera):
             print("error: --video needs --log and --camera, and no flight directory", file=sys.stderr)
             return 2
-        try:
-            built = assemble_flight(args.video, args.log, args.camera, out / "flight")
-        except ValueError as exc:  # FlightFormatError, CameraFileError, VideoError, TelemetryError: they name the file
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
+        built = assemble_flight(args.video, args.log, args.camera, out / "flight")
         print(describe(built), file=sys.stderr)
         flight, args.log = built["flight_dir"], None  # the built flight names its log
     ground_args = _ground_argv(args)  # the stream says lock-step or live: the ground takes its profile from it
@@ -233,10 +227,7 @@ def _registration_settings(args, **extra):
     from ground.poses.registration import RegistrationSettings
     from pomar.settings import from_options
 
-    try:
-        return replace(from_options(RegistrationSettings(), args, REGISTRATION_FIELDS), **extra)
-    except ValueError as exc:  # a bad combination of options: say so, without a traceback
-        raise SystemExit(f"ground: {exc}") from None
+    return replace(from_options(RegistrationSettings(), args, REGISTRATION_FIELDS), **extra)
 
 
 def _ground_argv(args) -> list[str]:
@@ -371,7 +362,7 @@ def main(argv=None) -> int:
     g.add_argument("--serve", action="store_true", help="serve the rerun stream over gRPC for a viewer elsewhere")
     g.add_argument("--viewer", help="send the rerun stream to a running viewer at this URL")
     g.add_argument("--harvest", help="CSV row,kg: report the correlation of per-row counts with yield")
-    g.add_argument("--idle-timeout", type=float, default=60.0, help="finish after this long without a message (s)")
+    g.add_argument("--idle-timeout", type=float, default=60.0, help="finish after this long without a message (s; the ground's own work not counted)")
     g.add_argument("--fresh", action="store_true", help="ignore OUT/journal.bin (default: resume from it)")
     g.add_argument("--expected-frames", type=int, help="frames the flight will have, when known (progress ETA)")
     _ground_options(g)
@@ -392,27 +383,11 @@ def main(argv=None) -> int:
 
     stop_on_sigterm()
     logging.basicConfig(level=os.environ.get("POMAR_LOG_LEVEL", "INFO").upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s", datefmt="%H:%M:%S")
-    from ground.link.journal import JournalError
-    from pomar.flight import FlightFormatError
-    from pomar.transport import TransportError
-
-    try:
-        return args.func(args)
-    except (FlightFormatError, JournalError, TransportError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    return cli.run(args.func, args)
 
 
 if __name__ == "__main__":
-    try:
-        code = main()
-    except KeyboardInterrupt:  # Ctrl-C or SIGTERM before the ground set its own handling: no traceback
-        print("interrupted", file=sys.stderr)
-        code = 130
-    # What the command writes is written and closed by now (map files, report, recording, journal; the mapping process
-    # is gone): the interpreter's own teardown (zenoh's runtime, rerun, multiprocessing's finalisers) is skipped. It took
-    # 1.8 s of the 5 s a stopped ground promises on a busy machine, and does nothing a user needs.
-    logging.shutdown()
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(int(code or 0))
+    # hard: what the command writes is written and closed by now (map files, report, recording, journal; the mapping
+    # process is gone), so the interpreter's own teardown (zenoh's runtime, rerun, multiprocessing's finalisers) is
+    # skipped. It took 1.8 s of the 5 s a stopped ground promises on a busy machine, and does nothing a user needs.
+    cli.exit_with(main, hard=True)

@@ -119,6 +119,7 @@ class GroundPipeline:
             raise ValueError(f"GroundSettings.mapping must be 'stream', 'inline' or 'process', got {self.s.mapping!r}")
         self.arrivals = Arrivals(self.s.max_wait_s)
         self._work_depth = 0  # nesting of take() and step(): their time lengthens a hold of the gaps
+        self.work_s = 0.0  # seconds spent in take() and step(), outermost calls
         self.poses: LivePoses | None = None
         self.apples = LiveApples(self.s.association, self.s.counting, self.s.min_score)
         # live, the mapping process starts now: its imports would otherwise hold up the first model
@@ -127,7 +128,7 @@ class GroundPipeline:
         self._counts = {"bad_keyframes": 0, "frames_without_pose": 0,
                         "registered": 0, "tracked": 0, "interpolated": 0, "apples": 0, "telemetry": 0}
         self.seconds = {"poses": 0.0, "association": 0.0, "corrections": 0.0}
-        self._last_correction = -float("inf")
+        self._last_correction = time.monotonic()  # the first round waits its period too
         self.corrections = {"rounds": 0, "frames": 0, "apples_moved": 0, "apples_merged": 0}
 
     @property
@@ -157,6 +158,7 @@ class GroundPipeline:
             yield
         finally:
             self._work_depth -= 1
+            self.work_s += time.monotonic() - t0
             self.arrivals.worked(time.monotonic() - t0)
 
     def start(self, msg: wire.CameraMessage, step: bool = True) -> list[FrameEvent]:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from onboard.node import NodeSettings
 from onboard.numbering import default_state_dir
+from pomar import cli
 from pomar.countable import PUBLISH_SCORE
 from pomar.settings import add_options
 from pomar.telemetry import mount_arguments
@@ -90,9 +91,6 @@ def _cmd_run(args) -> int:
         node = OnboardNode(args.flight_dir, None, None, settings)
         meta = node.check_inputs()[0]
         node.detector = _detector(args, args.flight_dir)
-    except SystemExit as exc:  # the detector's own message, already printed
-        write_summary({"error": f"the detector could not be loaded (exit {exc.code})"})
-        raise
     except Exception as exc:
         print(f"error: {exc}", file=sys.stderr)
         write_summary({"error": str(exc)})
@@ -126,19 +124,15 @@ def _publisher(args, flight_id: str, drone_id: str):
 
 def _detector(args, flight_dir=None):
     if args.detector == "onnx":
-        from onboard.detector import ModelError, OnnxDetector
+        from onboard.detector import OnnxDetector
 
-        try:
-            thresh = PUBLISH_SCORE if args.score_thresh is None else args.score_thresh
-            return OnnxDetector(args.model, providers=args.providers, score_thresh=thresh,
-                                tile_size=args.tile_size, threads=args.threads)
-        except ModelError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            raise SystemExit(2) from None
+        thresh = PUBLISH_SCORE if args.score_thresh is None else args.score_thresh
+        return OnnxDetector(args.model, providers=args.providers, score_thresh=thresh, tile_size=args.tile_size,
+                            threads=args.threads)
     from onboard.replay_detector import TruthReplayDetector
 
     if flight_dir is None:
-        raise SystemExit("error: --detector truth-replay needs a simulated flight (--truth-flight DIR)")
+        raise cli.InputError("--detector truth-replay needs a simulated flight (--truth-flight DIR)")
     return TruthReplayDetector(flight_dir)
 
 
@@ -271,22 +265,8 @@ def main(argv=None) -> int:
     t.set_defaults(func=_cmd_telemetry)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    from pomar.camera import CameraFileError
-    from pomar.flight import FlightFormatError
-    from pomar.transport import TransportError
-    from pomar.telemetry import TelemetryError
-    from pomar.video import VideoError
-
-    try:
-        return args.func(args)
-    except (TelemetryError, FlightFormatError, CameraFileError, VideoError, TransportError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    return cli.run(args.func, args)
 
 
 if __name__ == "__main__":
-    try:
-        sys.exit(main())
-    except KeyboardInterrupt:  # Ctrl-C or SIGTERM before the node set its own handling: no traceback
-        print("interrupted", file=sys.stderr)
-        sys.exit(130)
+    cli.exit_with(main)

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pomar.cli import InputError
+
 log = logging.getLogger(__name__)
 
 MODEL_ENV = "POMAR_DETECTOR"
@@ -47,7 +49,7 @@ def boxes_before_resize(boxes: np.ndarray, factors: np.ndarray) -> np.ndarray:
     return ((np.asarray(boxes, np.float32) + 0.5) / factors - 0.5).astype(np.float32)
 
 
-class ModelError(RuntimeError):
+class ModelError(InputError, RuntimeError):
     """A model file that is missing, corrupt or not one of ours; the message names the file."""
 
 

@@ -13,10 +13,12 @@ import threading
 import time
 from pathlib import Path
 
+from pomar.cli import InputError
+
 log = logging.getLogger(__name__)
 
 
-class SourceError(ValueError):
+class SourceError(InputError, ValueError):
     """A frame source cannot be opened, or stopped before its end (a truncated video)."""
 
 

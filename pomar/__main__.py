@@ -14,6 +14,8 @@ import json
 import sys
 from pathlib import Path
 
+from pomar import cli
+
 
 def _cmd_flight(args) -> int:
     from pomar.assemble import assemble_flight, describe
@@ -129,17 +131,8 @@ def main(argv=None) -> int:
     s.set_defaults(func=_cmd_scale)
 
     args = p.parse_args(argv)
-    from pomar.camera import CameraFileError
-    from pomar.flight import FlightFormatError
-    from pomar.telemetry.base import TelemetryError
-    from pomar.video import VideoError
-
-    try:
-        return args.func(args)
-    except (FlightFormatError, CameraFileError, TelemetryError, VideoError, OSError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    return cli.run(args.func, args)
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    cli.exit_with(main)

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pomar.cli import InputError
 from pomar.rotations import R_GIMBAL_FROM_CAMERA_NOMINAL, quat_wxyz_to_rotation, rotation_to_quat_wxyz
 from scipy.spatial.transform import Rotation
 
@@ -23,7 +24,7 @@ COLMAP_TO_OPENCV_PX = 0.5
 SUPPORTED_MODELS = {"PINHOLE": 4, "SIMPLE_PINHOLE": 3}
 
 
-class CameraFileError(ValueError):
+class CameraFileError(InputError, ValueError):
     """camera.json is missing, malformed, or describes an unsupported camera."""
 
 

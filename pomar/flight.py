@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pomar.cli import InputError
 from pomar.camera import Camera
 from pomar.geo import Origin
 
@@ -29,7 +30,7 @@ FRAMES_COLUMNS = ["frame", "t_unix", "qw", "qx", "qy", "qz", "tx", "ty", "tz", "
 DETECTIONS_COLUMNS = ["frame", "apple_id", "u", "v", "r_px", "visible_fraction"]
 
 
-class FlightFormatError(ValueError):
+class FlightFormatError(InputError, ValueError):
     """A flight directory or one of its files is missing or malformed."""
 
 

@@ -16,6 +16,8 @@ import inspect
 import re
 from functools import lru_cache
 
+from pomar.cli import InputError
+
 _FIELD = re.compile(r"^(\s+)(\w+)\s*:\s*[^=#]+?(?:=\s*(.*?))?\s*(?:#\s*(.*))?$")
 
 
@@ -72,7 +74,14 @@ def add_options(parser, settings, names: list[str], prefix: str = "") -> None:
             parser.add_argument(flag(f), type=kind, **kw)
 
 
+class SettingsError(InputError, ValueError):
+    """Options that do not fit together (a settings class's own check refused them)."""
+
+
 def from_options(settings, args, names: list[str]):
-    """A copy of the settings with these fields from parsed options."""
+    """A copy of the settings with these fields from parsed options; SettingsError where they do not fit."""
     fields = {f.name: f for f in dataclasses.fields(settings)}
-    return dataclasses.replace(settings, **{n: getattr(args, fields[n].metadata.get("dest", n)) for n in names})
+    try:
+        return dataclasses.replace(settings, **{n: getattr(args, fields[n].metadata.get("dest", n)) for n in names})
+    except ValueError as exc:
+        raise SettingsError(str(exc)) from None

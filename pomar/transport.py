@@ -24,13 +24,14 @@ import zenoh
 import zenoh.ext as zext
 
 from pomar import wire
+from pomar.cli import InputError
 
 log = logging.getLogger(__name__)
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 
-class TransportError(RuntimeError):
+class TransportError(InputError, RuntimeError):
     """A zenoh session that cannot be set up: its config file or endpoints."""
 
 

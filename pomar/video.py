@@ -6,8 +6,10 @@ from pathlib import Path
 
 import numpy as np
 
+from pomar.cli import InputError
 
-class VideoError(ValueError):
+
+class VideoError(InputError, ValueError):
     """A video cannot be opened or a frame cannot be decoded."""
 
 

@@ -8,6 +8,7 @@ import logging
 import sys
 from pathlib import Path
 
+from pomar import cli
 from pomar.countable import MIN_VISIBLE
 
 
@@ -126,17 +127,8 @@ def main(argv=None) -> int:
     lg.set_defaults(func=_cmd_logs)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    from pomar.camera import CameraFileError
-    from pomar.flight import FlightFormatError
-    from pomar.telemetry.base import TelemetryError
-    from sim.config import ConfigError
-
-    try:
-        return args.func(args)
-    except (ConfigError, FlightFormatError, CameraFileError, TelemetryError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    return cli.run(args.func, args)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    cli.exit_with(main)

@@ -12,10 +12,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, get_args, get_origin, get_type_hints
 
+from pomar.cli import InputError
 from pomar.geo import VACARIA
 
 
-class ConfigError(ValueError):
+class ConfigError(InputError, ValueError):
     """A simulator config file has an unknown key, a value of the wrong type, or one out of range."""
 
 

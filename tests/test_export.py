@@ -154,7 +154,7 @@ def test_quantize_refuses_a_quantized_model_before_reading_calibration_data(tmp_
     out = tmp_path / "again.onnx"
     r = subprocess.run([sys.executable, "-m", "export", "quantize", str(default_model_path()), "--out", str(out),
                         "--add256", str(tmp_path / "no-such-dataset")], capture_output=True, text=True, timeout=120)
-    assert r.returncode != 0
+    assert r.returncode == 2 and r.stderr.startswith("error: ")
     assert "already quantized" in r.stderr and default_model_path().name in r.stderr
     assert "Traceback" not in r.stderr and not out.exists()
 
@@ -512,5 +512,5 @@ def test_export_evaluate_scores_the_held_out_applebbch76_photos(tiny_onnx, tmp_p
     assert m["add256_test"]["images"] == 2 and m["applebbch76_held_out"]["images"] == 1  # photo 5 only
     assert m["applebbch76_held_out"]["apples"] > 0 and "applebbch76_held_out" in r.stdout
     r = evaluate(tmp_path / "nowhere")
-    assert r.returncode == 1 and r.stderr.strip() == (f"export evaluate: {tmp_path / 'nowhere'}: not an AppleBBCH76 "
+    assert r.returncode == 2 and r.stderr.strip() == (f"error: {tmp_path / 'nowhere'}: not an AppleBBCH76 "
                                                       "folder (needs images/ and labels/)")

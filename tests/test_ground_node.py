@@ -523,13 +523,13 @@ def test_a_backlog_mapped_in_one_step_shows_its_progress_as_it_goes(replay_test_
     import logging
     import re
 
-    from ground.link.node import GroundNode
+    from ground.node import GroundNode
 
     msgs = _onboard_messages(replay_test_flight, keyframe_every=1)
     node = GroundNode(tmp_path / "out", rrd=False, progress_s=0.0, expected_frames=20)
     for m in msgs:
         node.handle(m, step=False)
-    with caplog.at_level(logging.INFO, logger="ground.link.node"):
+    with caplog.at_level(logging.INFO, logger="ground"):
         node.step()
     mapped = [int(m.group(1)) for r in caplog.records if (m := re.search(r"(\d+)/20 mapped", r.getMessage()))]
     assert len(mapped) >= 3 and mapped == sorted(mapped) and mapped[0] < mapped[-1], mapped

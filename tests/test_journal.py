@@ -44,14 +44,14 @@ def test_a_journal_in_a_folder_that_cannot_be_made_is_a_warning(tmp_path, caplog
 def test_map_files_the_disk_refuses_leave_the_flight_going_and_the_files_before_whole(tmp_path, caplog):
     """A disk that refuses the map files (full, or a path taken): the refresh warns once, the report says why, the
     files written before stay whole, no temporary file is left, and the next refresh that can write does."""
-    from ground.link.node import GroundNode
+    from ground.node import GroundNode
 
     out = tmp_path / "out"
     node = GroundNode(out, rrd=False)
     node.refresh()
     before = (out / "apples.csv").read_bytes()
     (out / ".apples.csv.tmp").mkdir()  # the write of apples.csv fails with an OSError, as on a full disk
-    with caplog.at_level(logging.WARNING, logger="ground.link.node"):
+    with caplog.at_level(logging.WARNING, logger="ground"):
         rep = node.refresh()
         node.refresh()
     assert "apples.csv" in rep["link"]["outputs_write_failed"]
@@ -68,7 +68,7 @@ def test_map_files_the_disk_refuses_at_the_end_go_to_a_rescue_folder(tmp_path, m
     the system's temporary directory and the report says where (and that the first place failed)."""
     import tempfile
 
-    from ground.link.node import GroundNode
+    from ground.node import GroundNode
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
     (tmp_path / "tmp").mkdir()
@@ -87,13 +87,13 @@ def test_map_files_the_disk_refuses_at_the_end_go_to_a_rescue_folder(tmp_path, m
 def test_a_recording_the_disk_refuses_leaves_the_flight_and_its_map_files(tmp_path, caplog):
     """A rerun recording that cannot be written (its disk full from the start, here /dev/full) is a warning: the
     flight goes on without it, and its end writes the map files and the report as ever."""
-    from ground.link.node import GroundNode
+    from ground.node import GroundNode
     from pomar import wire
 
     out = tmp_path / "out"
     node = GroundNode(out, rrd=Path("/dev/full"))
     cam = {"model": "PINHOLE", "width": 1280, "height": 720, "params": [1372.0, 1372.0, 640.0, 360.0]}
-    with caplog.at_level(logging.WARNING, logger="ground.link.node"):
+    with caplog.at_level(logging.WARNING, logger="ground"):
         node.handle(wire.CameraMessage("f", "d", cam, 10.0))
         node.refresh()
         rep = node.finish()

@@ -59,3 +59,27 @@ def test_nothing_generated_is_committed():
                "onboard", "pomar", "replay_data", "sim", "tests"}
     assert top <= allowed, sorted(top - allowed)
     assert not [f for f in files if f.endswith(".log") or f.startswith("out/")]
+
+
+def _imports(path) -> set[str]:
+    """The modules a source file imports, anywhere in it (function-level imports too)."""
+    import ast
+
+    names = set()
+    for n in ast.walk(ast.parse(path.read_text())):
+        if isinstance(n, ast.Import):
+            names.update(a.name for a in n.names)
+        elif isinstance(n, ast.ImportFrom) and n.module:
+            names.add(n.module)
+    return names
+
+
+def test_the_link_sits_below_the_pipeline_and_the_outputs():
+    """ground/link/ (the stream in: journal, arrivals, envelope, player) imports neither the pipeline, nor the
+    outputs, nor the ground's program: the one way the ground's imports go is down."""
+    from pathlib import Path
+
+    link = Path(__file__).resolve().parents[1] / "ground" / "link"
+    above = ("ground.pipeline", "ground.outputs", "ground.node", "ground.replay", "ground.poses", "ground.apples")
+    bad = {p.name: sorted(m for m in _imports(p) if m.startswith(above)) for p in sorted(link.glob("*.py"))}
+    assert not any(bad.values()), {k: v for k, v in bad.items() if v}

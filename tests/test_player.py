@@ -63,14 +63,15 @@ def test_live_pose_corrections_wait_for_their_period_and_still_come(replayed_tes
     """Live, the poses given out are corrected at most once per --correction-every-s: with a period longer than the
     flight, only the end's round runs, and it still corrects the frames the mapper's keyframes moved. The stream is
     played at the flight's pace slowed by the machine's slowness (tests/machine.py): on a busy machine at the flight's
-    own pace the live ground mapped 7 keyframes of 20, none moved, and there was nothing to correct."""
+    own pace the live ground mapped 7 keyframes of 20, none moved, and there was nothing to correct. No round can come
+    during the flight, so the frames corrected are the end's rounds' (without them, none is)."""
     from ground.replay import replay
 
     flight, out, ref = replayed_test_flight
     rep = replay(flight.path, tmp_path / "played", recorded=out / "journal.bin", speed=1.0 / slowness, quiet=True,
                  ground_args=["--correction-every-s", "600"])
     c = rep["corrections"]
-    assert c["rounds"] <= 2 and c["frames"] > 0, (c, slowness, rep["frames"], rep["registration"])
+    assert 1 <= c["rounds"] <= 2 and c["frames"] > 0, (c, slowness, rep["frames"], rep["registration"])
     assert 0.5 * ref["apples"] - 2 <= rep["apples"] <= 1.5 * ref["apples"] + 2, (rep["apples"], ref["apples"])
 
 

@@ -23,6 +23,8 @@ import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from pomar.cli import InputError
+
 log = logging.getLogger(__name__)
 
 HEADER = b"POMARJ02"
@@ -31,7 +33,7 @@ _REC = struct.Struct("<4sII")  # marker, length, crc32(length + payload)
 _LEN = struct.Struct("<I")
 
 
-class JournalError(ValueError):
+class JournalError(InputError, ValueError):
     """A file that is not a journal this build can read."""
 
 

@@ -25,11 +25,12 @@ from pathlib import Path
 
 from ground.link.journal import JournalError, read_journal_report
 from pomar import wire
+from pomar.cli import InputError
 
 log = logging.getLogger(__name__)
 
 
-class PlayerError(ValueError):
+class PlayerError(InputError, ValueError):
     """A recording that cannot be played; the message names the file."""
 
 

@@ -25,6 +25,7 @@ from enum import IntFlag
 import numpy as np
 from scipy.spatial.transform import Slerp
 
+from pomar.cli import InputError
 from pomar.rotations import ned_euler_to_rotation, quat_wxyz_to_rotation, rotation_to_quat_wxyz
 
 
@@ -63,7 +64,7 @@ TRACK_HEADING_S = 2.0
 UNSTATED_H_ACC_M = 2.0
 
 
-class TelemetryError(ValueError):
+class TelemetryError(InputError, ValueError):
     """A telemetry file is missing, unreadable, or holds nothing usable."""
 
 

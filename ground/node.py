@@ -13,20 +13,17 @@ flight is finished (and every frame it announced has arrived, or ``end_grace_s``
 from __future__ import annotations
 
 import logging
-import os
-import resource
 import threading
 import time
 from collections import deque
 from pathlib import Path
 
-import numpy as np
-
 from ground.link.envelope import ApplesSeen
 from ground.link.journal import Journal, read_journal_report
-from ground.outputs.tables import (apple_table, candidate_table, candidates_csv, corrections, harvest_correlation,
-                                   pose_table, poses_csv, read_harvest, rescue_folder, rows_summary, write_atomic,
-                                   write_json, write_map)
+from ground.memory import malloc_trim, rss_mb
+from ground.outputs.mapfiles import MapFiles
+from ground.outputs.report import flight_report
+from ground.outputs.tables import read_harvest
 from ground.pipeline import GroundPipeline, GroundSettings
 from pomar import wire
 
@@ -34,47 +31,13 @@ log = logging.getLogger(__name__)
 
 
 # A flight that says it sent more frames than arrived, and then goes quiet: its history is asked for again after
-# REQUERY_S, at most MAX_REQUERIES times (zenoh's history and recovery can leave a gap).
+# REQUERY_S of the link's quiet (the ground's own work not counted), at most MAX_REQUERIES times (zenoh's history and
+# recovery can leave a gap).
 REQUERY_S = 3.0
 MAX_REQUERIES = 5
 # A resumed ground holds a frame after a missing one this long for the history to bring the missing one (zenoh
 # delivers the history and the live samples in either order; a frame released past is dropped when it comes).
 HISTORY_WAIT_S = 3.0
-
-
-def delay_stats(delays: list[float]) -> dict:
-    d = np.asarray(delays, float)
-    if not len(d):
-        return {"frame_delay_median_s": None, "frame_delay_p95_s": None, "frame_delay_max_s": None}
-    return {"frame_delay_median_s": float(np.median(d)), "frame_delay_p95_s": float(np.percentile(d, 95)),
-            "frame_delay_max_s": float(d.max())}
-
-
-def peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def _libc_malloc_trim():
-    """glibc's malloc_trim, or None where there is none."""
-    import ctypes
-    import ctypes.util
-
-    try:
-        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
-    except (OSError, AttributeError):
-        return None
-
-
-def rss_mb() -> float:
-    """The process's resident memory now (Linux; elsewhere its peak so far)."""
-    try:
-        with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * resource.getpagesize() / 2**20
-    except OSError:
-        return peak_rss_mb()
-
-
-POSE_SOURCES = ("registered", "tracked", "interpolated", "apples", "telemetry", "frames_without_pose")
 
 
 class GroundNode:
@@ -111,13 +74,11 @@ class GroundNode:
         self.latency: list[float] = []
         self.stream = stream  # the filter in front of the pipeline: what it let in and refused
         self.ignored_end_claims = 0  # "finished" statuses contradicted by the stream
-        self._trim = _libc_malloc_trim()
+        self._trim = malloc_trim()
         self.history_requeries = 0  # times the publishers' history was asked for again (frames missing at the end)
         self.journal_damage: dict | None = None
         self.journal: Journal | None = None  # the journal being written (run_ground)
-        self.outputs_failed: str | None = None  # why the map files could not be written at the last refresh
-        self._was_failing = False  # the refresh before failed to write
-        self.rescued_to: Path | None = None  # where the map files went when they could not be written to out_dir
+        self.files = MapFiles(self.out, self.settings.tree_spacing_m)
 
     def _rerun(self):
         if self.rr is None and self.pipe.flight_id is not None and any(self._rr_args):
@@ -232,9 +193,9 @@ class GroundNode:
                 # the journal could not be written (a full disk): the flight could no longer be resumed from it
                 "journal_write_failed": self.journal.failed if self.journal is not None else None,
                 # the map files could not be written at the last refresh (a full disk)
-                "outputs_write_failed": self.outputs_failed,
+                "outputs_write_failed": self.files.failed,
                 # ... and where they were written instead
-                "outputs_rescued_to": str(self.rescued_to) if self.rescued_to else None}
+                "outputs_rescued_to": str(self.files.rescued_to) if self.files.rescued_to else None}
 
     FPS_WINDOW_S = 5.0
 
@@ -251,149 +212,25 @@ class GroundNode:
     def refresh(self, final: bool = False, out: Path | None = None) -> dict:
         """Write the map files and report.json (atomically; to ``out``, by default the node's folder) and log the map
         to rerun."""
-        out = out or self.out
         self._last_refresh = time.monotonic()
         if self._trim is not None:  # hand freed heap back to the system: the map's arrays are rebuilt at each refresh
             self._trim(0)
-        corr = corrections(self.pipe)  # the map's bend and drift at every posed frame, once for all the tables
-        table, direction = apple_table(self.pipe, corr)
-        poses = self.pipe.poses
-        origin = poses.origin if poses is not None else None
-        self._was_failing, self.outputs_failed = self.outputs_failed is not None, None
-        rows = self._written(lambda: write_map(out, table, direction, origin, self.settings.tree_spacing_m))
-        if rows is None:
-            rows = rows_summary(table, direction, origin)
-        cams = pose_table(self.pipe, corr)
-        self._written(lambda: write_atomic(out / "poses.csv", poses_csv(cams)))
-        if final:
-            candidates = candidate_table(self.pipe, corr)
-            self._written(lambda: write_atomic(out / "candidates.csv", candidates_csv(candidates)))
-        report = self.report(table, rows, final)
+        maps = self.files.write_tables(self.pipe, final, out)
+        report = flight_report(self.pipe, maps.apples, maps.rows, final, apples_seen=self.apples_seen,
+                               wall_s=time.monotonic() - self.t_start, latency=self.latency, memory=self.memory,
+                               progress=self.progress, link=self.link_stats(), errors=self.errors,
+                               harvest=self.harvest)
         rr = self._rerun()
         if rr is not None and self.pipe.arrivals.released >= 0:
             from ground.outputs.rerun_log import summary_markdown
 
-            drone = [cams["lat"][-1], cams["lon"][-1]] if len(cams["frame"]) else None
-            last = self.pipe.arrivals.released
-            rr.apples(last, self.pipe.arrivals.frame_times.get(last, float("nan")), table,
-                      self.pipe.apples.count.apples, rows, drone_latlon=drone, force=True,
+            poses, last = self.pipe.poses, self.pipe.arrivals.released
+            rr.apples(last, self.pipe.arrivals.frame_times.get(last, float("nan")), maps.apples,
+                      self.pipe.apples.count.apples, maps.rows, drone_latlon=maps.drone_latlon(), force=True,
                       points=poses.sparse_points() if poses is not None else None,
-                      summary=summary_markdown(report, self._live),
-                      trajectory_latlon=np.stack([cams["lat"], cams["lon"]], 1)[::5] if len(cams["frame"]) else None)
-        self._written(lambda: write_json(out / "report.json", report))
-        if self._was_failing and self.outputs_failed is None and out == self.out:
-            log.warning("the map files are written again")
+                      summary=summary_markdown(report, self._live), trajectory_latlon=maps.trajectory_latlon())
+        self.files.write_report(report, out)
         return report
-
-    def _written(self, write):
-        """``write()``'s result (True where it returns nothing); None, with a warning the first time, where the disk
-        refuses it (full, read-only): the flight goes on in memory, the files already there stay whole (they are
-        replaced atomically), and every refresh tries again."""
-        try:
-            out = write()
-        except OSError as exc:
-            if not self._was_failing and self.outputs_failed is None:
-                log.warning("the map files cannot be written (%s): the flight goes on; every refresh tries again",
-                            exc.strerror or exc)
-            self.outputs_failed = f"{getattr(exc, 'filename', None) or self.out}: {exc.strerror or exc}"
-            return None
-        return True if out is None else out
-
-    def report(self, table, rows, final) -> dict:
-        p = self.pipe
-        st = p.status
-        reg = p.poses.mapper.stats() if p.poses is not None else None
-        counters = p.counters
-        posed = max(1, sum(counters[j] for j in POSE_SOURCES))
-        r = {
-            "flight_id": p.flight_id, "drone_id": p.drone_id, "final": final,
-            "apples": int(len(table["id"])), "rows": rows,
-            "counting": p.apples.count.report(),
-            "frames": counters, "gaps": p.arrivals.gaps[:100],
-            # the apples' radius as the drone's detector saw them, and the frames under the smallest it finds reliably
-            "apple_size": self.apples_seen.report(),
-            # the score the drone published detections from, against the one the tracks need
-            "detections": self.apples_seen.detections(),
-            # what share of the mapped frames got each kind of pose
-            "pose_shares": {k: counters[k] / posed for k in POSE_SOURCES},
-            "registration": {
-                "keyframes_processed": reg["keyframes_processed"] if reg else 0,
-                "registered": len(p.poses.model_pose) if p.poses else 0,
-                "failed": reg["failed"] if reg else 0,
-                "submodels": reg["submodels"] if reg else 0,
-                # the mapping process died by itself (exit code, keyframes mapped and lost); each restart, and how its
-                # new model was placed in the map's frame (keyframes shared, residuals) or null if it never was
-                "mapper_died": p.poses.mapper.died if p.poses else None,
-                "mapper_restarts": list(p.poses.mapper.restarts) if p.poses else [],
-                # the keyframe from which the mapping folder refused writes (a full disk): mapped in memory since,
-                # and those sub-models' model files are not written
-                "in_memory_from_keyframe": reg.get("in_memory_from") if reg else None,
-                # across passes: keyframes matched to earlier keyframes of the same place, re-anchorings of a
-                # sub-model onto earlier passes' points, sub-models placed by telemetry after the chain broke
-                "revisits": reg["revisits"] if reg else 0,
-                "reanchored": reg["reanchored"] if reg else 0,
-                "rejoined": reg["rejoined"] if reg else 0,
-                # the map's drift from the GPS along the flight, and whether the outputs were corrected for it
-                "drift_m": p.poses.assoc.drift_m if p.poses else 0.0,
-                "drift_corrected": p.poses.assoc.drift_corrected if p.poses else False,
-                # the map's turn from the gimbal's attitudes along the flight, and whether it was taken back out
-                "bend_deg": p.poses.assoc.bend_deg if p.poses else 0.0,
-                "bend_corrected": p.poses.assoc.bend_corrected if p.poses else False,
-                "seconds_per_keyframe_median": float(np.median(reg["seconds"])) if reg and reg["seconds"] else None,
-                "stage_seconds_median": reg["stage_seconds_median"] if reg else None,
-                "mapping": p.s.mapping,  # as the stream asked for it (or as set)
-                # proposals the mapping process replaced with a newer one before it was free
-                "proposals_skipped": p.poses.mapper.skipped if p.poses else 0,
-                # keyframes before the first model whose SIFT features this process extracted, the mapper being busy
-                "features_extracted_here": p.poses.mapper.early_extracted if p.poses else 0,
-                "georeference_gps_rms_m": p.poses.fit_residual_m if p.poses else None,
-                # what scales the map: the GPS positions, or the heights above take-off against the floor it sees
-                "georeference_scale_from": reg.get("scale_from", "positions") if reg else None,
-                "origin": p.poses.origin.as_dict() if p.poses and p.poses.origin else None,
-            },
-            "tracking": {"tracked": p.poses.tracking.tracker.tracked if p.poses else 0,
-                         # frames that tracking could not place, even after the mapper had mapped them (flagged)
-                         "failed": len(p.poses.tracking.failed_frames) if p.poses else 0,
-                         # frames tracked once the mapper, handed them when tracking failed, had mapped them
-                         "retried_after_mapping": p.poses.tracking.retried if p.poses else 0,
-                         # times the frames waited for a busy mapper to take a keyframe (mapping behind the flight)
-                         "waits_for_mapper": p.poses.tracking.waits_for_mapper if p.poses else 0,
-                         "failed_frames": p.poses.tracking.failed_frames[-100:] if p.poses else []},
-            # poses given earlier, corrected as the mapper moved the keyframes about them; the apples triangulated again
-            "corrections": dict(p.corrections),
-            "association": {"params": vars(self.settings.association).copy(), "stats": dict(p.apples.assoc.stats),
-                            "strong_views_needed": p.apples.count.views_needed(p.arrivals.steps),
-                            # the association frame's unit in metres: its first georeference's scale error
-                            "metres_per_unit": p.metres_per_unit()},
-            "timings": {"wall_seconds": time.monotonic() - self.t_start,
-                        "pose_seconds": p.seconds["poses"],
-                        "tracking_seconds": p.poses.tracking.seconds["tracking"] if p.poses else 0.0,
-                        "inline_mapping_seconds": p.poses.tracking.seconds["mapping_inline"] if p.poses else 0.0,
-                        "mapping_seconds": float(sum(reg["seconds"])) if reg else 0.0,
-                        "association_seconds": p.seconds["association"],
-                        "correction_seconds": p.seconds["corrections"],
-                        "ground_latency_median_s": float(np.median(self.latency)) if self.latency else None,
-                        # how long frames waited on the ground, from their message's arrival to being mapped
-                        **delay_stats(self.pipe.arrivals.frame_delays),
-                        # the same, of the frames that came once the first model was made (no wait for it)
-                        **{f"{k}_after_first_model": v
-                           for k, v in delay_stats(self.pipe.arrivals.frame_delays_mapped).items()},
-                        # from the first frame's arrival to the first model (frames before it wait for it)
-                        "first_model_after_s": (p.arrivals.t_first_model - p.arrivals.t_first_frame
-                                                if p.arrivals.t_first_model and p.arrivals.t_first_frame else None),
-                        "peak_rss_mb": peak_rss_mb(),
-                        # the mapping process's (live), once it has ended: its own peak, beside the ground's
-                        "mapping_peak_rss_mb": (resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
-                                                if p.s.mapping == "process" else None),
-                        "rss_mb_by_frames_mapped": self.memory,
-                        "frames_mapped_by_wall_s": self.progress},
-            "onboard_status": vars(st).copy() if st else None,
-            "link": self.link_stats(),
-            "errors": self.errors[-50:],
-        }
-        if self.harvest is not None:
-            r["harvest_correlation"] = harvest_correlation(rows, self.harvest)
-        return r
 
     def finish(self, hurry: bool = False) -> dict:
         """The flight's end: the pipeline's (``hurry``: told to stop, within seconds), then the map files, the report,
@@ -404,10 +241,10 @@ class GroundNode:
             log.exception("finishing the flight failed: %s", exc)
             self.errors.append(f"finish: {exc}")
         report = self.refresh(final=True)
-        if self.outputs_failed:
-            report = self._rescue()
-        if self.pipe.poses is not None and self.pipe.poses.mapper.submodels() and not self.outputs_failed:
-            self._written(self.write_model)
+        if self.files.failed:
+            report = self.files.rescue(self.pipe.flight_id, lambda out: self.refresh(final=True, out=out))
+        if self.pipe.poses is not None and self.pipe.poses.mapper.submodels() and not self.files.failed:
+            self.files.write_model(self.pipe.poses)
         if self.rr is not None:
             try:
                 self.rr.close(compact=not hurry)
@@ -416,38 +253,6 @@ class GroundNode:
                             "it stopped", exc)
                 self.errors.append(f"recording: {exc}")
         return report
-
-    def _rescue(self) -> dict:
-        """The map files could not be written where asked at the flight's end (a full disk): nothing computed is lost,
-        they go to a folder of the system's temporary directory (often another disk), and the report says where."""
-        failed = self.outputs_failed
-        self.rescued_to = rescue_folder(self.pipe.flight_id, os.getpid())
-        report = self.refresh(final=True, out=self.rescued_to)
-        if self.outputs_failed is None:
-            log.warning("the map files could not be written to %s (%s): they are in %s", self.out, failed,
-                        self.rescued_to)
-        self.outputs_failed = failed
-        report["link"]["outputs_write_failed"] = failed
-        return report
-
-    def write_model(self):
-        """The COLMAP model(s), in ENU, as text."""
-        import pycolmap
-
-        poses = self.pipe.poses
-        for k, sm in enumerate(poses.mapper.submodels()):
-            if sm.rec is None and sm.path is None:  # mapped in memory (its disk was full): only its poses came back
-                log.warning("sub-model %d was mapped in memory: its model files cannot be written", k)
-                continue
-            d = self.out / "model" / str(k)
-            d.mkdir(parents=True, exist_ok=True)
-            rec = pycolmap.Reconstruction(sm.reconstruction())
-            if poses.fit is not None:
-                from pomar.align import compose
-
-                S = compose(poses.fit, sm.to_first)
-                rec.transform(pycolmap.Sim3d(S.scale, pycolmap.Rotation3d(S.R), S.t))
-            rec.write_text(str(d))
 
 
 def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=None, drone_ids=None,
@@ -499,7 +304,13 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
     sub = transport.FlightSubscriber(session, flight_id, stream, on_accept=journal.append)
     if read is not None and read.records:
         node.pipe.hold_gaps(HISTORY_WAIT_S)
-    last_msg = time.monotonic()
+
+    def link_clock() -> float:
+        """Seconds the ground spent waiting on the link: its own work (take, step) left out, so that the end's quiet,
+        the re-queries and the idle timeout measure the link, not how fast or busy this machine is."""
+        return time.monotonic() - node.pipe.work_s
+
+    last_msg = link_clock()
     claim = None  # (the status saying the flight ended, when it came)
 
     def contradicted(m: wire.StatusMessage) -> bool:
@@ -520,7 +331,7 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
     try:
         while True:
             msg = sub.recv(timeout=0.2)
-            now = time.monotonic()
+            now = link_clock()
             if msg is not None:
                 last_msg = now
                 # take everything queued up meanwhile, then process once

@@ -1,0 +1,117 @@
+"""The flight's map files in the output folder, written at each refresh (atomically): the apple tables, poses.csv,
+candidates.csv at the end, report.json, and the COLMAP model files. A disk that refuses them (full, read-only) is a
+warning: the flight goes on in memory, every refresh tries again, and at the end they go to a rescue folder."""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ground.outputs.tables import (apple_table, candidate_table, candidates_csv, corrections, pose_table, poses_csv,
+                                   rescue_folder, rows_summary, write_atomic, write_json, write_map)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class MapTables:
+    """One refresh's tables: the counted apples (columns), the rows' direction (rad), the rows, the cameras."""
+    apples: dict
+    direction: float
+    rows: list[dict]
+    cameras: dict
+
+    def drone_latlon(self) -> list[float] | None:
+        return [self.cameras["lat"][-1], self.cameras["lon"][-1]] if len(self.cameras["frame"]) else None
+
+    def trajectory_latlon(self, every: int = 5) -> np.ndarray | None:
+        cams = self.cameras
+        return np.stack([cams["lat"], cams["lon"]], 1)[::every] if len(cams["frame"]) else None
+
+
+class MapFiles:
+    """The map files of one flight in ``out``; ``failed`` says why the last refresh could not write them."""
+
+    def __init__(self, out: Path, tree_spacing_m: float):
+        self.out = Path(out)
+        self.tree_spacing_m = tree_spacing_m
+        self.failed: str | None = None  # why the map files could not be written at the last refresh
+        self._was_failing = False  # the refresh before failed to write
+        self.rescued_to: Path | None = None  # where the map files went when they could not be written to out
+
+    def write_tables(self, pipe, final: bool, out: Path | None = None) -> MapTables:
+        """The tables of ``pipe``'s map, written to ``out`` (default: the flight's folder); candidates.csv at the
+        end (``final``)."""
+        out = out or self.out
+        corr = corrections(pipe)  # the map's bend and drift at every posed frame, once for all the tables
+        table, direction = apple_table(pipe, corr)
+        origin = pipe.poses.origin if pipe.poses is not None else None
+        self._was_failing, self.failed = self.failed is not None, None
+        rows = self._written(lambda: write_map(out, table, direction, origin, self.tree_spacing_m))
+        if rows is None:
+            rows = rows_summary(table, direction, origin)
+        cams = pose_table(pipe, corr)
+        self._written(lambda: write_atomic(out / "poses.csv", poses_csv(cams)))
+        if final:
+            candidates = candidate_table(pipe, corr)
+            self._written(lambda: write_atomic(out / "candidates.csv", candidates_csv(candidates)))
+        return MapTables(table, direction, rows, cams)
+
+    def write_report(self, report: dict, out: Path | None = None) -> None:
+        out = out or self.out
+        self._written(lambda: write_json(out / "report.json", report))
+        if self._was_failing and self.failed is None and out == self.out:
+            log.warning("the map files are written again")
+
+    def _written(self, write):
+        """``write()``'s result (True where it returns nothing); None, with a warning the first time, where the disk
+        refuses it (full, read-only): the flight goes on in memory, the files already there stay whole (they are
+        replaced atomically), and every refresh tries again."""
+        try:
+            out = write()
+        except OSError as exc:
+            if not self._was_failing and self.failed is None:
+                log.warning("the map files cannot be written (%s): the flight goes on; every refresh tries again",
+                            exc.strerror or exc)
+            self.failed = f"{getattr(exc, 'filename', None) or self.out}: {exc.strerror or exc}"
+            return None
+        return True if out is None else out
+
+    def rescue(self, flight_id: str | None, refresh) -> dict:
+        """The map files could not be written where asked at the flight's end (a full disk): nothing computed is lost,
+        ``refresh(out)`` writes them to a folder of the system's temporary directory (often another disk), and the
+        report says where."""
+        failed = self.failed
+        self.rescued_to = rescue_folder(flight_id, os.getpid())
+        report = refresh(self.rescued_to)
+        if self.failed is None:
+            log.warning("the map files could not be written to %s (%s): they are in %s", self.out, failed,
+                        self.rescued_to)
+        self.failed = failed
+        report["link"]["outputs_write_failed"] = failed
+        return report
+
+    def write_model(self, poses) -> None:
+        """The COLMAP model(s) of ``poses``' mapper, in ENU, as text (under ``model/``)."""
+        self._written(lambda: self._write_model(poses))
+
+    def _write_model(self, poses):
+        import pycolmap
+
+        for k, sm in enumerate(poses.mapper.submodels()):
+            if sm.rec is None and sm.path is None:  # mapped in memory (its disk was full): only its poses came back
+                log.warning("sub-model %d was mapped in memory: its model files cannot be written", k)
+                continue
+            d = self.out / "model" / str(k)
+            d.mkdir(parents=True, exist_ok=True)
+            rec = pycolmap.Reconstruction(sm.reconstruction())
+            if poses.fit is not None:
+                from pomar.align import compose
+
+                S = compose(poses.fit, sm.to_first)
+                rec.transform(pycolmap.Sim3d(S.scale, pycolmap.Rotation3d(S.R), S.t))
+            rec.write_text(str(d))
