@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ground.apples.association import AssociationParams, FrameDetections, WindowedAssociation
+from ground.apples.association import AssociationParams, FrameDetections
+from ground.apples.windowed import WindowedAssociation
 from ground.evaluation.evaluate import Perturbation, evaluate, format_table
 from pomar.countable import MIN_VIEWS, countable_ids
 from ground.evaluation.synthetic import apples_along, camera_path, make_sequence
@@ -170,7 +171,7 @@ def oracle(flight, pert, min_views=MIN_VIEWS):
 
 def evaluate_prefix(flight, n_frames, params, pert):
     """Offline on the first n frames; F1 against truth apples seen in those frames."""
-    from ground.apples.association import FruitAssociation
+    from ground.apples.paper import FruitAssociation
     from ground.evaluation.evaluate import projection_matrices, truth_detections
     from ground.evaluation.scoring import match
     from pomar.flight import FlightDir

@@ -29,7 +29,7 @@ from ground.apples.landmarks import SIGMA as APPLES_SIGMA
 from ground.apples.live import LiveApples
 from ground.link.arrivals import Arrivals
 from ground.poses.live import LivePoses, Pose
-from ground.poses.mapping import MappingWorker
+from ground.poses.mapper_process import MappingWorker
 from ground.poses.registration import RegistrationSettings
 from ground.poses.tracking import TrackingSettings
 from pomar import wire

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ground.apples.association import AssociationParams, FrameDetections, FruitAssociation, WindowedAssociation
+from ground.apples.association import AssociationParams, FrameDetections
+from ground.apples.paper import FruitAssociation
+from ground.apples.windowed import WindowedAssociation
 from ground.apples.geometry import (epipolar_distances, fundamental_from_projections, project, reprojection_errors, triangulate,
                              triangulate_nonlinear)
 from ground.evaluation.synthetic import make_sequence
@@ -269,7 +271,9 @@ def test_the_merge_distances_are_metres_whatever_the_association_frames_unit():
     """The association frame is fixed by the map's first georeference, whose scale a few keyframes' GPS sets to tens
     of percent: its distances are turned into metres before they meet merge_m, merge_search_m and
     max_merge_shift_m, and the spatial index looks as far as the search reaches in the frame's units."""
-    from ground.apples.association import Apple, AssociationParams, Detection, SpatialIndex, find_duplicate
+    from ground.apples.association import Apple, AssociationParams, Detection
+    from ground.apples.merging import find_duplicate
+    from ground.apples.spatial_index import SpatialIndex
 
     p = AssociationParams()
     a = Apple(0, np.array([0.0, 0.0, 0.0]), [Detection(0, 0)], 0.1)

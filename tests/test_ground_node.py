@@ -610,7 +610,7 @@ def test_a_mapping_process_that_dies_leaves_the_flight_going(replay_test_flight,
 _MAPPING_OWNER = """
 import sys, time
 import numpy as np
-from ground.poses.mapping import MapperProcess
+from ground.poses.mapper_process import MapperProcess
 from pomar.camera import Camera
 
 cam = Camera(320, 180, 300.0, 300.0, 160.0, 90.0)
@@ -886,7 +886,7 @@ def test_a_mapping_process_that_stops_answering_is_taken_for_dead_and_restarted(
     allowance) the ground stops it and starts another, as for one that died; the flight ends with every frame posed.
     (Limits of 1 times the median, or 2 s before the first keyframes were timed, took a healthy process on a busy
     machine for dead.)"""
-    from ground.poses.mapping import MapperProcess
+    from ground.poses.mapper_process import MapperProcess
 
     pipe, events, stopped = _fed_at_flight_pace(
         replay_test_flight, tmp_path, signal.SIGSTOP, until=lambda p: p.poses.mapper.restarts,

@@ -70,7 +70,7 @@ def score(flight, out: Path) -> dict:
 
 
 #: (layout, with attitudes) -> the least shape F1 its map must reach. The one-a-second layouts that write 4 decimals
-#: (11 m) scale their maps by the heights above take-off (ground.poses.mapping); the Mavic 2's layout writes neither a
+#: (11 m) scale their maps by the heights above take-off (ground.poses.mapper); the Mavic 2's layout writes neither a
 #: height nor an altitude, and nothing scales its map: it must run to a map without an error, its F1 is printed.
 DJI = {("mavic3", False): 0.7, ("mavic3", True): 0.7, ("air2s", False): 0.7, ("p4p", True): 0.7,
        ("p4p", False): 0.7, ("home", False): 0.7, ("m300", False): 0.7, ("mavic2", False): None}

@@ -209,7 +209,8 @@ def test_an_earlier_keyframe_of_the_same_place_bridges_the_gap(gap_flight, tmp_p
 def test_the_mapping_process_shares_the_first_model_s_sift_with_the_ground(reg_base, tmp_path):
     """Keyframes that arrive together before the first model: those the mapping process is not free for have their
     SIFT features extracted by the ground meanwhile, and the first model comes out as the inline mapper's."""
-    from ground.poses.mapping import Mapper, MapperProcess
+    from ground.poses.mapper import Mapper
+    from ground.poses.mapper_process import MapperProcess
     from ground.poses.registration import RegistrationSettings
     from pomar.camera import Camera
     from pomar.flight import FlightDir
@@ -245,7 +246,7 @@ def test_a_keyframe_behind_only_the_one_in_work_goes_to_the_mapping_process_as_i
     """Before the first model, a keyframe that would wait in the mapping process only for the one in work is sent
     as it is (extracting its SIFT here would hold it back longer than the process takes to be free); those behind
     two or more have it extracted here."""
-    from ground.poses.mapping import MapperProcess
+    from ground.poses.mapper_process import MapperProcess
     from ground.poses.registration import RegistrationSettings
     from pomar.camera import Camera
     from pomar.flight import FlightDir
@@ -269,7 +270,7 @@ def test_a_keyframe_behind_only_the_one_in_work_goes_to_the_mapping_process_as_i
 def test_the_ground_stops_extracting_sift_once_the_first_model_s_tries_are_spent(tmp_path):
     """A flight that starts over something with nothing to match (noise here): the ground shares the SIFT only for
     the first model's tries, then leaves the mapping process to it, and keeps its own time."""
-    from ground.poses.mapping import MapperProcess
+    from ground.poses.mapper_process import MapperProcess
     from ground.poses.registration import RegistrationSettings
     from pomar.camera import Camera
 
@@ -295,7 +296,8 @@ def test_sift_on_a_shrunk_keyframe_gives_keyframe_pixels():
     mapper's camera): the same corners found at either size lie within a pixel of each other."""
     import cv2
 
-    from ground.poses.registration import RegistrationSettings, SiftExtractor
+    from ground.poses.registration import RegistrationSettings
+    from ground.poses.sift import SiftExtractor
     from pomar.video import iter_frames
 
     _, bgr = next(iter(iter_frames(ROOT / "replay_data" / "demo-flight" / "video.mp4")))
@@ -322,7 +324,7 @@ _LIMITED_MAPPER = """
 import pickle, resource, signal, sys
 from pathlib import Path
 import numpy as np
-from ground.poses.mapping import Mapper
+from ground.poses.mapper import Mapper
 from ground.poses.registration import RegistrationSettings
 from pomar.camera import Camera
 from pomar.flight import FlightDir
@@ -349,8 +351,9 @@ def test_a_mapper_without_a_folder_or_whose_folder_refuses_writes_maps_in_memory
     as the mapper with a folder does (which writes the older sub-models to it)."""
     import pickle
 
-    from ground.poses.mapping import Mapper
-    from ground.poses.registration import RegistrationSettings, write_refused
+    from ground.poses.mapper import Mapper
+    from ground.poses.keyframe_db import write_refused
+    from ground.poses.registration import RegistrationSettings
     from pomar.camera import Camera
     from pomar.flight import FlightDir
     from pomar.video import iter_frames
@@ -395,7 +398,7 @@ def test_a_mapper_without_a_folder_or_whose_folder_refuses_writes_maps_in_memory
 def test_a_keyframe_older_than_one_handed_over_never_reaches_the_mapping_process(reg_base, tmp_path):
     """The mapping process maps in frame order and skips a keyframe older than one it has mapped (with a warning a
     clean flight should not show). The ground hands over none older than the newest it sent or holds."""
-    from ground.poses.mapping import MapperProcess
+    from ground.poses.mapper_process import MapperProcess
     from ground.poses.registration import RegistrationSettings
     from pomar.camera import Camera
     from pomar.flight import FlightDir

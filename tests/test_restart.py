@@ -65,7 +65,7 @@ def test_half_a_result_left_by_a_killed_mapping_process_does_not_hold_the_ground
 
     import pytest
 
-    from ground.poses.mapping import MappingWorker
+    from ground.poses.mapper_process import MappingWorker
 
     w = MappingWorker()
     try:

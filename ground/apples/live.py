@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ground.apples.association import Apple, AssociationParams, FrameDetections, WindowedAssociation
+from ground.apples.association import Apple, AssociationParams, FrameDetections
+from ground.apples.windowed import WindowedAssociation
 from ground.apples.counting import Counting, CountingSettings
 from ground.apples.frames import AssociationFrames
 from ground.apples.landmarks import place_by_apples

@@ -25,7 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ground.apples.association import AssociationParams, FrameDetections, FruitAssociation, WindowedAssociation
+from ground.apples.association import AssociationParams, FrameDetections
+from ground.apples.paper import FruitAssociation
+from ground.apples.windowed import WindowedAssociation
 from ground.evaluation.baselines import SortTracker, count_per_frame_sum
 from ground.evaluation.scoring import MATCH_M, score_map
 from pomar.countable import MIN_VIEWS, MIN_VISIBLE

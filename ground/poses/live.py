@@ -2,7 +2,7 @@
 
 Behind it: :class:`ground.poses.tracking.ImageTracking` takes the images in frame order and gives every frame that
 carries one a pose from its own pixels against the map (KLT + PnP, milliseconds), proposing *mapping keyframes* to
-:mod:`ground.poses.mapping`, which registers them (pycolmap, in its own process when live) and georeferences the
+:mod:`ground.poses.mapper`, which registers them (pycolmap, in its own process when live) and georeferences the
 model; :class:`ground.poses.georeference.AssociationFrame` is the frame the association works in. Fed each frame's
 telemetry and each image in frame order, it says when a frame's pose can be decided and gives it with its source and
 uncertainty:
@@ -30,7 +30,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from ground.poses.georeference import AssociationFrame, Pose, georeference_poses
-from ground.poses.mapping import Mapper, MapperProcess, MappingWorker
+from ground.poses.mapper import Mapper
+from ground.poses.mapper_process import MapperProcess, MappingWorker
 from ground.poses.telemetry_poses import KeyframeTelemetry
 from ground.poses.registration import RegistrationSettings
 from ground.poses.tracking import ImageTracking, TrackingSettings

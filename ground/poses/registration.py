@@ -19,7 +19,6 @@ soon as it sees a place seen before: the flight stays one map.
 
 from __future__ import annotations
 
-import errno
 import logging
 import shutil
 import time
@@ -32,8 +31,10 @@ import cv2
 import numpy as np
 import pycolmap
 
+from ground.poses.keyframe_db import KeyframeDatabase, write_refused
 from ground.poses.matching import match_descriptors, unit_descriptors
 from ground.poses.revisit import Places, robust_similarity
+from ground.poses.sift import SiftExtractor
 from pomar.align import IDENTITY, Similarity, compose, inverse
 from pomar.camera import Camera
 
@@ -147,62 +148,6 @@ class Submodel:
         self.path, self.rec = path, None
 
 
-class SiftExtractor:
-    """SIFT as the registration's settings ask (pycolmap's, or OpenCV's), kept alive for the whole flight (pycolmap's
-    extract_features would rebuild it and re-read the image). Called with an image: (keypoints (n, >= 2) float32 in
-    COLMAP pixels, descriptors (n, 128) uint8 as COLMAP stores them, unit float32 descriptors for matching). The
-    mapper only reads keypoints and verified matches, so either SIFT serves (see RegistrationSettings)."""
-
-    def __init__(self, settings: RegistrationSettings):
-        ext = pycolmap.FeatureExtractionOptions()
-        ext.sift.first_octave = settings.first_octave
-        ext.sift.max_num_features = settings.max_num_features
-        ext.sift.upright = settings.upright
-        colmap = settings.sift == "colmap"
-        self._extractor = pycolmap.FeatureExtractor.create(ext, pycolmap.Device.cpu) if colmap else None
-        self._cv_sift = None if colmap else cv2.SIFT_create(nfeatures=settings.max_num_features)
-        self.width = settings.sift_width
-
-    def __call__(self, image_bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        gray = np.ascontiguousarray(image_bgr if image_bgr.ndim == 2 else cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY))
-        h, w = gray.shape
-        if not self.width or w <= self.width:
-            return self._extract(gray)
-        small = cv2.resize(gray, (self.width, max(1, round(h * self.width / w))), interpolation=cv2.INTER_AREA)
-        kp, raw, unit = self._extract(small)
-        # COLMAP's pixels start at the image's corner, so a resize scales the coordinates (and SIFT's scale) alike
-        kp = kp.copy()
-        kp[:, :2] *= np.array([w / small.shape[1], h / small.shape[0]], np.float32)
-        kp[:, 2:3] *= w / small.shape[1]  # pycolmap's (x, y, scale, orientation); OpenCV's are (x, y)
-        return kp, raw, unit
-
-    def _extract(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if self._cv_sift is not None:
-            kps, raw = self._cv_sift.detectAndCompute(gray, None)
-            # OpenCV puts the top-left pixel centre at (0, 0), COLMAP at (0.5, 0.5)
-            kp = np.array([k.pt for k in kps], np.float32).reshape(-1, 2) + 0.5
-            raw = np.zeros((0, 128), np.float32) if raw is None else raw
-            root = np.sqrt(raw / np.maximum(raw.sum(1, keepdims=True), 1e-12))  # RootSIFT, as COLMAP stores it
-            return kp, np.clip(np.round(root * 512), 0, 255).astype(np.uint8), root.astype(np.float32)
-        keypoints, descriptors = self._extractor.extract_from_uint8_array(gray)
-        raw = np.asarray(descriptors.data)
-        return pycolmap.keypoints_to_matrix(keypoints), raw, unit_descriptors(raw)
-
-
-#: errnos of a write the folder refuses: full, a file or quota limit, read-only (or not ours), failing.
-_REFUSED = {errno.ENOSPC, errno.EFBIG, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO}
-#: SQLite's words (through pycolmap) for the same.
-_SQLITE_REFUSED = ("disk is full", "disk I/O error", "readonly database", "unable to open database")
-
-
-def write_refused(exc: BaseException) -> bool:
-    """Whether an error is the disk refusing a write (a full disk, a file size or quota limit, a folder or disk that
-    is read-only, a failing disk), from the OS or from SQLite through pycolmap."""
-    if isinstance(exc, OSError):
-        return exc.errno in _REFUSED
-    return any(w in str(exc) for w in _SQLITE_REFUSED)
-
-
 class IncrementalRegistrar:
     def __init__(self, camera: Camera, workdir: str | Path | None, settings: RegistrationSettings | None = None,
                  sigma_att_deg: float = 0.5):
@@ -252,35 +197,16 @@ class IncrementalRegistrar:
         self._mopts.mapper.init_min_num_inliers = 50
         self._mopts.ba_min_num_residuals_for_cpu_multi_threading = self.s.ba_threads_min_residuals
         self._mopts.random_seed = 0  # RANSAC's samples the same each run
-        self._db = None
         try:
-            self._open_database()
+            self.db = KeyframeDatabase(self.cam, str(self.db_path))
         except Exception as exc:  # a new database in a folder just made: what fails is the folder (a full disk)
             if self.work is None:
                 raise
-            if self._db is not None:
-                self._db.close()
             self._leave_folder(exc, 0)
-            self._open_database()
+            self.db = KeyframeDatabase(self.cam, str(self.db_path))
         self._start_workers()
 
     # -- features and matches
-    def _open_database(self):
-        """One database for the flight: the camera and its rig once, then an image and a frame per keyframe."""
-        self._db = pycolmap.Database.open(str(self.db_path))
-        self._pcam = pycolmap.Camera(model=self.cam.model, width=self.cam.width, height=self.cam.height,
-                                     params=list(self.cam.params()))
-        # known, not to be estimated: COLMAP estimates the focal length of a camera without a prior when it places an
-        # image in a reconstruction where no image of that camera is placed yet, whatever the options say. Live, a
-        # sub-model that took one 3-12 % off the calibration put every frame tracked against it 0.3 m off along the view
-        self._pcam.has_prior_focal_length = True
-        self._camera_id = self._db.write_camera(self._pcam)
-        self._pcam.camera_id = self._camera_id
-        self._sensor = pycolmap.sensor_t(type=pycolmap.SensorType.CAMERA, id=self._camera_id)
-        rig = pycolmap.Rig()
-        rig.add_ref_sensor(self._sensor)
-        self._rig_id = self._db.write_rig(rig)
-
     def _start_workers(self):
         self._sift = SiftExtractor(self.s)
         self._pool = ThreadPoolExecutor(2, thread_name_prefix="two-view")
@@ -308,13 +234,7 @@ class IncrementalRegistrar:
 
     def _write_features(self, name: str, kp: np.ndarray, raw: np.ndarray, desc: np.ndarray):
         """Store the keyframe's features in the database; (image id, keypoint xy, unit descriptors)."""
-        descriptors = pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, raw)
-        image_id = self._db.write_image(pycolmap.Image(name=name, camera_id=self._camera_id))
-        frame = pycolmap.Frame(rig_id=self._rig_id)
-        frame.add_data_id(pycolmap.data_t(sensor_id=self._sensor, id=image_id))
-        self._db.write_frame(frame)
-        self._db.write_keypoints(image_id, kp)
-        self._db.write_descriptors(image_id, descriptors)
+        image_id = self.db.write_features(name, kp, raw)
         self._image_ids[name] = image_id
         return image_id, kp[:, :2].astype(np.float64), desc
 
@@ -329,16 +249,14 @@ class IncrementalRegistrar:
         revisit = [o for o in self._revisit_candidates(name) if self._image_ids[o] not in recent]
         for old in revisit:
             old_id = self._image_ids[old]
-            old_desc = unit_descriptors(self._db.read_descriptors(old_id).data)
-            pairs.append((old_id, self._db.read_keypoints(old_id)[:, :2].astype(np.float64),
-                          match_descriptors(old_desc, desc)))
+            old_xy, old_desc = self.db.read_features(old_id)
+            pairs.append((old_id, old_xy, match_descriptors(old_desc, desc)))
         pairs = [p for p in pairs if len(p[2])]
         geoms = self._pool.map(lambda p: pycolmap.estimate_calibrated_two_view_geometry(
-            self._pcam, p[1], self._pcam, xy, p[2], self._two_view), pairs)
+            self.db.pcam, p[1], self.db.pcam, xy, p[2], self._two_view), pairs)
         old_of = {self._image_ids[o]: o for o in revisit}
         for (prev_id, _, matches), geom in zip(pairs, geoms):
-            self._db.write_matches(prev_id, image_id, matches)
-            self._db.write_two_view_geometry(prev_id, image_id, geom)
+            self.db.write_pair(prev_id, image_id, matches, geom)
             inl = np.asarray(geom.inlier_matches).reshape(-1, 2)
             if prev_id in old_of and len(inl) >= 30:
                 self._revisit_matches.setdefault(name, []).append((old_of[prev_id], inl))
@@ -358,14 +276,14 @@ class IncrementalRegistrar:
 
     def close(self) -> None:
         self._pool.shutdown(wait=True)
-        self._db.close()
+        self.db.close()
 
     # -- mapping
     def _mapper(self, names: list[str]):
         copts = pycolmap.DatabaseCacheOptions()
         copts.min_num_matches = 15
         copts.image_names = set(names)
-        cache = pycolmap.DatabaseCache.create(self._db, copts)
+        cache = pycolmap.DatabaseCache.create(self.db.db, copts)
         return cache, pycolmap.IncrementalMapper(cache)
 
     def _image_id(self, cache, name):
@@ -551,34 +469,8 @@ class IncrementalRegistrar:
         """The folder's disk refused a write: the database moves into memory (every keyframe but ``drop``, whose
         writes failed part way, with the same ids) and nothing more is written to the folder. Sub-models and anchors
         already written there stay and are read as before."""
-        src = self._db
-        images = src.read_all_images()
         self._leave_folder(exc, frame)
-        dst = pycolmap.Database.open(":memory:")
-        for cam in src.read_all_cameras():
-            dst.write_camera(cam, use_camera_id=True)
-        for rig in src.read_all_rigs():
-            dst.write_rig(rig, use_rig_id=True)
-        # a keyframe whose writes failed part way is left out
-        kept = {im.image_id for im in images if im.name != drop and src.exists_descriptors(im.image_id)}
-        for fr in src.read_all_frames():  # each image's frame first: writing an image checks that it is there
-            if all(d.id in kept for d in fr.data_ids):
-                dst.write_frame(fr, use_frame_id=True)
-        for im in images:
-            if im.image_id in kept:
-                dst.write_image(im, use_image_id=True)
-                dst.write_keypoints(im.image_id, src.read_keypoints(im.image_id))
-                dst.write_descriptors(im.image_id, src.read_descriptors(im.image_id))
-        for pair_id, matches in zip(*src.read_all_matches()):
-            a, b = pycolmap.pair_id_to_image_pair(pair_id)
-            if a in kept and b in kept:
-                dst.write_matches(a, b, matches)
-        for pair_id, geom in zip(*src.read_two_view_geometries()):
-            a, b = pycolmap.pair_id_to_image_pair(pair_id)
-            if a in kept and b in kept:
-                dst.write_two_view_geometry(a, b, geom)
-        src.close()
-        self._db = dst
+        self.db.to_memory(drop)
 
     def _keep_anchors(self, k: int, sm: Submodel) -> None:
         if sm.rec is None:

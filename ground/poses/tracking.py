@@ -1,6 +1,6 @@
 """Per-frame tracking against the map: the cheap pose for every frame that carries an image.
 
-The mapper (:mod:`ground.poses.mapping`) hands over a :class:`Reference` after each keyframe it registers: the
+The mapper (:mod:`ground.poses.mapper`) hands over a :class:`Reference` after each keyframe it registers: the
 keyframe's grey image and its keypoints that have a 3-D point. The tracker follows the points of the last
 few references into each frame with pyramidal Lucas-Kanade, from the keyframe's own image, started where
 a constant-motion prediction of the pose puts them (and back, to drop points that slid), and solves the

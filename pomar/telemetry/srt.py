@@ -70,7 +70,7 @@ def _decimals(text: str, prefix: str) -> int:
 
 
 #: The accuracy assumed of a DJI height above take-off (barometric; written to 0.01 m): its drift over a flight's
-#: minutes. The ground weighs it against the positions when it scales the map (ground.poses.mapping).
+#: minutes. The ground weighs it against the positions when it scales the map (ground.poses.mapper).
 BARO_HEIGHT_SIGMA_M = 0.1
 
 
