@@ -55,7 +55,7 @@ def evaluation_sets(data: Path) -> dict[str, list]:
     """The sets every candidate is scored on, loaded once: export.train's validation sets (as its runs name them) and
     the held-out packs. Scored anew for each, so that no candidate is judged on a set its run saw in another state."""
     from export.data import load_sim_frames
-    from export.train import validation_sets
+    from export.data import validation_sets
 
     bbch = data / "applebbch76"
     val = [data / "detector-val.npz"] if (data / "detector-val.npz").is_file() else []

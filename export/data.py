@@ -338,6 +338,17 @@ class Augment:
         return out
 
 
+def validation_sets(add256, applebbch76, val_flights, use_bbch: bool) -> dict[str, list]:
+    """The sets models are chosen on, by name: ADD256's held-back photos, AppleBBCH76's held-out photos, and every 5th
+    frame of each held-out simulated flight (every frame of a pack), at its own size. Never ADD256's test split."""
+    sets = {"add256_held_back": load_add256(add256, "held-back")}
+    if use_bbch:
+        sets["applebbch76_held_out"] = load_applebbch76(applebbch76, "held-out")
+    for f in val_flights:  # a pack was thinned when packed: all of it
+        sets[f"sim:{Path(f).stem}"] = load_sim_frames(f, every=1 if str(f).endswith(".npz") else 5)
+    return {k: v for k, v in sets.items() if v}
+
+
 def run_pack(args) -> int:
     samples = load_sim_frames(args.flight, every=args.every, limit=args.limit)
     path = save_pack(samples, args.out, args.quality)

@@ -107,6 +107,10 @@ def print_table(res: dict):
               "detection at the threshold finds")
 
 
+#: The operating thresholds tried.
+THRESHOLDS = np.round(np.arange(0.3, 0.96, 0.05), 2)
+
+
 def choose_threshold(model, samples, name: str) -> float:
     """The operating threshold: the best F1 over ``samples`` (image, boxes, ignore), on a 0.05 grid."""
     from export.metrics import best_f1_threshold
@@ -117,9 +121,27 @@ def choose_threshold(model, samples, name: str) -> float:
     for img, boxes, ignore in samples:
         preds.append(det.detect_rgb(img, score_thresh=0.05))
         truths.append((boxes, ignore))
-    t = best_f1_threshold(preds, truths, np.round(np.arange(0.3, 0.96, 0.05), 2))
+    t = best_f1_threshold(preds, truths, THRESHOLDS)
     log.info("operating threshold %.2f: the best F1 on %d images of %s", t, len(preds), name)
     return t
+
+
+def choose_threshold_on_sets(model, sets: dict[str, list]) -> tuple[float, dict]:
+    """The operating threshold of best mean F1 over the validation ``sets`` (export.data.validation_sets), each image
+    at its own size, and each set's F1 at it."""
+    from onboard.detector import OnnxDetector
+
+    det = OnnxDetector(model)
+    runs = {}
+    for name, samples in sets.items():
+        preds = [det.detect_rgb(s.image, score_thresh=0.05) for s in samples]
+        runs[name] = (preds, [(s.boxes, s.ignore) for s in samples])
+        log.info("%s: %d images detected", name, len(samples))
+    f1 = {float(t): {k: evaluate_detections(p, tr, float(t))["f1"] for k, (p, tr) in runs.items()} for t in THRESHOLDS}
+    best = max(f1, key=lambda t: float(np.mean(list(f1[t].values()))))
+    log.info("operating threshold %.2f: the best mean F1 (%.3f) over %s", best, np.mean(list(f1[best].values())),
+             ", ".join(f"{k} {v:.3f}" for k, v in f1[best].items()))
+    return best, f1[best]
 
 
 def validation_samples(args):
@@ -135,9 +157,22 @@ def validation_samples(args):
 
 def run(args) -> int:
     thresh, chosen_on = args.score_thresh, None
-    if args.val_flight and args.val_add256:
-        raise InputError("--val-flight or --val-add256, not both")
-    if args.val_flight or args.val_add256:
+    if args.val_flight and args.val_add256 or args.val_sets and args.val_add256:
+        raise InputError("--val-add256 chooses the threshold alone: not with --val-flight nor --val-sets")
+    if args.val_sets:
+        from export.data import find_applebbch76, validation_sets
+
+        try:
+            bbch = find_applebbch76(args.applebbch76)
+        except DataError:
+            if args.applebbch76 is not None:
+                raise
+            bbch = None
+        sets = validation_sets(args.add256, bbch, [args.val_flight] if args.val_flight else [], bbch is not None)
+        thresh, f1 = choose_threshold_on_sets(args.model, sets)
+        chosen_on = "the best mean F1 over " + ", ".join(f"{k} ({len(sets[k])} images, F1 {v:.3f})"
+                                                         for k, v in f1.items())
+    elif args.val_flight or args.val_add256:
         samples, chosen_on = validation_samples(args)
         thresh = choose_threshold(args.model, samples, chosen_on)
     res = evaluate(args.model, args.add256, args.sim_flight, args.sim_every, args.min_visible, thresh,

@@ -139,6 +139,9 @@ class EvaluateSettings:
     score_thresh: float | None = field(default=None, metadata={"type": float})
     #: Choose the operating threshold as the best F1 on this simulated flight (held out from training and scoring).
     val_flight: Path | None = field(default=None, metadata={"type": Path})
+    #: Choose the operating threshold as the best mean F1 over the sets models are chosen on: ADD256's held-back
+    #: photos, AppleBBCH76's held-out photos (where found) and --val-flight's frames (if given).
+    val_sets: bool = False
     #: Choose the operating threshold as the best F1 on N ADD256 training patches instead (never the test split).
     val_add256: int | None = field(default=None, metadata={"type": int, "metavar": "N"})
     #: Write the metrics here.

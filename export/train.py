@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 import torch
 
-from export.data import Augment, load_add256, load_applebbch76, load_sim_frames
+from export.data import Augment, load_add256, load_applebbch76, load_sim_frames, validation_sets
 from export.metrics import evaluate_detections
 from export.model import is_pretrained, load_checkpoint, make
 from export.pretrained import weights_path
@@ -139,17 +139,6 @@ def predict(model, samples, device=torch.device("cpu"), amp: bool = False) -> li
 def score_samples(model, samples, score_thresh: float = 0.5, device=torch.device("cpu"), amp: bool = False) -> dict:
     """AP@0.5 and P/R/F1 at ``score_thresh`` on samples (their ignore boxes neither count nor cost)."""
     return evaluate_detections(predict(model, samples, device, amp), [(s.boxes, s.ignore) for s in samples], score_thresh)
-
-
-def validation_sets(add256, applebbch76, val_flights, use_bbch: bool) -> dict[str, list]:
-    """The sets models are chosen on, by name: ADD256's held-back photos, AppleBBCH76's held-out photos, and every 5th
-    frame of each held-out simulated flight (every frame of a pack), at its own size. Never ADD256's test split."""
-    sets = {"add256_held_back": load_add256(add256, "held-back")}
-    if use_bbch:
-        sets["applebbch76_held_out"] = load_applebbch76(applebbch76, "held-out")
-    for f in val_flights:  # a pack was thinned when packed: all of it
-        sets[f"sim:{Path(f).stem}"] = load_sim_frames(f, every=1 if str(f).endswith(".npz") else 5)
-    return {k: v for k, v in sets.items() if v}
 
 
 def score_validation(model, sets: dict, device=torch.device("cpu"), amp: bool = False) -> dict:

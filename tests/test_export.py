@@ -501,9 +501,9 @@ def test_export_evaluate_scores_the_held_out_applebbch76_photos(tiny_onnx, tmp_p
     add = _add256_like(tmp_path / "add256", frames)
     bbch = _applebbch76_like(tmp_path / "applebbch76", frames)
 
-    def evaluate(folder):
+    def evaluate(folder, *more):
         return subprocess.run([sys.executable, "-m", "export", "evaluate", "--model", str(path), "--add256", str(add),
-                               "--applebbch76", str(folder), "--json", str(tmp_path / "m.json")],
+                               "--applebbch76", str(folder), "--json", str(tmp_path / "m.json"), *more],
                               capture_output=True, text=True, timeout=300)
 
     r = evaluate(bbch)
@@ -511,6 +511,12 @@ def test_export_evaluate_scores_the_held_out_applebbch76_photos(tiny_onnx, tmp_p
     m = json.loads((tmp_path / "m.json").read_text())
     assert m["add256_test"]["images"] == 2 and m["applebbch76_held_out"]["images"] == 1  # photo 5 only
     assert m["applebbch76_held_out"]["apples"] > 0 and "applebbch76_held_out" in r.stdout
+    # the threshold chosen on the validation sets: ADD256's held-back photo 0 and AppleBBCH76's held-out photo 5
+    r = evaluate(bbch, "--val-sets")
+    assert r.returncode == 0, r.stderr[-2000:]
+    m = json.loads((tmp_path / "m.json").read_text())
+    assert "add256_held_back (1 images" in m["score_thresh_chosen_on"]
+    assert "applebbch76_held_out (1 images" in m["score_thresh_chosen_on"] and 0.3 <= m["score_thresh"] <= 0.95
     r = evaluate(tmp_path / "nowhere")
     assert r.returncode == 2 and r.stderr.strip() == (f"error: {tmp_path / 'nowhere'}: not an AppleBBCH76 "
                                                       "folder (needs images/ and labels/)")
