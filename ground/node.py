@@ -222,7 +222,7 @@ class GroundNode:
                                harvest=self.harvest)
         rr = self._rerun()
         if rr is not None and self.pipe.arrivals.released >= 0:
-            from ground.outputs.rerun_log import summary_markdown
+            from ground.outputs.summary import summary_markdown
 
             poses, last = self.pipe.poses, self.pipe.arrivals.released
             rr.apples(last, self.pipe.arrivals.frame_times.get(last, float("nan")), maps.apples,

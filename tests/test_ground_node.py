@@ -20,7 +20,7 @@ from ground.outputs.tables import APPLE_COLUMNS, CANDIDATE_COLUMNS, harvest_corr
 
 
 def test_replay_end_to_end(replayed_test_flight):
-    from ground.outputs.rerun_log import rrd_entities
+    from ground.outputs.rrd_file import rrd_entities
     from ground.evaluation.scoring import evaluate_map
 
     replay_test_flight, out, rep = replayed_test_flight
@@ -593,7 +593,7 @@ def test_a_mapping_process_that_dies_leaves_the_flight_going(replay_test_flight,
     import os
     import signal
 
-    from ground.outputs.rerun_log import summary_markdown
+    from ground.outputs.summary import summary_markdown
 
     t0 = time.monotonic()
     pipe, events, killed = _fed_at_flight_pace(replay_test_flight, tmp_path, signal.SIGKILL)
@@ -803,7 +803,7 @@ def test_a_mapping_process_killed_mid_flight_is_restarted_and_the_map_holds(tmp_
     both hold, and maps on: the flight ends by itself with a map within 0.03 F1 and 3 % count of the clean run's,
     and the report and the viewer's summary name the restart. (Killed with no restart, the same flight's map fell to
     F1 0.01-0.04: tracked against a map that no longer grew. Live at 1x, `benchmarks/faults.py`.)"""
-    from ground.outputs.rerun_log import summary_markdown
+    from ground.outputs.summary import summary_markdown
     from pomar.flight import FlightDir
     from tests.conftest import BUNDLED
 

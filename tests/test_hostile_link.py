@@ -66,7 +66,7 @@ def _fly(flight, out: Path, inject: bool) -> tuple[dict, dict, dict | None]:
 
 
 def test_hostile_messages_are_refused_counted_and_harmless(replay_test_flight, tmp_path):
-    from ground.outputs.rerun_log import rrd_entities
+    from ground.outputs.rrd_file import rrd_entities
 
     clean, clean_sent, _ = _fly(replay_test_flight, tmp_path / "clean", inject=False)
     rep, onboard, sent = _fly(replay_test_flight, tmp_path / "hostile", inject=True)

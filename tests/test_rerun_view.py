@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from ground.outputs.tables import PALETTE, row_colours
-from ground.outputs.rerun_log import PANELS, RerunLog, blueprint, clip_segment, epipolar_segments, rrd_rows
+from ground.outputs.rerun_log import PANELS, RerunLog, blueprint, clip_segment, epipolar_segments
+from ground.outputs.rrd_file import rrd_rows
 
 
 def _rgb(packed: int) -> list[int]:
@@ -28,7 +29,7 @@ def _views(container) -> list:
 
 
 def test_a_row_too_short_for_a_density_shows_a_dash_not_nan():
-    from ground.outputs.rerun_log import summary_markdown
+    from ground.outputs.summary import summary_markdown
 
     text = summary_markdown({"apples": 3, "rows": [{"row": 1, "count": 3, "apples_per_m": float("nan"), "length_m": 0.2}]},
                             {})

@@ -48,6 +48,7 @@ import numpy as np
 import pyarrow as pa
 
 from ground.apples.geometry import fundamental_from_projections
+from ground.outputs.rrd_file import finish_rrd
 from ground.outputs.tables import row_colours
 
 # Memory stays flat over long flights only if the allocators behind the rerun SDK give back what they free. rerun's
@@ -168,65 +169,6 @@ def ground_level(points: dict[int, np.ndarray], apples_z: np.ndarray) -> float |
     if len(apples_z) >= 10:
         return float(np.percentile(apples_z, 2) - 1.5)
     return None
-
-
-def summary_markdown(report: dict, live: dict) -> str:
-    """The glanceable summary: total, per-row table, mapping progress, delay, link and registration health."""
-    head = "flight finished" if report.get("final") else "flying"
-    lines = [f"# {report['apples']} apples", f"*{report.get('flight_id')}, {head}*", ""]
-    rows = report.get("rows") or []
-    if rows:
-        lines += ["| row | apples | per m | length |", "|:---|---:|---:|---:|"]
-        for r in rows:
-            per_m = r.get("apples_per_m", float("nan"))
-            per_m_txt = f"{per_m:.1f}" if per_m is not None and np.isfinite(per_m) else "–"  # a row too short yet
-            lines.append(f"| row {r['row']} | {r['count']} | {per_m_txt} | {r['length_m']:.0f} m |")
-        lines.append("")
-    fr = report.get("frames", {})
-    behind, fps, drone_fps = live.get("behind_s"), live.get("ground_fps"), live.get("drone_fps")
-    keeping = f"{behind:.1f} s behind the drone" if behind is not None and np.isfinite(behind) else "delay unknown"
-    rate = (f", mapping {fps:.1f} frames/s" if fps is not None and np.isfinite(fps) else "")
-    rate += f" (drone: {drone_fps:.1f} frames/s)" if drone_fps is not None and np.isfinite(drone_fps) else ""
-    lines.append(f"**Mapping** frame {live.get('frame', '–')} ({fr.get('frames', 0)} frames received): {keeping}{rate}")
-    reg = report.get("registration", {})
-    gps = reg.get("georeference_gps_rms_m")
-    gps_txt = f", GPS fit {gps:.2f} m" if gps is not None and np.isfinite(gps) else ""
-    if reg.get("georeference_scale_from") == "heights":
-        gps_txt += ", scaled by the heights above take-off"
-    lines.append("")
-    trk = report.get("tracking", {})
-    lines.append(f"**Registration** {reg.get('registered', 0)} of {reg.get('keyframes_processed', 0)} mapping "
-                 f"keyframes, {reg.get('failed', 0)} failed, {reg.get('submodels', 0)} sub-model(s){gps_txt}. Frame "
-                 f"poses: {fr.get('registered', 0)} registered, {fr.get('tracked', 0)} tracked "
-                 f"({trk.get('failed', 0)} failed to track), {fr.get('interpolated', 0)} interpolated, "
-                 f"{fr.get('apples', 0)} placed by the apples they see, {fr.get('telemetry', 0)} from telemetry alone, {fr.get('frames_without_pose', 0)} without")
-    died = reg.get("mapper_died")
-    restarts = reg.get("mapper_restarts") or []
-    if died and not restarts:
-        lines.append(f"\n**The mapping process died** (exit code {died.get('exit_code')}) after "
-                     f"{died.get('keyframes_mapped', 0)} keyframes: the frames since are tracked against the map it "
-                     f"left, or placed by telemetry; nothing more is mapped")
-    for r in restarts:
-        placed = r.get("placed")
-        how = (f"its new model joined the map by {placed['keyframes']} shared keyframes" if isinstance(placed, dict)
-               else "its new model never shared keyframes with the map: the frames since are tracked against the map"
-               if placed is None else placed)
-        lines.append(f"\n**The mapping process died** (exit code {r.get('exit_code')}) after "
-                     f"{r.get('keyframes_mapped', 0)} keyframes, {r.get('keyframes_lost', 0)} lost; **restarted** "
-                     f"with the last {r.get('resent', 0)}: {how}")
-    if reg.get("in_memory_from_keyframe") is not None:
-        lines.append(f"\n**The mapping folder refused a write** (a full disk?) at keyframe "
-                     f"{reg['in_memory_from_keyframe']}: mapping went on in memory; the model files mapped since are "
-                     f"not written")
-    link = report.get("link", {})
-    onboard = report.get("onboard_status") or {}
-    lines.append("")
-    lines.append(f"**Link** {onboard.get('frames_dropped', 0)} frames dropped on board, "
-                 f"{fr.get('missing_frames', 0)} missing, {fr.get('late_frames', 0)} late, "
-                 f"{link.get('rejected_total', 0)} messages refused")
-    if report.get("errors"):
-        lines += ["", f"**Errors** {len(report['errors'])}: {report['errors'][-1]}"]
-    return "\n".join(lines) + "\n"
 
 
 class RerunLog:
@@ -500,62 +442,3 @@ class RerunLog:
         self.rec.disconnect()
         if self.rrd is not None and compact:
             finish_rrd(self.rrd)
-
-
-def finish_rrd(path: Path, timeout_s: float = 600.0) -> bool:
-    """Compact a flight's .rrd and give it its chunk index, in place (``rerun rrd optimize``, in its own process, so
-    its memory is not the ground's). The file as written stays if that fails: it is a valid recording without an
-    index. Returns whether the file was replaced."""
-    import subprocess
-    import sys
-    import time
-
-    path = Path(path)
-    tmp = path.with_name(path.name + ".optimizing")
-    t0, size = time.monotonic(), path.stat().st_size
-    cmd = [sys.executable, "-m", "rerun", "rrd", "optimize", str(path), "-o", str(tmp)]
-    try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
-        ok = proc.returncode == 0 and tmp.exists() and tmp.stat().st_size > 0
-        why = proc.stderr.strip().splitlines()[-1] if not ok and proc.stderr.strip() else f"exit {proc.returncode}"
-    except (OSError, subprocess.TimeoutExpired) as exc:
-        ok, why = False, str(exc)
-    if not ok:
-        tmp.unlink(missing_ok=True)
-        log.warning("rerun: %s kept as written, without its chunk index (`rerun rrd optimize` failed: %s)", path, why)
-        return False
-    os.replace(tmp, path)
-    log.info("rerun: %s compacted and indexed in %.1f s (%.1f -> %.1f MB)", path, time.monotonic() - t0, size / 1e6,
-             path.stat().st_size / 1e6)
-    return True
-
-
-def rrd_entities(path) -> dict[str, int]:
-    """Entity path -> number of rows logged, read back from an .rrd file (rerun's RrdReader)."""
-    from rerun.chunk import RrdReader
-
-    counts: dict[str, int] = {}
-    for chunk in RrdReader(str(path)).stream():
-        p = str(chunk.entity_path)
-        counts[p] = counts.get(p, 0) + chunk.num_rows
-    return counts
-
-
-def rrd_rows(path, prefix: str = "/") -> dict[str, list[dict]]:
-    """Entity path -> its rows, read back from an .rrd file: each row a dict of ``frame`` (None when static) and
-    the components logged (``Archetype:field`` -> Python value), in frame order."""
-    from rerun.chunk import RrdReader
-
-    out: dict[str, list[dict]] = {}
-    for chunk in RrdReader(str(path)).stream():
-        p = str(chunk.entity_path)
-        if not p.startswith(prefix):
-            continue
-        rb = chunk.to_record_batch()
-        comps = {c: rb.column(c).to_pylist() for c in rb.schema.names if ":" in c}
-        frames = rb.column("frame").to_pylist() if "frame" in rb.schema.names else [None] * chunk.num_rows
-        for i in range(chunk.num_rows):
-            out.setdefault(p, []).append({"frame": frames[i], **{c: v[i] for c, v in comps.items()}})
-    for rows in out.values():
-        rows.sort(key=lambda r: -1 if r["frame"] is None else r["frame"])
-    return out
