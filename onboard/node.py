@@ -1,8 +1,9 @@
 """The onboard node: frames + telemetry -> detector -> the wire, over zenoh.
 
 For each processed frame it publishes a :class:`pomar.wire.FrameMessage` (capture time on the
-autopilot clock, the telemetry sampled there, the detections); every ``keyframe_every``-th processed
-frame also goes as a JPEG keyframe for the ground's structure-from-motion; camera.json goes once;
+autopilot clock, the telemetry sampled there, the detections); a processed frame every 0.2 s of capture time (or
+as :class:`KeyframePolicy` is told) also goes as a JPEG keyframe for the ground's structure-from-motion; camera.json
+goes once;
 a status heartbeat goes every ``status_period_s``. A source that fails midway (a truncated video)
 ends the run with an error status after everything before it was published.
 """
