@@ -158,7 +158,7 @@ class GroundNode:
             if rr is not None:
                 rr.fps = self.pipe.fps
                 rejected = self.stream.rejected if self.stream else {}
-                to_enu = self.pipe.poses.assoc.assoc_to_enu() if self.pipe.poses is not None else None
+                to_enu = self.pipe.poses.assoc_to_enu() if self.pipe.poses is not None else None
                 rr.frame(e, self.pipe.camera, {
                     "rate/ground": fps, "rate/drone": drone_fps,
                     "delay/behind_drone_s": behind, "delay/ground_latency_s": latency,
@@ -243,7 +243,7 @@ class GroundNode:
         report = self.refresh(final=True)
         if self.files.failed:
             report = self.files.rescue(self.pipe.flight_id, lambda out: self.refresh(final=True, out=out))
-        if self.pipe.poses is not None and self.pipe.poses.mapper.submodels() and not self.files.failed:
+        if self.pipe.poses is not None and self.pipe.poses.submodels() and not self.files.failed:
             self.files.write_model(self.pipe.poses)
         if self.rr is not None:
             try:

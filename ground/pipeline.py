@@ -235,7 +235,7 @@ class GroundPipeline:
         # bring them late): the images are tracked and mapped in the same order whatever the link did
         for f, jpeg in arrivals.images(final, wait_for_announced=self.s.mapping == "inline"):
             t0 = time.perf_counter()
-            if self.poses.tracking.add_jpeg(f, jpeg, arrivals.frame_times.get(f, float("nan"))):
+            if self.poses.add_image(f, jpeg, arrivals.frame_times.get(f, float("nan"))):
                 self.seconds["poses"] += time.perf_counter() - t0
                 arrivals.image_done()  # the wait is counted from when the poses are free again
                 self._kf_for_event[f] = jpeg
@@ -259,7 +259,7 @@ class GroundPipeline:
         events = []
         poses = self.poses
         for msg in self.arrivals.release(lambda f: poses.ready(f, final, self._stalled()), final,
-                                         lambda: poses.mapper.has_model):
+                                         lambda: poses.has_model):
             events.append(self._frame(msg))
             poses.forget_before(msg.frame - 4 * self.s.association.k - 2 * self.s.max_interp_gap)
         return events
@@ -280,7 +280,7 @@ class GroundPipeline:
         else:
             self._counts[pose.source] += 1
             t0 = time.perf_counter()
-            new = self.apples.take_frame(msg, pose, self.arrivals.steps, self.poses.assoc.metres_per_unit())
+            new = self.apples.take_frame(msg, pose, self.arrivals.steps, self.poses.metres_per_unit())
             self.seconds["association"] += time.perf_counter() - t0
         for k in [k for k in self._kf_for_event if k < f]:
             del self._kf_for_event[k]
@@ -308,7 +308,7 @@ class GroundPipeline:
         new = self.poses.corrected(fed.poses, frames)
         if not new:
             return
-        changed, merged = self.apples.repose(new, self.arrivals.steps, self.poses.assoc.metres_per_unit())
+        changed, merged = self.apples.repose(new, self.arrivals.steps, self.poses.metres_per_unit())
         self.seconds["corrections"] += time.perf_counter() - t0
         c = self.corrections
         c["rounds"] += 1
@@ -327,10 +327,10 @@ class GroundPipeline:
         if hurry:
             self.arrivals.drop_images()
             if self.poses is not None:
-                self.poses.tracking.drop_waiting()
+                self.poses.drop_waiting()
         elif self.poses is not None:
             events += self.step(on_events=on_events)
-            self.poses.tracking.settle()
+            self.poses.settle()
         if self.camera is not None:
             events += self.step(final=True, on_events=on_events)
         if self.poses is not None:
@@ -349,8 +349,8 @@ class GroundPipeline:
         burst, the process mapped only the newest proposal of each spell, tracking ran off the map, and a ground
         killed and restarted ended with F1 0.01."""
         if self.poses is not None and self.s.mapping == "process":
-            self.poses.mapper.wait(timeout_s)
+            self.poses.wait_for_mapping(timeout_s)
 
     def metres_per_unit(self) -> float:
         """:meth:`AssociationFrame.metres_per_unit` (1 before the poses exist)."""
-        return self.poses.assoc.metres_per_unit() if self.poses is not None else 1.0
+        return self.poses.metres_per_unit() if self.poses is not None else 1.0

@@ -83,3 +83,17 @@ def test_the_link_sits_below_the_pipeline_and_the_outputs():
     above = ("ground.pipeline", "ground.outputs", "ground.node", "ground.replay", "ground.poses", "ground.apples")
     bad = {p.name: sorted(m for m in _imports(p) if m.startswith(above)) for p in sorted(link.glob("*.py"))}
     assert not any(bad.values()), {k: v for k, v in bad.items() if v}
+
+
+def test_nothing_outside_the_pose_stage_reaches_into_its_parts():
+    """The pose stage (ground/poses/) answers through LivePoses' own methods: what a frame's pose is, the corrections,
+    when it is ready, its figures. Nothing else in ground/ reaches its tracking, mapper or association frame."""
+    import re
+    from pathlib import Path
+
+    ground = Path(__file__).resolve().parents[1] / "ground"
+    reach = re.compile(r"(?<![\w.])poses\.(tracking|mapper|assoc)\b|(?<!ground)\.poses\.(tracking|mapper|assoc)\b")
+    bad = [f"{p.relative_to(ground)}:{k}: {line.strip()}" for p in sorted(ground.rglob("*.py"))
+           if "poses" not in p.relative_to(ground).parts[:1]
+           for k, line in enumerate(p.read_text().splitlines(), 1) if reach.search(line)]
+    assert not bad, bad

@@ -102,7 +102,7 @@ class MapFiles:
     def _write_model(self, poses):
         import pycolmap
 
-        for k, sm in enumerate(poses.mapper.submodels()):
+        for k, sm in enumerate(poses.submodels()):
             if sm.rec is None and sm.path is None:  # mapped in memory (its disk was full): only its poses came back
                 log.warning("sub-model %d was mapped in memory: its model files cannot be written", k)
                 continue

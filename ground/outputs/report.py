@@ -7,6 +7,7 @@ import numpy as np
 
 from ground.memory import children_peak_rss_mb, peak_rss_mb
 from ground.outputs.tables import harvest_correlation
+from ground.poses.live import no_pose_figures
 
 #: The kinds of pose a mapped frame gets, as the pipeline counts them.
 POSE_SOURCES = ("registered", "tracked", "interpolated", "apples", "telemetry", "frames_without_pose")
@@ -26,7 +27,7 @@ def flight_report(p, table, rows, final: bool, *, apples_seen, wall_s: float, la
     the detections' envelope (``apples_seen``), its wall time, the frames' latency, memory and progress samples, the
     link's figures and the errors it caught."""
     st = p.status
-    reg = p.poses.mapper.stats() if p.poses is not None else None
+    poses = p.poses.figures() if p.poses is not None else no_pose_figures()
     counters = p.counters
     posed = max(1, sum(counters[j] for j in POSE_SOURCES))
     r = {
@@ -40,49 +41,9 @@ def flight_report(p, table, rows, final: bool, *, apples_seen, wall_s: float, la
         "detections": apples_seen.detections(),
         # what share of the mapped frames got each kind of pose
         "pose_shares": {k: counters[k] / posed for k in POSE_SOURCES},
-        "registration": {
-            "keyframes_processed": reg["keyframes_processed"] if reg else 0,
-            "registered": len(p.poses.model_pose) if p.poses else 0,
-            "failed": reg["failed"] if reg else 0,
-            "submodels": reg["submodels"] if reg else 0,
-            # the mapping process died by itself (exit code, keyframes mapped and lost); each restart, and how its
-            # new model was placed in the map's frame (keyframes shared, residuals) or null if it never was
-            "mapper_died": p.poses.mapper.died if p.poses else None,
-            "mapper_restarts": list(p.poses.mapper.restarts) if p.poses else [],
-            # the keyframe from which the mapping folder refused writes (a full disk): mapped in memory since,
-            # and those sub-models' model files are not written
-            "in_memory_from_keyframe": reg.get("in_memory_from") if reg else None,
-            # across passes: keyframes matched to earlier keyframes of the same place, re-anchorings of a
-            # sub-model onto earlier passes' points, sub-models placed by telemetry after the chain broke
-            "revisits": reg["revisits"] if reg else 0,
-            "reanchored": reg["reanchored"] if reg else 0,
-            "rejoined": reg["rejoined"] if reg else 0,
-            # the map's drift from the GPS along the flight, and whether the outputs were corrected for it
-            "drift_m": p.poses.assoc.drift_m if p.poses else 0.0,
-            "drift_corrected": p.poses.assoc.drift_corrected if p.poses else False,
-            # the map's turn from the gimbal's attitudes along the flight, and whether it was taken back out
-            "bend_deg": p.poses.assoc.bend_deg if p.poses else 0.0,
-            "bend_corrected": p.poses.assoc.bend_corrected if p.poses else False,
-            "seconds_per_keyframe_median": float(np.median(reg["seconds"])) if reg and reg["seconds"] else None,
-            "stage_seconds_median": reg["stage_seconds_median"] if reg else None,
-            "mapping": p.s.mapping,  # as the stream asked for it (or as set)
-            # proposals the mapping process replaced with a newer one before it was free
-            "proposals_skipped": p.poses.mapper.skipped if p.poses else 0,
-            # keyframes before the first model whose SIFT features this process extracted, the mapper being busy
-            "features_extracted_here": p.poses.mapper.early_extracted if p.poses else 0,
-            "georeference_gps_rms_m": p.poses.fit_residual_m if p.poses else None,
-            # what scales the map: the GPS positions, or the heights above take-off against the floor it sees
-            "georeference_scale_from": reg.get("scale_from", "positions") if reg else None,
-            "origin": p.poses.origin.as_dict() if p.poses and p.poses.origin else None,
-        },
-        "tracking": {"tracked": p.poses.tracking.tracker.tracked if p.poses else 0,
-                     # frames that tracking could not place, even after the mapper had mapped them (flagged)
-                     "failed": len(p.poses.tracking.failed_frames) if p.poses else 0,
-                     # frames tracked once the mapper, handed them when tracking failed, had mapped them
-                     "retried_after_mapping": p.poses.tracking.retried if p.poses else 0,
-                     # times the frames waited for a busy mapper to take a keyframe (mapping behind the flight)
-                     "waits_for_mapper": p.poses.tracking.waits_for_mapper if p.poses else 0,
-                     "failed_frames": p.poses.tracking.failed_frames[-100:] if p.poses else []},
+        # the mapping as the stream asked for it (or as set)
+        "registration": {**poses["registration"], "mapping": p.s.mapping},
+        "tracking": poses["tracking"],
         # poses given earlier, corrected as the mapper moved the keyframes about them; the apples triangulated again
         "corrections": dict(p.corrections),
         "association": {"params": vars(p.s.association).copy(), "stats": dict(p.apples.assoc.stats),
@@ -91,9 +52,7 @@ def flight_report(p, table, rows, final: bool, *, apples_seen, wall_s: float, la
                         "metres_per_unit": p.metres_per_unit()},
         "timings": {"wall_seconds": wall_s,
                     "pose_seconds": p.seconds["poses"],
-                    "tracking_seconds": p.poses.tracking.seconds["tracking"] if p.poses else 0.0,
-                    "inline_mapping_seconds": p.poses.tracking.seconds["mapping_inline"] if p.poses else 0.0,
-                    "mapping_seconds": float(sum(reg["seconds"])) if reg else 0.0,
+                    **poses["timings"],
                     "association_seconds": p.seconds["association"],
                     "correction_seconds": p.seconds["corrections"],
                     "ground_latency_median_s": float(np.median(latency)) if latency else None,

@@ -38,7 +38,7 @@ def corrections(pipe) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     if pipe.poses is None:
         return None
     frames = np.array(sorted(pipe.apples.frames.poses), int)
-    return (frames, *pipe.poses.assoc.correction(frames, _drift_sigma_frames(pipe)))
+    return (frames, *pipe.poses.correction(frames, _drift_sigma_frames(pipe)))
 
 
 def apples_enu(pipe, A: list, corr=None) -> np.ndarray:
@@ -49,17 +49,17 @@ def apples_enu(pipe, A: list, corr=None) -> np.ndarray:
     X = np.array([a.X for a in A]).reshape(-1, 3)
     if pipe.poses is None or not len(X):
         return X
-    assoc = pipe.poses.assoc
+    poses = pipe.poses
     frames, off, rot = corr if corr is not None else corrections(pipe)
     seen = [[pipe.apples.frames.frame[o.frame] for o in a.observations] for a in A]
     k = np.searchsorted(frames, np.concatenate(seen))
     used = np.unique(k)  # the posed frames these apples were seen in
     centre = np.zeros((len(frames), 3))
-    centre[used] = assoc.to_enu(np.array([pipe.apples.frames.poses[f].centre for f in frames[used]]))
+    centre[used] = poses.to_enu(np.array([pipe.apples.frames.poses[f].centre for f in frames[used]]))
     # every (apple, view) pair at once: the apple moved with that view's camera, then the mean over its views
     n_views = np.array([len(fs) for fs in seen])
     apple = np.repeat(np.arange(len(A)), n_views)
-    X = assoc.to_enu(X)
+    X = poses.to_enu(X)
     moved = centre[k] + off[k] + np.einsum("nij,nj->ni", rot[k], X[apple] - centre[k])
     out = np.zeros_like(X)
     np.add.at(out, apple, moved)
@@ -118,7 +118,7 @@ def pose_table(pipe, corr=None) -> dict[str, np.ndarray]:
     if not P or pipe.poses is None:
         return {k: np.zeros(0) for k in ("frame", "t_unix", "source", "x", "y", "z", "lat", "lon", "alt",
                                          "qw", "qx", "qy", "qz", "sigma_m")}
-    S = pipe.poses.assoc.assoc_to_enu()
+    S = pipe.poses.assoc_to_enu()
     _, off, rot = corr if corr is not None else corrections(pipe)
     C = S.apply(np.array([p.centre for p in P])) + off
     R = np.array([p.R for p in P]) @ S.R.T @ np.swapaxes(rot, 1, 2)  # ENU-to-camera, turned with the map's bend

@@ -43,6 +43,19 @@ from pomar.telemetry.base import Flags
 log = logging.getLogger(__name__)
 
 
+def no_pose_figures() -> dict:
+    """:meth:`LivePoses.figures` of a flight whose poses never started (no camera message, no keyframe)."""
+    return {"registration": {"keyframes_processed": 0, "registered": 0, "failed": 0, "submodels": 0,
+                             "mapper_died": None, "mapper_restarts": [], "in_memory_from_keyframe": None,
+                             "revisits": 0, "reanchored": 0, "rejoined": 0, "drift_m": 0.0, "drift_corrected": False,
+                             "bend_deg": 0.0, "bend_corrected": False, "seconds_per_keyframe_median": None,
+                             "stage_seconds_median": None, "proposals_skipped": 0, "features_extracted_here": 0,
+                             "georeference_gps_rms_m": None, "georeference_scale_from": None, "origin": None},
+            "tracking": {"tracked": 0, "failed": 0, "retried_after_mapping": 0, "waits_for_mapper": 0,
+                         "failed_frames": []},
+            "timings": {"tracking_seconds": 0.0, "inline_mapping_seconds": 0.0, "mapping_seconds": 0.0}}
+
+
 class LivePoses:
     """The ground's poses, wired: the frames' telemetry, the images in order (:class:`ImageTracking`: the tracker and
     the mapper), the association frame (:class:`AssociationFrame`), and which pose each frame gets."""
@@ -81,6 +94,97 @@ class LivePoses:
     @property
     def fit_residual_m(self) -> float:
         return self.mapper.fit_residual_m
+
+    @property
+    def has_model(self) -> bool:
+        return self.mapper.has_model
+
+    def submodels(self):
+        """The mapper's sub-models (for their model files)."""
+        return self.mapper.submodels()
+
+    # the association frame, as the apples and the map files read it
+    def metres_per_unit(self) -> float:
+        return self.assoc.metres_per_unit()
+
+    def assoc_to_enu(self) -> Similarity:
+        """The association frame -> ENU similarity."""
+        return self.assoc.assoc_to_enu()
+
+    def to_enu(self, X: np.ndarray) -> np.ndarray:
+        return self.assoc.to_enu(X)
+
+    def correction(self, frames, sigma_frames: float):
+        """The map's bend and drift corrections at ``frames`` (:meth:`AssociationFrame.correction`)."""
+        return self.assoc.correction(frames, sigma_frames)
+
+    # the images, as the pipeline hands them over
+    def add_image(self, frame: int, jpeg: bytes, t_capture: float) -> bool:
+        """A keyframe's JPEG, to tracking (and through it to the mapper); False where it does not decode."""
+        return self.tracking.add_jpeg(frame, jpeg, t_capture)
+
+    def drop_waiting(self) -> None:
+        """Told to stop: the images not yet tracked are left out."""
+        self.tracking.drop_waiting()
+
+    def settle(self) -> None:
+        """The flight's end: track what waits on the mapper."""
+        self.tracking.settle()
+
+    def wait_for_mapping(self, timeout_s: float) -> None:
+        self.mapper.wait(timeout_s)
+
+    def figures(self) -> dict:
+        """What report.json says of the poses: ``registration`` and ``tracking``, and their ``timings``."""
+        reg = self.mapper.stats()
+        m, t, a = self.mapper, self.tracking, self.assoc
+        return {
+            "registration": {
+                "keyframes_processed": reg["keyframes_processed"],
+                "registered": len(self.model_pose),
+                "failed": reg["failed"],
+                "submodels": reg["submodels"],
+                # the mapping process died by itself (exit code, keyframes mapped and lost); each restart, and how its
+                # new model was placed in the map's frame (keyframes shared, residuals) or null if it never was
+                "mapper_died": m.died,
+                "mapper_restarts": list(m.restarts),
+                # the keyframe from which the mapping folder refused writes (a full disk): mapped in memory since,
+                # and those sub-models' model files are not written
+                "in_memory_from_keyframe": reg.get("in_memory_from"),
+                # across passes: keyframes matched to earlier keyframes of the same place, re-anchorings of a
+                # sub-model onto earlier passes' points, sub-models placed by telemetry after the chain broke
+                "revisits": reg["revisits"],
+                "reanchored": reg["reanchored"],
+                "rejoined": reg["rejoined"],
+                # the map's drift from the GPS along the flight, and whether the outputs were corrected for it
+                "drift_m": a.drift_m,
+                "drift_corrected": a.drift_corrected,
+                # the map's turn from the gimbal's attitudes along the flight, and whether it was taken back out
+                "bend_deg": a.bend_deg,
+                "bend_corrected": a.bend_corrected,
+                "seconds_per_keyframe_median": float(np.median(reg["seconds"])) if reg["seconds"] else None,
+                "stage_seconds_median": reg["stage_seconds_median"],
+                # proposals the mapping process replaced with a newer one before it was free
+                "proposals_skipped": m.skipped,
+                # keyframes before the first model whose SIFT features this process extracted, the mapper being busy
+                "features_extracted_here": m.early_extracted,
+                "georeference_gps_rms_m": self.fit_residual_m,
+                # what scales the map: the GPS positions, or the heights above take-off against the floor it sees
+                "georeference_scale_from": reg.get("scale_from", "positions"),
+                "origin": self.origin.as_dict() if self.origin else None,
+            },
+            "tracking": {"tracked": t.tracker.tracked,
+                         # frames that tracking could not place, even after the mapper had mapped them (flagged)
+                         "failed": len(t.failed_frames),
+                         # frames tracked once the mapper, handed them when tracking failed, had mapped them
+                         "retried_after_mapping": t.retried,
+                         # times the frames waited for a busy mapper to take a keyframe (mapping behind the flight)
+                         "waits_for_mapper": t.waits_for_mapper,
+                         "failed_frames": t.failed_frames[-100:]},
+            "timings": {"tracking_seconds": t.seconds["tracking"],
+                        "inline_mapping_seconds": t.seconds["mapping_inline"],
+                        "mapping_seconds": float(sum(reg["seconds"]))},
+        }
 
     # -- inputs
     def add_telemetry(self, frame: int, lat: float, lon: float, alt: float, q_gimbal, h_acc: float,
