@@ -23,6 +23,7 @@ from ground.link.journal import Journal, read_journal_report
 from ground.memory import malloc_trim, rss_mb
 from ground.outputs.mapfiles import MapFiles
 from ground.outputs.report import flight_report
+from ground.outputs.snapshot import snapshot
 from ground.outputs.tables import read_harvest
 from ground.pipeline import GroundPipeline, GroundSettings
 from pomar import wire
@@ -215,7 +216,8 @@ class GroundNode:
         self._last_refresh = time.monotonic()
         if self._trim is not None:  # hand freed heap back to the system: the map's arrays are rebuilt at each refresh
             self._trim(0)
-        maps = self.files.write_tables(self.pipe, final, out)
+        snap = snapshot(self.pipe, final)  # the map once, for the tables, the report and rerun
+        maps = self.files.write_tables(snap, out)
         report = flight_report(self.pipe, maps.apples, maps.rows, final, apples_seen=self.apples_seen,
                                wall_s=time.monotonic() - self.t_start, latency=self.latency, memory=self.memory,
                                progress=self.progress, link=self.link_stats(), errors=self.errors,
@@ -225,8 +227,8 @@ class GroundNode:
             from ground.outputs.summary import summary_markdown
 
             poses, last = self.pipe.poses, self.pipe.arrivals.released
-            rr.apples(last, self.pipe.arrivals.frame_times.get(last, float("nan")), maps.apples,
-                      self.pipe.apples.count.apples, maps.rows, drone_latlon=maps.drone_latlon(), force=True,
+            rr.apples(last, snap.frame_times.get(last, float("nan")), maps.apples, snap.apples, maps.rows,
+                      drone_latlon=maps.drone_latlon(), force=True,
                       points=poses.sparse_points() if poses is not None else None,
                       summary=summary_markdown(report, self._live), trajectory_latlon=maps.trajectory_latlon())
         self.files.write_report(report, out)

@@ -5,7 +5,7 @@
         for event in pipe.take(msg):
             ...                   # FrameEvent: a frame went through the association (its pose, new apples)
     pipe.finish()
-    pipe.apples.count.apples      # id -> Apple (association frame); ground.outputs.tables.apple_table(pipe): ENU, WGS84
+    pipe.apples.count.apples      # id -> Apple (association frame); ground.outputs.tables.apple_table(snapshot(pipe)): ENU, WGS84
 
 The camera message opens a stream (:meth:`GroundPipeline.start`); its frame, keyframe and status messages are fed
 (:meth:`GroundPipeline.feed`); ``take`` does either. A frame goes down once and comes back once: the arrivals

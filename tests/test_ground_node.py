@@ -246,6 +246,7 @@ def test_journal_skips_damaged_records_and_keeps_every_intact_one(tmp_path):
 def test_pipeline_survives_bad_keyframes_and_late_frames(replay_test_flight, tmp_path):
     """Messages made by the onboard node (no zenoh here): a keyframe that does not decode, a frame that comes
     after a later one was mapped, repeats; every other frame still gets a pose and nothing stops."""
+    from ground.outputs.snapshot import snapshot
     from ground.outputs.tables import apple_table
     from ground.pipeline import GroundPipeline, GroundSettings
     from pomar import wire
@@ -266,7 +267,7 @@ def test_pipeline_survives_bad_keyframes_and_late_frames(replay_test_flight, tmp
     assert pipe.counters["bad_keyframes"] == 1 and pipe.counters["late_frames"] >= 1
     assert next(e for e in events if e.frame == 9).pose.source in ("interpolated", "telemetry")
     assert pipe.counters["registered"] >= 10
-    t, _ = apple_table(pipe)
+    t, _ = apple_table(snapshot(pipe))
     assert len(t["id"]) == len(pipe.apples.count.counted_ids()) > 0 and np.isfinite(t["lat"]).all()
 
 
@@ -776,6 +777,7 @@ def _mapped_with_a_process(flight, out, msgs, kill_after_keyframes: int | None =
     message (so that two runs differ only by what is done to the process); the mapping process killed (SIGKILL)
     once it has mapped ``kill_after_keyframes``. apples.csv and poses.csv written to ``out``, scored against truth."""
     from ground.evaluation.scoring import evaluate_map
+    from ground.outputs.snapshot import snapshot
     from ground.outputs.tables import apple_table, apples_csv, pose_table, poses_csv
     from ground.pipeline import GroundPipeline, GroundSettings
 
@@ -792,8 +794,8 @@ def _mapped_with_a_process(flight, out, msgs, kill_after_keyframes: int | None =
             os.kill(killed, signal.SIGKILL)
             mapper._proc.join(10)
     pipe.finish()
-    (out / "apples.csv").write_text(apples_csv(apple_table(pipe)[0]))
-    (out / "poses.csv").write_text(poses_csv(pose_table(pipe)))
+    (out / "apples.csv").write_text(apples_csv(apple_table(snapshot(pipe))[0]))
+    (out / "poses.csv").write_text(poses_csv(pose_table(snapshot(pipe))))
     return evaluate_map(flight, out), pipe
 
 
@@ -904,6 +906,7 @@ def test_frames_after_the_keyframes_stop_are_placed_by_the_apples_they_see(tmp_p
     0.57 against 0.95, benchmarks/faults.py --only keyframes-stop). They are placed by the apples already mapped
     that they see, and the map holds within 0.03 F1 and 3 % count of the flight's with every keyframe."""
     from ground.evaluation.scoring import evaluate_map
+    from ground.outputs.snapshot import snapshot
     from ground.outputs.tables import apple_table, apples_csv, pose_table, poses_csv
     from ground.pipeline import GroundPipeline, GroundSettings
     from pomar import wire
@@ -923,8 +926,8 @@ def test_frames_after_the_keyframes_stop_are_placed_by_the_apples_they_see(tmp_p
         for m in stream:
             pipe.take(m)
         pipe.finish()
-        (out / "apples.csv").write_text(apples_csv(apple_table(pipe)[0]))
-        (out / "poses.csv").write_text(poses_csv(pose_table(pipe)))
+        (out / "apples.csv").write_text(apples_csv(apple_table(snapshot(pipe))[0]))
+        (out / "poses.csv").write_text(poses_csv(pose_table(snapshot(pipe))))
         runs[name] = (evaluate_map(flight, out), pipe.counters)
     (clean, _), (ev, counters) = runs["clean"], runs["stopped"]
     assert counters["apples"] >= 0.8 * (end - stop), counters

@@ -11,8 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ground.outputs.tables import (apple_table, candidate_table, candidates_csv, corrections, pose_table, poses_csv,
-                                   rescue_folder, rows_summary, write_atomic, write_json, write_map)
+from ground.outputs.snapshot import MapSnapshot
+from ground.outputs.tables import (apple_table, candidate_table, candidates_csv, pose_table, poses_csv, rescue_folder,
+                                   rows_summary, write_atomic, write_json, write_map)
 
 log = logging.getLogger(__name__)
 
@@ -43,21 +44,19 @@ class MapFiles:
         self._was_failing = False  # the refresh before failed to write
         self.rescued_to: Path | None = None  # where the map files went when they could not be written to out
 
-    def write_tables(self, pipe, final: bool, out: Path | None = None) -> MapTables:
-        """The tables of ``pipe``'s map, written to ``out`` (default: the flight's folder); candidates.csv at the
-        end (``final``)."""
+    def write_tables(self, snap: MapSnapshot, out: Path | None = None) -> MapTables:
+        """The tables of the map ``snap``, written to ``out`` (default: the flight's folder); candidates.csv where
+        the snapshot was made at the end (it holds the candidates' checks)."""
         out = out or self.out
-        corr = corrections(pipe)  # the map's bend and drift at every posed frame, once for all the tables
-        table, direction = apple_table(pipe, corr)
-        origin = pipe.poses.origin if pipe.poses is not None else None
+        table, direction = apple_table(snap)
         self._was_failing, self.failed = self.failed is not None, None
-        rows = self._written(lambda: write_map(out, table, direction, origin, self.tree_spacing_m))
+        rows = self._written(lambda: write_map(out, table, direction, snap.origin, self.tree_spacing_m))
         if rows is None:
-            rows = rows_summary(table, direction, origin)
-        cams = pose_table(pipe, corr)
+            rows = rows_summary(table, direction, snap.origin)
+        cams = pose_table(snap)
         self._written(lambda: write_atomic(out / "poses.csv", poses_csv(cams)))
-        if final:
-            candidates = candidate_table(pipe, corr)
+        if snap.checks is not None:
+            candidates = candidate_table(snap)
             self._written(lambda: write_atomic(out / "candidates.csv", candidates_csv(candidates)))
         return MapTables(table, direction, rows, cams)
 

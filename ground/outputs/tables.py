@@ -27,104 +27,91 @@ from pathlib import Path
 
 import numpy as np
 
-def _drift_sigma_frames(pipe) -> float:
-    return pipe.s.drift_sigma_s * (pipe.fps or 0.0)
 
-
-def corrections(pipe) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """The map's bend and drift corrections (:meth:`AssociationFrame.correction`) at every posed frame: (frames (n,),
-    ENU offsets (n, 3), ENU rotations (n, 3, 3)); None before the poses exist. A map refresh computes them once for
-    all its tables."""
-    if pipe.poses is None:
-        return None
-    frames = np.array(sorted(pipe.apples.frames.poses), int)
-    return (frames, *pipe.poses.correction(frames, _drift_sigma_frames(pipe)))
-
-
-def apples_enu(pipe, A: list, corr=None) -> np.ndarray:
-    """(N, 3) ENU positions of these apples (ground.apples.association.Apple, in the association frame of a
-    ground.pipeline.GroundPipeline): the map's similarity, then the corrections of the map's bend and drift
-    (:func:`corrections`, or ``corr`` if already computed) of the frames each apple was seen in, each moving it with
-    its camera, and averaged (an apple seen again on a later pass takes both stretches' corrections)."""
+def apples_enu(snap, A: list) -> np.ndarray:
+    """(N, 3) ENU positions of these apples (ground.apples.association.Apple, in the association frame of the map
+    ``snap``, a :class:`ground.outputs.snapshot.MapSnapshot`): the map's similarity, then the corrections of the map's
+    bend and drift of the frames each apple was seen in, each moving it with its camera, and averaged (an apple seen
+    again on a later pass takes both stretches' corrections)."""
     X = np.array([a.X for a in A]).reshape(-1, 3)
-    if pipe.poses is None or not len(X):
+    if snap.to_enu is None or not len(X):
         return X
-    poses = pipe.poses
-    frames, off, rot = corr if corr is not None else corrections(pipe)
-    seen = [[pipe.apples.frames.frame[o.frame] for o in a.observations] for a in A]
+    S = snap.to_enu
+    frames, off, rot = snap.corrections
+    seen = [[snap.frame_of[o.frame] for o in a.observations] for a in A]
     k = np.searchsorted(frames, np.concatenate(seen))
     used = np.unique(k)  # the posed frames these apples were seen in
     centre = np.zeros((len(frames), 3))
-    centre[used] = poses.to_enu(np.array([pipe.apples.frames.poses[f].centre for f in frames[used]]))
+    centre[used] = S.apply(np.array([snap.poses[f].centre for f in frames[used]], float).reshape(-1, 3))
     # every (apple, view) pair at once: the apple moved with that view's camera, then the mean over its views
     n_views = np.array([len(fs) for fs in seen])
     apple = np.repeat(np.arange(len(A)), n_views)
-    X = poses.to_enu(X)
+    X = S.apply(np.asarray(X, float).reshape(-1, 3))
     moved = centre[k] + off[k] + np.einsum("nij,nj->ni", rot[k], X[apple] - centre[k])
     out = np.zeros_like(X)
     np.add.at(out, apple, moved)
     return out / n_views[:, None]
 
 
-def _geodetic(pipe, enu: np.ndarray) -> np.ndarray:
+def _geodetic(snap, enu: np.ndarray) -> np.ndarray:
     """(N, 3) lat, lon, alt of ENU points; NaN before the map is georeferenced."""
-    if pipe.poses is None or pipe.poses.origin is None or not len(enu):
+    if snap.to_enu is None or snap.origin is None or not len(enu):
         return np.full((len(enu), 3), np.nan)
-    return np.asarray(pipe.poses.origin.to_geodetic(enu)).reshape(-1, 3)
+    return np.asarray(snap.origin.to_geodetic(enu)).reshape(-1, 3)
 
 
-def apple_table(pipe, corr=None) -> tuple[dict[str, np.ndarray], float]:
-    """The counted apples of a ground.pipeline.GroundPipeline as columns (APPLE_COLUMNS: ENU, WGS84, row 1..N left
-    to right looking along the row direction, radius in metres ...), and the rows' direction (rad). ``corr``: the
-    refresh's :func:`corrections`, if already computed."""
+def apple_table(snap) -> tuple[dict[str, np.ndarray], float]:
+    """The counted apples of the map ``snap`` (:class:`ground.outputs.snapshot.MapSnapshot`) as columns
+    (APPLE_COLUMNS: ENU, WGS84, row 1..N left to right looking along the row direction, radius in metres ...), and the
+    rows' direction (rad)."""
     from ground.apples.rows import direction_rows
 
-    ids = pipe.apples.count.counted_ids()
-    A = [pipe.apples.count.apples[i] for i in ids]
-    enu = apples_enu(pipe, A, corr)
-    geo = _geodetic(pipe, enu)
+    ids = snap.counted_ids
+    A = [snap.apples[i] for i in ids]
+    enu = apples_enu(snap, A)
+    geo = _geodetic(snap, enu)
     rows, direction = direction_rows(enu[:, :2]) if len(A) >= 2 else (np.zeros(len(A), int), 0.0)
     return {"id": np.array(ids, int), "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
             "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
             "row": np.asarray(rows, int) + 1,
-            "radius_m": np.array([pipe.apples.count.radius.get(i, np.nan) for i in ids], float) * pipe.metres_per_unit(),
+            "radius_m": np.array([snap.radius.get(i, np.nan) for i in ids], float) * snap.metres_per_unit,
             "observations": np.array([a.n_observations for a in A], int),
             "reprojection_error_px": np.array([a.reprojection_error for a in A], float),
-            "first_frame": np.array([pipe.apples.frames.frame[a.first_frame] for a in A], int),
-            "last_frame": np.array([pipe.apples.frames.frame[a.last_frame] for a in A], int)}, direction
+            "first_frame": np.array([snap.frame_of[a.first_frame] for a in A], int),
+            "last_frame": np.array([snap.frame_of[a.last_frame] for a in A], int)}, direction
 
 
-def candidate_table(pipe, corr=None) -> dict[str, np.ndarray]:
+def candidate_table(snap) -> dict[str, np.ndarray]:
     """Every apple the count was chosen from (the counting's checks, with each apple's position, ENU and WGS84, its
-    radius in metres and its first and last frame): candidates.csv's columns. ``corr`` as for :func:`apple_table`."""
-    c = pipe.apples.count.checks(all_expected=True)
-    A = [pipe.apples.count.apples[i] for i in c["id"]]
-    enu = apples_enu(pipe, A, corr)
-    geo = _geodetic(pipe, enu)
-    radius = c.pop("radius") * pipe.metres_per_unit()
+    radius in metres and its first and last frame): candidates.csv's columns. ``snap`` made at the end (its
+    ``checks``)."""
+    c = dict(snap.checks)
+    A = [snap.apples[i] for i in c["id"]]
+    enu = apples_enu(snap, A)
+    geo = _geodetic(snap, enu)
+    radius = c.pop("radius") * snap.metres_per_unit
     return {**c, "radius_m": radius, "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
             "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
-            "first_frame": np.array([pipe.apples.frames.frame[a.first_frame] for a in A], int),
-            "last_frame": np.array([pipe.apples.frames.frame[a.last_frame] for a in A], int)}
+            "first_frame": np.array([snap.frame_of[a.first_frame] for a in A], int),
+            "last_frame": np.array([snap.frame_of[a.last_frame] for a in A], int)}
 
 
-def pose_table(pipe, corr=None) -> dict[str, np.ndarray]:
-    """Every mapped frame's camera: frame, capture time, source, centre (ENU and WGS84), ENU-to-camera quaternion.
-    ``corr`` as for :func:`apple_table`."""
+def pose_table(snap) -> dict[str, np.ndarray]:
+    """Every mapped frame's camera: frame, capture time, source, centre (ENU and WGS84), ENU-to-camera quaternion."""
     from scipy.spatial.transform import Rotation
 
-    frames = sorted(pipe.apples.frames.poses)
-    P = [pipe.apples.frames.poses[f] for f in frames]
-    if not P or pipe.poses is None:
+    frames = sorted(snap.poses)
+    P = [snap.poses[f] for f in frames]
+    if not P or snap.to_enu is None:
         return {k: np.zeros(0) for k in ("frame", "t_unix", "source", "x", "y", "z", "lat", "lon", "alt",
                                          "qw", "qx", "qy", "qz", "sigma_m")}
-    S = pipe.poses.assoc_to_enu()
-    _, off, rot = corr if corr is not None else corrections(pipe)
+    S = snap.to_enu
+    _, off, rot = snap.corrections
     C = S.apply(np.array([p.centre for p in P])) + off
     R = np.array([p.R for p in P]) @ S.R.T @ np.swapaxes(rot, 1, 2)  # ENU-to-camera, turned with the map's bend
     q = Rotation.from_matrix(R).as_quat()  # xyzw
-    geo = np.asarray(pipe.poses.origin.to_geodetic(C)).reshape(-1, 3) if pipe.poses.origin else np.full(C.shape, np.nan)
-    return {"frame": np.array(frames), "t_unix": np.array([pipe.arrivals.frame_times.get(f, np.nan) for f in frames]),
+    geo = np.asarray(snap.origin.to_geodetic(C)).reshape(-1, 3) if snap.origin else np.full(C.shape, np.nan)
+    return {"frame": np.array(frames), "t_unix": np.array([snap.frame_times.get(f, np.nan) for f in frames]),
             "source": np.array([p.source for p in P], dtype=object), "x": C[:, 0], "y": C[:, 1], "z": C[:, 2],
             "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
             "qw": q[:, 3], "qx": q[:, 0], "qy": q[:, 1], "qz": q[:, 2],

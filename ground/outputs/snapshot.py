@@ -1,0 +1,50 @@
+"""The map at one refresh, made once (:func:`snapshot`) and read by the tables, the node and rerun, so that none of
+them reaches into the pipeline's parts."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pomar.align import Similarity
+from pomar.geo import Origin
+
+
+@dataclass
+class MapSnapshot:
+    """What the map's outputs read, in the association frame with what takes it to ENU and WGS84."""
+    #: Every apple the count holds, by id (ground.apples.association.Apple), and the ids counted.
+    apples: dict
+    counted_ids: list[int]
+    #: Each apple's radius (association units) where known.
+    radius: dict[int, float]
+    #: Association frame index -> frame number.
+    frame_of: list[int]
+    #: Frame number -> its pose (ground.poses.georeference.Pose, association frame).
+    poses: dict
+    #: Association frame -> ENU; None before the poses exist.
+    to_enu: Similarity | None
+    #: The map's bend and drift corrections at every posed frame (frames, ENU offsets, ENU rotations), computed once.
+    corrections: tuple[np.ndarray, np.ndarray, np.ndarray] | None
+    origin: Origin | None
+    #: Frame number -> capture time (unix s).
+    frame_times: dict[int, float]
+    metres_per_unit: float
+    #: The counting's checks of every apple it was chosen from (candidates.csv), at the flight's end.
+    checks: dict | None = None
+
+
+def snapshot(pipe, final: bool = False) -> MapSnapshot:
+    """The map of a ground.pipeline.GroundPipeline now; the candidates' checks too at the end (``final``)."""
+    frames = pipe.apples.frames
+    corr = None
+    if pipe.poses is not None:
+        posed = np.array(sorted(frames.poses), int)
+        corr = (posed, *pipe.poses.correction(posed, pipe.s.drift_sigma_s * (pipe.fps or 0.0)))
+    count = pipe.apples.count
+    return MapSnapshot(apples=count.apples, counted_ids=count.counted_ids(), radius=count.radius, frame_of=frames.frame,
+                       poses=frames.poses, to_enu=pipe.poses.assoc_to_enu() if pipe.poses is not None else None,
+                       corrections=corr, origin=pipe.poses.origin if pipe.poses is not None else None,
+                       frame_times=pipe.arrivals.frame_times, metres_per_unit=pipe.metres_per_unit(),
+                       checks=count.checks(all_expected=True) if final else None)
