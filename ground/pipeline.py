@@ -10,8 +10,8 @@
 The camera message opens a stream (:meth:`GroundPipeline.start`); its frame, keyframe and status messages are fed
 (:meth:`GroundPipeline.feed`); ``take`` does either. A frame goes down once and comes back once: the arrivals
 (:class:`ground.link.arrivals.Arrivals`) put the messages in frame order; the poses
-(:class:`ground.poses.live.LivePoses`) take the telemetry and the images, and say when a frame's pose can be decided
-and what it is; the apples (:class:`ground.apples.live.LiveApples`) take the posed frame's detections and give back
+(:class:`ground.poses.stage.PoseStage`) take the telemetry and the images, and say when a frame's pose can be decided
+and what it is; the apples (:class:`ground.apples.stage.AppleStage`) take the posed frame's detections and give back
 the apples it confirmed. An image that does not decode or track is logged, and its frame gets an interpolated or
 telemetry pose: nothing stops the flight.
 """
@@ -26,9 +26,9 @@ from dataclasses import dataclass, field, replace
 from ground.apples.association import Apple, AssociationParams
 from ground.apples.counting import CountingSettings
 from ground.apples.landmarks import SIGMA as APPLES_SIGMA
-from ground.apples.live import LiveApples
+from ground.apples.stage import AppleStage
 from ground.link.arrivals import Arrivals
-from ground.poses.live import LivePoses, Pose
+from ground.poses.stage import PoseStage, Pose
 from ground.poses.mapper_process import MappingWorker
 from ground.poses.registration import RegistrationSettings
 from ground.poses.tracking import TrackingSettings
@@ -120,8 +120,8 @@ class GroundPipeline:
         self.arrivals = Arrivals(self.s.max_wait_s)
         self._work_depth = 0  # nesting of take() and step(): their time lengthens a hold of the gaps
         self.work_s = 0.0  # seconds spent in take() and step(), outermost calls
-        self.poses: LivePoses | None = None
-        self.apples = LiveApples(self.s.association, self.s.counting, self.s.min_score)
+        self.poses: PoseStage | None = None
+        self.apples = AppleStage(self.s.association, self.s.counting, self.s.min_score)
         # live, the mapping process starts now: its imports would otherwise hold up the first model
         self._mapping_worker = MappingWorker() if self.s.mapping == "process" else None
         self._kf_for_event: dict[int, bytes] = {}  # images tracked, kept for their frame's event
@@ -215,8 +215,8 @@ class GroundPipeline:
         if self.poses is None:
             if not arrivals.keyframes and not final and not self._stalled():
                 return []
-            width = LivePoses.keyframe_width(arrivals.keyframes.values()) or self._kf_width_said
-            self.poses = LivePoses(self.camera, self.workdir, keyframe_width=width, settings=self.s.registration,
+            width = PoseStage.keyframe_width(arrivals.keyframes.values()) or self._kf_width_said
+            self.poses = PoseStage(self.camera, self.workdir, keyframe_width=width, settings=self.s.registration,
                                    origin=self.origin, max_interp_gap=self.s.max_interp_gap,
                                    tracking=self.s.tracking, init_spacing_s=self.s.init_spacing_s,
                                    mapping_worker=self._mapping_worker)

@@ -231,7 +231,7 @@ def test_apples_whose_views_meet_at_a_narrow_angle_are_left_out():
     from ground.apples.association import Apple
     from ground.apples.counting import Counting, CountingSettings
     from ground.apples.frames import AssociationFrames
-    from ground.poses.live import Pose
+    from ground.poses.stage import Pose
 
     frames = AssociationFrames()
     count = Counting(CountingSettings(min_radius_ratio=0.0, min_view_ratio=0.0, min_parallax_deg=2.0), frames, 100)

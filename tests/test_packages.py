@@ -86,7 +86,7 @@ def test_the_link_sits_below_the_pipeline_and_the_outputs():
 
 
 def test_nothing_outside_the_pose_stage_reaches_into_its_parts():
-    """The pose stage (ground/poses/) answers through LivePoses' own methods: what a frame's pose is, the corrections,
+    """The pose stage (ground/poses/) answers through PoseStage' own methods: what a frame's pose is, the corrections,
     when it is ready, its figures. Nothing else in ground/ reaches its tracking, mapper or association frame."""
     import re
     from pathlib import Path

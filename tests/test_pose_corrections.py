@@ -1,11 +1,11 @@
-"""Poses given earlier, corrected as the mapper moves the keyframes about them (ground.poses.live.LivePoses.corrected)."""
+"""Poses given earlier, corrected as the mapper moves the keyframes about them (ground.poses.stage.PoseStage.corrected)."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ground.poses.live import LivePoses, Pose
+from ground.poses.stage import PoseStage, Pose
 from ground.poses.telemetry_poses import KeyframeTelemetry
 from pomar.align import IDENTITY
 from pomar.camera import Camera
@@ -17,7 +17,7 @@ def _pose(frame: int, R: np.ndarray, c, source: str = "tracked") -> Pose:
 
 
 def test_frames_follow_the_keyframes_the_mapper_moved(tmp_path):
-    lp = LivePoses(Camera.from_fov(1280, 720, 50.0), tmp_path)
+    lp = PoseStage(Camera.from_fov(1280, 720, 50.0), tmp_path)
     try:
         lp.assoc.frozen = lp.mapper.fit = IDENTITY  # model frame = association frame = ENU
         R0 = np.eye(3)
@@ -48,7 +48,7 @@ def test_frames_follow_the_keyframes_the_mapper_moved(tmp_path):
 
 
 def test_a_frame_given_its_pose_after_a_correction_agrees_with_the_frames_the_correction_moved(tmp_path):
-    lp = LivePoses(Camera.from_fov(1280, 720, 50.0), tmp_path)
+    lp = PoseStage(Camera.from_fov(1280, 720, 50.0), tmp_path)
     try:
         lp.assoc.frozen = lp.mapper.fit = IDENTITY  # model frame = association frame = ENU
         R0 = np.eye(3)
@@ -86,7 +86,7 @@ def test_a_tracked_frame_is_corrected_with_the_keyframe_it_was_tracked_from_and_
     placement corrected). Frame 14 keeps its pose: it was measured against keyframe 10's points. When keyframe 10 moves,
     frame 14 moves with it, its pose relative to the keyframe kept. A frame interpolated between tracked ones follows
     them."""
-    lp = LivePoses(Camera.from_fov(1280, 720, 50.0), tmp_path)
+    lp = PoseStage(Camera.from_fov(1280, 720, 50.0), tmp_path)
     try:
         lp.assoc.frozen = lp.mapper.fit = IDENTITY  # model frame = association frame = ENU
         R0 = np.eye(3)
@@ -124,7 +124,7 @@ def test_a_tracked_frame_is_corrected_with_the_keyframe_it_was_tracked_from_and_
 def test_drift_correction_applies_only_where_the_map_drifted_beyond_the_gps_wander(tmp_path):
     """The GPS's gate of AssociationFrame.correction: a map rigid within the GPS's stated accuracy is left as it is (what a
     correction would follow there is the GPS error's wander); a map that bent away from the GPS is taken back to it."""
-    lp = LivePoses(Camera.from_fov(1280, 720, 50.0), tmp_path)
+    lp = PoseStage(Camera.from_fov(1280, 720, 50.0), tmp_path)
     try:
         rng = np.random.default_rng(5)
         lp.assoc.frozen = IDENTITY
@@ -166,7 +166,7 @@ def test_a_map_that_turns_along_a_long_pass_is_bent_back_by_the_attitudes(tmp_pa
     from pomar.rotations import rotation_to_quat_wxyz
 
     cam = Camera.from_fov(1280, 720, 50.0)
-    lp = LivePoses(cam, tmp_path)
+    lp = PoseStage(cam, tmp_path)
     try:
         rng = np.random.default_rng(3)
         lp.assoc.frozen = IDENTITY

@@ -1,1 +1,1 @@
-"""Apples: detections linked across frames into apples (association, geometry, the paper's method; live.LiveApples wires them with the frames fed and the counting) and apples split into rows (rows)."""
+"""Apples: detections linked across frames into apples (association: the records; ransac, paper, windowed, merging, spatial_index; geometry), the frames fed, the counting, and apples split into rows (rows); stage.AppleStage wires them."""

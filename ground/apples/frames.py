@@ -12,7 +12,7 @@ class AssociationFrames:
         self.frame: list[int] = []  # association frame -> frame index
         self.seq: dict[int, int] = {}  # frame index -> association frame
         self.P: list[np.ndarray] = []  # association frame -> camera matrix (association frame of reference)
-        self.poses: dict = {}  # frame index -> its pose (ground.poses.live.Pose), corrected since
+        self.poses: dict = {}  # frame index -> its pose (ground.poses.stage.Pose), corrected since
 
     def __len__(self) -> int:
         return len(self.frame)

@@ -7,7 +7,7 @@ import numpy as np
 
 from ground.memory import children_peak_rss_mb, peak_rss_mb
 from ground.outputs.tables import harvest_correlation
-from ground.poses.live import no_pose_figures
+from ground.poses.stage import no_pose_figures
 
 #: The kinds of pose a mapped frame gets, as the pipeline counts them.
 POSE_SOURCES = ("registered", "tracked", "interpolated", "apples", "telemetry", "frames_without_pose")

@@ -1,1 +1,1 @@
-"""Poses: every frame's camera, tracked against the map (tracking), keyframes mapped by incremental pycolmap (mapping, registration, matching, revisit), georeferenced by the telemetry (georeference, telemetry_poses); live.LivePoses wires them."""
+"""Poses: every frame's camera, tracked against the map (tracking), keyframes mapped by incremental pycolmap (mapper, mapper_process, registration, passes, keyframe_db, sift, matching, revisit, restart), georeferenced by the telemetry (georeference, telemetry_poses); stage.PoseStage wires them and is the pose stage's one door."""

@@ -1,7 +1,7 @@
 """The apples as the frames come: each posed frame's detections go to the windowed association, the apples it finds
 go to the counting, and a frame's corrected pose moves the apples seen in it.
 
-    apples = LiveApples(association_params, counting_settings, min_score)
+    apples = AppleStage(association_params, counting_settings, min_score)
     apples.camera = camera                                  # once the camera message came
     new = apples.take_frame(msg, pose, steps, metres_per_unit)  # a released frame: the apples it confirmed
     apples.repose(corrected_poses, steps, metres_per_unit)  # frame -> corrected pose
@@ -21,7 +21,7 @@ from ground.apples.landmarks import place_by_apples
 from pomar import wire
 
 
-class LiveApples:
+class AppleStage:
     def __init__(self, association: AssociationParams, counting: CountingSettings, min_score: float = 0.0):
         self.assoc = WindowedAssociation(association)
         self.frames = AssociationFrames()  # the frames fed to the association: poses, camera matrices

@@ -1,4 +1,4 @@
-"""Camera poses for a live flight: the one pose interface the pipeline hands its frames to.
+"""The pose stage: the one pose interface the pipeline hands its frames to, lock-step or live.
 
 Behind it: :class:`ground.poses.tracking.ImageTracking` takes the images in frame order and gives every frame that
 carries one a pose from its own pixels against the map (KLT + PnP, milliseconds), proposing *mapping keyframes* to
@@ -44,7 +44,7 @@ log = logging.getLogger(__name__)
 
 
 def no_pose_figures() -> dict:
-    """:meth:`LivePoses.figures` of a flight whose poses never started (no camera message, no keyframe)."""
+    """:meth:`PoseStage.figures` of a flight whose poses never started (no camera message, no keyframe)."""
     return {"registration": {"keyframes_processed": 0, "registered": 0, "failed": 0, "submodels": 0,
                              "mapper_died": None, "mapper_restarts": [], "in_memory_from_keyframe": None,
                              "revisits": 0, "reanchored": 0, "rejoined": 0, "drift_m": 0.0, "drift_corrected": False,
@@ -56,7 +56,7 @@ def no_pose_figures() -> dict:
             "timings": {"tracking_seconds": 0.0, "inline_mapping_seconds": 0.0, "mapping_seconds": 0.0}}
 
 
-class LivePoses:
+class PoseStage:
     """The ground's poses, wired: the frames' telemetry, the images in order (:class:`ImageTracking`: the tracker and
     the mapper), the association frame (:class:`AssociationFrame`), and which pose each frame gets."""
 
