@@ -115,6 +115,7 @@ class GroundPipeline:
         self.fps = float("nan")  # the drone's frame rate, from its camera message
         self._kf_width_said: int | None = None  # the keyframes' width, as the camera message says it
         self.flight_id = self.drone_id = None
+        self.altitude_reference: str | None = None  # what the frames' altitudes are measured from (camera message)
         if self.s.mapping not in ("stream", "inline", "process"):
             raise ValueError(f"GroundSettings.mapping must be 'stream', 'inline' or 'process', got {self.s.mapping!r}")
         self.arrivals = Arrivals(self.s.max_wait_s)
@@ -168,6 +169,7 @@ class GroundPipeline:
             camera = Camera.from_dict(msg.camera, source=f"camera message of {msg.flight_id}/{msg.drone_id}")
             self.flight_id, self.drone_id = msg.flight_id, msg.drone_id
             self.fps = msg.fps
+            self.altitude_reference = msg.altitude_reference
             self._kf_width_said = msg.keyframe_width or None
             said = stream_profile(msg.paced)
             if self.s.mapping == "stream":

@@ -113,7 +113,7 @@ def run_live(camera_url, telemetry, camera: dict, flight_id: str, drone_id: str,
     the frame numbers are kept across a restart of the node (onboard.numbering); None: not kept."""
     cam = Camera.from_dict(camera)
     publisher.publish(camera_message(flight_id, drone_id, camera, cam.width, play_fps or 0.0, time.time(),
-                                     keyframe_width, True, detector))
+                                     keyframe_width, True, detector, "msl"))  # MAVLink's positions are above MSL
     numbers = FrameNumbers(Path(state_dir) / f"{flight_id}-{drone_id}.json" if state_dir else None)
     frames = LiveFrames(camera_url, telemetry, cam.fx, clock_offset_s, telemetry_max_wait_s, play_fps, numbers)
     scaling = policy_for(detector, detector_scale)

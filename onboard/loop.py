@@ -44,14 +44,16 @@ def sent_keyframe_width(width: int, image_width: int) -> int:
 
 
 def camera_message(flight_id: str, drone_id: str, camera: dict, image_width: int, fps: float, start_unix: float,
-                   keyframe_width: int, paced: bool, detector) -> wire.CameraMessage:
+                   keyframe_width: int, paced: bool, detector, altitude_reference: str) -> wire.CameraMessage:
     """The message that opens a drone's stream, the same from every source: its camera (camera.json's content), frame
-    rate, start, the keyframes' width, whether frames come at the video's pace, and the detector's envelope (the
-    smallest apple radius it finds reliably, 0 where its model does not say) and the score it publishes from."""
+    rate, start, the keyframes' width, whether frames come at the video's pace, the detector's envelope (the
+    smallest apple radius it finds reliably, 0 where its model does not say), the score it publishes from, and what
+    the telemetry's altitudes are measured from (wire.ALTITUDE_REFERENCES)."""
     return wire.CameraMessage(flight_id, drone_id, camera, fps, start_unix,
                               sent_keyframe_width(keyframe_width, image_width), paced=paced,
                               min_apple_radius_px=getattr(detector, "min_apple_radius_px", None) or 0.0,
-                              score_thresh=getattr(detector, "score_thresh", None))
+                              score_thresh=getattr(detector, "score_thresh", None),
+                              altitude_reference=altitude_reference)
 
 
 def encode_jpeg(img: np.ndarray, width: int, quality: int) -> bytes:

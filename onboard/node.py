@@ -122,6 +122,7 @@ class OnboardNode:
         self.detector = detector
         self.s = settings or NodeSettings()
         self.inputs = None  # check_inputs()'s result
+        self.altitude_reference = "msl"  # what the log's altitudes are measured from (check_inputs() reads it)
 
     def check_inputs(self):
         """Read and cross-check the flight's files before anything is published: flight.json, camera.json against
@@ -160,13 +161,15 @@ class OnboardNode:
                         "cannot be foreseen, and frames go to the detector at their own size (--detector-scale N sets "
                         "one scale)", log_path)
         self.inputs = (meta, cam, t_frames, tel)
+        self.altitude_reference = tl.altitude_reference
         return self.inputs
 
     def run(self) -> dict:
         meta, cam, t_frames, tel = self.inputs or self.check_inputs()
         scaling = policy_for(self.detector, self.s.detector_scale)  # the detector may come after check_inputs()
         self.pub.publish(camera_message(meta.flight_id, meta.drone_id, cam.to_dict(), cam.width, meta.fps,
-                                        meta.video_start_utc, self.s.keyframe_width, self.s.realtime, self.detector))
+                                        meta.video_start_utc, self.s.keyframe_width, self.s.realtime, self.detector,
+                                        self.altitude_reference))
         frames = RecordedFrames(self.flight.video, t_frames, tel, self.s.every, meta.frame_count, meta.fps,
                                 not self.s.realtime, started_at=self.s.camera_started_at)
         pacer = scaling.pacer() if self.s.realtime else None  # live: enlarge frames only while there is time

@@ -48,6 +48,12 @@ QUAT_NORM_TOL = 1e-3  # |q| must be 1 within this
 # the image's edge may have its whole box (its centre outside), as the truth-replay stand-in gives.
 
 #: Why a message was refused (``WireError.reason``).
+#: What a position's altitude is measured from, as the drone's log says (pomar.telemetry's ``altitude_reference``):
+#: sea level ("msl"), the WGS84 ellipsoid ("ellipsoid"), the take-off point ("takeoff"), or a log that does not say
+#: above what ("unstated") or gives no altitude ("unknown"). Only the first two place a map above sea level.
+ALTITUDE_REFERENCES = ("msl", "ellipsoid", "takeoff", "unstated", "unknown")
+ABSOLUTE_ALTITUDES = ("msl", "ellipsoid")
+
 REASONS = ("not_msgpack", "schema_version", "message_type", "malformed", "not_finite", "out_of_range",
            "too_many_boxes", "box_outside_image", "bad_quaternion", "bad_jpeg", "image_size",
            "frame_window", "wrong_flight", "other_drone", "drone_mismatch", "camera_changed")
@@ -395,6 +401,9 @@ class CameraMessage:
     #: The drone publishes detections scored at least this (pomar.countable.PUBLISH_SCORE unless told otherwise);
     #: None: not said (a truth stand-in, or a node before it).
     score_thresh: float | None = None
+    #: What the frames' altitudes are measured from (one of ALTITUDE_REFERENCES); None: not said (a node before it;
+    #: taken as sea level, as a MAVLink position's).
+    altitude_reference: str | None = None
 
     def encode(self) -> bytes:
         return msgpack.packb({"v": SCHEMA_VERSION, "type": "camera", "flight": self.flight_id, "drone": self.drone_id,
@@ -402,7 +411,8 @@ class CameraMessage:
                               "kfw": int(self.keyframe_width),
                               **({} if self.paced is None else {"paced": bool(self.paced)}),
                               **({"minr": float(self.min_apple_radius_px)} if self.min_apple_radius_px else {}),
-                              **({} if self.score_thresh is None else {"pubs": float(self.score_thresh)})},
+                              **({} if self.score_thresh is None else {"pubs": float(self.score_thresh)}),
+                              **({} if self.altitude_reference is None else {"altref": self.altitude_reference})},
                              use_bin_type=True)
 
     @property
@@ -434,11 +444,16 @@ class CameraMessage:
         paced = d.get("paced")
         if paced is not None and not isinstance(paced, bool):
             raise WireError(f"camera message: paced must be true or false, got {paced!r}", "malformed")
+        ref = d.get("altref")
+        if ref is not None and ref not in ALTITUDE_REFERENCES:
+            raise WireError(f"camera message: altitude reference must be one of {', '.join(ALTITUDE_REFERENCES)}, got "
+                            f"{ref!r:.40}", "out_of_range")
         return cls(_str("flight", d["flight"]), _str("drone", d["drone"]), dict(d["camera"]), fps,
                    _float("camera message: start", d.get("start", 0.0), 0.0, 2.0**33),
                    _int("camera message: keyframe width", d.get("kfw", 0), 0, MAX_IMAGE_SIDE), paced,
                    _float("camera message: min apple radius", d.get("minr", 0.0), 0.0, 1000.0),
-                   None if d.get("pubs") is None else _float("camera message: published score", d["pubs"], 0.0, 1.0))
+                   None if d.get("pubs") is None else _float("camera message: published score", d["pubs"], 0.0, 1.0),
+                   ref)
 
 
 _TYPES = {"frame": FrameMessage, "keyframe": KeyframeMessage, "status": StatusMessage, "camera": CameraMessage}

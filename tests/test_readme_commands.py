@@ -6,6 +6,7 @@ working folder under those names; the DJI commands run once per SRT layout of th
 
 from __future__ import annotations
 
+import csv
 import json
 import re
 import shlex
@@ -14,6 +15,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -104,6 +106,14 @@ def test_dji_command(flight, tmp_path, layout, attitude):
         assert scaled_by == "heights", rep["registration"]
     if layout in ("air2s", "mavic2"):
         assert scaled_by == "positions", rep["registration"]
+    # only abs_alt places the map above sea level; a height above take-off (H, BAROMETER) or an altitude of no stated
+    # reference leaves the outputs' alt empty and the GeoJSON 2-D, as report.json says
+    above = layout == "mavic3"
+    assert rep["map"]["above_sea_level"] is above and rep["map"]["origin"] is not None, rep["map"]
+    alt = np.array([float(r["alt"]) for r in csv.DictReader((res / "apples.csv").open())])
+    assert len(alt) and np.isfinite(alt).all() == above and np.isnan(alt).all() != above
+    dims = {len(f["geometry"]["coordinates"]) for f in json.loads((res / "apples.geojson").read_text())["features"]}
+    assert dims == {3 if above else 2}, dims
 
 
 def test_ardupilot_command(flight, tmp_path):

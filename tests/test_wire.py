@@ -69,6 +69,14 @@ def test_telemetry_of_older_nodes_without_a_height_still_decodes():
     older = msgpack.unpackb(c.encode(), raw=False)
     del older["kfw"]  # a node from before the keyframe width was said
     assert wire.decode(msgpack.packb(older, use_bin_type=True)).keyframe_width == 0
+    assert c.altitude_reference is None and "altref" not in older  # not said: sea level, as a MAVLink position's
+    for ref in wire.ALTITUDE_REFERENCES:
+        c.altitude_reference = ref
+        assert wire.decode(c.encode()).altitude_reference == ref
+    odd = {**msgpack.unpackb(c.encode(), raw=False), "altref": "geoid"}
+    with pytest.raises(wire.WireError, match="altitude reference must be one of") as e:
+        wire.decode(msgpack.packb(odd, use_bin_type=True))
+    assert e.value.reason == "out_of_range"
     f = frame(2)
     f.keyframe = True  # a keyframe of this frame follows
     assert wire.decode(f.encode()).keyframe is True and wire.decode(frame(2).encode()).keyframe is False

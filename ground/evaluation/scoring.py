@@ -194,8 +194,19 @@ def duplicates(pred: np.ndarray, truth: np.ndarray, within_m: float = 0.15) -> i
 
 
 def _enu(flight: FlightDir, path: Path) -> np.ndarray:
-    d = read_csv(path, ["lat", "lon", "alt"])
+    """A map file's points (its lat, lon, alt) in the flight's truth ENU frame. A map without altitudes above sea level
+    (its log gave heights above take-off; alt empty) is placed by its own ENU (x, y, z) about the origin report.json
+    names, whose height above take-off goes on the truth's take-off point (the simulator's home, its origin)."""
+    import json
+
+    from pomar.geo import Origin
+
+    d = read_csv(path, ["lat", "lon", "alt", "x", "y", "z"])
     geo = np.stack([d["lat"], d["lon"], d["alt"]], 1).reshape(-1, 3)
+    if len(geo) and not np.isfinite(geo[:, 2]).all():
+        o = json.loads((path.parent / "report.json").read_text())["map"]["origin"]
+        home = Origin(o["lat"], o["lon"], o["alt"] + flight.origin().alt)
+        geo = home.to_geodetic(np.stack([d["x"], d["y"], d["z"]], 1)).reshape(-1, 3)
     return flight.origin().to_enu(geo[:, 0], geo[:, 1], geo[:, 2]).reshape(-1, 3)
 
 
@@ -259,8 +270,7 @@ def label_candidates(flight: FlightDir, out: Path, min_visible: float = MIN_VISI
 
     with open(out / "candidates.csv", newline="") as f:
         cands = list(csv.DictReader(f))
-    geo = np.array([[float(c[k]) for k in ("lat", "lon", "alt")] for c in cands], float).reshape(-1, 3)
-    X = map_shape_fit(flight, out)[0].similarity.apply(flight.origin().to_enu(*geo.T).reshape(-1, 3))
+    X = map_shape_fit(flight, out)[0].similarity.apply(_enu(flight, out / "candidates.csv"))
     a = flight.truth_apples()
     d = flight.truth_detections()
     countable = countable_ids(d["apple_id"], d["visible_fraction"], min_visible)

@@ -9,6 +9,7 @@ import numpy as np
 
 from pomar.align import Similarity
 from pomar.geo import Origin
+from pomar.wire import ABSOLUTE_ALTITUDES
 
 
 @dataclass
@@ -33,6 +34,13 @@ class MapSnapshot:
     metres_per_unit: float
     #: The counting's checks of every apple it was chosen from (candidates.csv), at the flight's end.
     checks: dict | None = None
+    #: What the frames' altitudes were measured from (pomar.wire.ALTITUDE_REFERENCES; None: not said, sea level).
+    altitude_reference: str | None = None
+
+    @property
+    def above_sea_level(self) -> bool:
+        """Whether the map's heights can be given as altitudes above sea level (not with heights above take-off)."""
+        return self.altitude_reference is None or self.altitude_reference in ABSOLUTE_ALTITUDES
 
 
 def snapshot(pipe, final: bool = False) -> MapSnapshot:
@@ -47,4 +55,5 @@ def snapshot(pipe, final: bool = False) -> MapSnapshot:
                        poses=frames.poses, to_enu=pipe.poses.assoc_to_enu() if pipe.poses is not None else None,
                        corrections=corr, origin=pipe.poses.origin if pipe.poses is not None else None,
                        frame_times=pipe.arrivals.frame_times, metres_per_unit=pipe.metres_per_unit(),
-                       checks=count.checks(all_expected=True) if final else None)
+                       checks=count.checks(all_expected=True) if final else None,
+                       altitude_reference=pipe.altitude_reference)

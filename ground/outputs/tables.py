@@ -3,6 +3,7 @@
 - ``apples.csv``: id, x, y, z (ENU m), lat, lon, alt (WGS84), row (1..N), radius (m, from the boxes and
   depths), observations, reprojection error, first and last frame;
 - ``apples.geojson``: a FeatureCollection of WGS84 points (lon, lat, alt) with the same properties;
+  alt is empty (NaN in the CSVs, 2-D points in GeoJSON) where the drone's log gives no altitude above sea level;
 - ``apples.ply``: ASCII point cloud in ENU, coloured by row;
 - ``rows.csv``: row, count, length (m, along the row direction), apples per metre, and the row's line:
   start and end in ENU and WGS84 (the span of its apples along the row, at their median across-row offset);
@@ -54,10 +55,14 @@ def apples_enu(snap, A: list) -> np.ndarray:
 
 
 def _geodetic(snap, enu: np.ndarray) -> np.ndarray:
-    """(N, 3) lat, lon, alt of ENU points; NaN before the map is georeferenced."""
+    """(N, 3) lat, lon, alt of ENU points; NaN before the map is georeferenced. The altitude is NaN where the drone's
+    log gives none above sea level (a DJI SRT's height above take-off): the map's heights stay in its ENU z."""
     if snap.to_enu is None or snap.origin is None or not len(enu):
         return np.full((len(enu), 3), np.nan)
-    return np.asarray(snap.origin.to_geodetic(enu)).reshape(-1, 3)
+    geo = np.asarray(snap.origin.to_geodetic(enu), float).reshape(-1, 3)
+    if not snap.above_sea_level:
+        geo[:, 2] = np.nan
+    return geo
 
 
 def apple_table(snap) -> tuple[dict[str, np.ndarray], float]:
@@ -110,7 +115,7 @@ def pose_table(snap) -> dict[str, np.ndarray]:
     C = S.apply(np.array([p.centre for p in P])) + off
     R = np.array([p.R for p in P]) @ S.R.T @ np.swapaxes(rot, 1, 2)  # ENU-to-camera, turned with the map's bend
     q = Rotation.from_matrix(R).as_quat()  # xyzw
-    geo = np.asarray(snap.origin.to_geodetic(C)).reshape(-1, 3) if snap.origin else np.full(C.shape, np.nan)
+    geo = _geodetic(snap, C)
     return {"frame": np.array(frames), "t_unix": np.array([snap.frame_times.get(f, np.nan) for f in frames]),
             "source": np.array([p.source for p in P], dtype=object), "x": C[:, 0], "y": C[:, 1], "z": C[:, 2],
             "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
@@ -184,9 +189,10 @@ def apples_geojson(table: dict) -> str:
         if not np.isfinite([table["lat"][i], table["lon"][i]]).all():
             continue
         feats.append({"type": "Feature",
+                      # 2-D where the map has no altitude above sea level (_geodetic)
                       "geometry": {"type": "Point", "coordinates": [round(float(table["lon"][i]), 9),
-                                                                    round(float(table["lat"][i]), 9),
-                                                                    round(float(table["alt"][i]), 4)]},
+                                                                    round(float(table["lat"][i]), 9)]
+                                   + ([round(float(table["alt"][i]), 4)] if np.isfinite(table["alt"][i]) else [])},
                       "properties": {"id": int(table["id"][i]), "row": int(table["row"][i]),
                                      "observations": int(table["observations"][i]),
                                      "reprojection_error_px": round(float(table["reprojection_error_px"][i]), 3)}})
