@@ -127,7 +127,8 @@ class GroundPipeline:
         self._mapping_worker = MappingWorker() if self.s.mapping == "process" else None
         self._kf_for_event: dict[int, bytes] = {}  # images tracked, kept for their frame's event
         self._counts = {"bad_keyframes": 0, "frames_without_pose": 0,
-                        "registered": 0, "tracked": 0, "interpolated": 0, "apples": 0, "telemetry": 0}
+                        "registered": 0, "tracked": 0, "interpolated": 0, "extrapolated": 0, "apples": 0,
+                        "telemetry": 0}
         self.seconds = {"poses": 0.0, "association": 0.0, "corrections": 0.0}
         self._last_correction = time.monotonic()  # the first round waits its period too
         self.corrections = {"rounds": 0, "frames": 0, "apples_moved": 0, "apples_merged": 0}
@@ -138,7 +139,7 @@ class GroundPipeline:
         c = self._counts
         return {**self.arrivals.counters, "bad_keyframes": c["bad_keyframes"],
                 "frames_without_pose": c["frames_without_pose"], "detections": self.apples.detections,
-                **{k: c[k] for k in ("registered", "tracked", "interpolated", "apples", "telemetry")}}
+                **{k: c[k] for k in ("registered", "tracked", "interpolated", "extrapolated", "apples", "telemetry")}}
 
     # -- inputs
     def take(self, msg, step: bool = True) -> list[FrameEvent]:

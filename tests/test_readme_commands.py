@@ -93,6 +93,9 @@ def test_dji_command(flight, tmp_path, layout, attitude):
     res = wd / "out" / "replay" / "DJI_0042"
     rep = json.loads((res / "report.json").read_text())
     assert rep["frames"]["frames"] == flight.meta().frame_count
+    # every frame posed, those past a once-a-second log's last subtitle too (carried on from the map's poses)
+    assert rep["frames"]["frames_without_pose"] == 0, rep["frames"]
+    print({k: rep["frames"][k] for k in ("registered", "tracked", "interpolated", "extrapolated", "apples", "telemetry")})
     ev = score(flight, res)
     least = DJI[(layout, attitude)]
     print(f"{layout} {'with' if attitude else 'without'} attitudes: {rep['apples']} apples, shape F1 {ev['f1']:.3f}, "

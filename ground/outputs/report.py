@@ -11,7 +11,7 @@ from ground.poses.stage import no_pose_figures
 from pomar.wire import ABSOLUTE_ALTITUDES
 
 #: The kinds of pose a mapped frame gets, as the pipeline counts them.
-POSE_SOURCES = ("registered", "tracked", "interpolated", "apples", "telemetry", "frames_without_pose")
+POSE_SOURCES = ("registered", "tracked", "interpolated", "extrapolated", "apples", "telemetry", "frames_without_pose")
 
 
 def delay_stats(delays: list[float]) -> dict:

@@ -35,6 +35,7 @@ def summary_markdown(report: dict, live: dict) -> str:
                  f"keyframes, {reg.get('failed', 0)} failed, {reg.get('submodels', 0)} sub-model(s){gps_txt}. Frame "
                  f"poses: {fr.get('registered', 0)} registered, {fr.get('tracked', 0)} tracked "
                  f"({trk.get('failed', 0)} failed to track), {fr.get('interpolated', 0)} interpolated, "
+                 f"{fr.get('extrapolated', 0)} carried past the last posed frame, "
                  f"{fr.get('apples', 0)} placed by the apples they see, {fr.get('telemetry', 0)} from telemetry alone, {fr.get('frames_without_pose', 0)} without")
     died = reg.get("mapper_died")
     restarts = reg.get("mapper_restarts") or []

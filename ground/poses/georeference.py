@@ -259,7 +259,8 @@ class AssociationFrame:
     def frame_pose(self, frame: int, own, between, tel, camera, sigma_att_deg: float) -> Pose | None:
         """The frame's pose in the association frame from the best source it has: its own model pose (R, t, source:
         registered or tracked), else one interpolated between the model poses of its nearest posed frames (``between``:
-        a, (R, t) at a, b, (R, t) at b; rotation by slerp, centre linearly), else its telemetry (``tel``, a
+        a, (R, t) at a, b, (R, t) at b; rotation by slerp, centre linearly; carried on past them where the frame lies
+        outside a..b: ``extrapolated``), else its telemetry (``tel``, a
         KeyframeTelemetry: GPS and gimbal, through ``camera``'s mount). The model's poses count once the model is
         georeferenced; the association frame is fixed at the first frame posed. None without a model pose or position
         telemetry."""
@@ -273,9 +274,15 @@ class AssociationFrame:
             R2, t2 = georeference_poses(np.array([pa[0], pb[0]]), np.array([pa[1], pb[1]]), m2a)
             C = -np.einsum("nji,nj->ni", R2, t2)
             w = (frame - a) / (b - a)
-            R = Slerp([0.0, 1.0], Rotation.from_matrix(R2))([w]).as_matrix()[0]
+            if 0.0 <= w <= 1.0:
+                R = Slerp([0.0, 1.0], Rotation.from_matrix(R2))([w]).as_matrix()[0]
+                c = (1 - w) * C[0] + w * C[1]
+                return Pose(frame, R, -R @ c, "interpolated", 0.02, 0.1)
+            # past a..b: carried on at their motion (turn and velocity), as uncertain as the step is long
+            R = R2[0] @ Rotation.from_rotvec(w * Rotation.from_matrix(R2[0].T @ R2[1]).as_rotvec()).as_matrix()
             c = (1 - w) * C[0] + w * C[1]
-            return Pose(frame, R, -R @ c, "interpolated", 0.02, 0.1)
+            far = max(abs(w), abs(w - 1.0))
+            return Pose(frame, R, -R @ c, "extrapolated", 0.02 * far, 0.1 * far)
         log.debug("frame %d: telemetry pose (model georeferenced: %s)", frame, m2a is not None)
         if tel is None or not np.isfinite(tel.enu).all():
             return None

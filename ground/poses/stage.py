@@ -12,6 +12,9 @@ uncertainty:
 - ``interpolated``: a frame without an image (or whose tracking failed, then flagged in
   ``ImageTracking.failed_frames``) between two posed frames at most ``max_interp_gap`` apart (centre linearly,
   rotation by slerp);
+- ``extrapolated``: a frame past the last posed frame (the flight's last frames, after its last keyframe) or before
+  the first, within ``max_interp_gap`` of the two nearest, carried on from them at their motion: the map poses it,
+  whether or not the log reaches it (a log that ends before the video, a once-a-second log's last frames);
 - ``telemetry``: GPS + gimbal attitude alone.
 
 Poses come in the *association frame*: the model's coordinates taken through the first good
@@ -273,9 +276,24 @@ class PoseStage:
         k = bisect.bisect_left(sorted_frames, f)
         return k < len(sorted_frames) and sorted_frames[k] == f
 
+    def _beside(self, frame: int, kf_sorted: list[int]) -> tuple[int, int] | None:
+        """The two nearest posed frames on one side of ``frame`` (a frame with none on the other side within
+        max_interp_gap), the nearer within max_interp_gap of it: (farther, nearer)."""
+        tracked = self.tracking.tracked
+        for step in (-1, 1):
+            near = [f for f in range(frame + step, frame + step * (self.max_interp_gap + 1), step)
+                    if f in tracked or self._has(kf_sorted, f)][:1]
+            if not near:
+                continue
+            far = [f for f in range(near[0] + step, near[0] + step * (self.max_interp_gap + 1), step)
+                   if f in tracked or self._has(kf_sorted, f)][:1]
+            return (far[0], near[0]) if far else None
+        return None
+
     def pose(self, frame: int) -> Pose | None:
         """The frame's pose in the association frame (call once :meth:`ready`): its own if it was registered or
-        tracked, else interpolated between its nearest posed frames, else its telemetry's; None without either."""
+        tracked, else interpolated between its nearest posed frames, else carried on from the two nearest on one side
+        (:meth:`_beside`), else its telemetry's; None without any."""
         model_pose, kf_sorted, _ = self.mapper.registered()
         own = self._model_frame_pose(frame, model_pose)
         between = self._between(frame, model_pose, kf_sorted) if own is None else None
@@ -283,8 +301,11 @@ class PoseStage:
                                      float(np.degrees(self.sigma_att)))
 
     def _between(self, frame: int, model_pose, kf_sorted):
-        """(a, pose at a, b, pose at b) of the nearest posed frames around ``frame`` (:meth:`_neighbours`), or None."""
+        """(a, pose at a, b, pose at b) of the nearest posed frames around ``frame`` (:meth:`_neighbours`), else of
+        the two nearest on one side (:meth:`_beside`, the frame then outside a..b), or None."""
         ab = self._neighbours(frame, kf_sorted)
+        if ab is None and self.mapper.has_model:
+            ab = self._beside(frame, kf_sorted)
         return None if ab is None else (ab[0], self._model_frame_pose(ab[0], model_pose),
                                         ab[1], self._model_frame_pose(ab[1], model_pose))
 
@@ -305,7 +326,7 @@ class PoseStage:
         between its neighbours as they are now. None once that is forgotten (:meth:`forget_before`)."""
         own = self._model_frame_pose(frame, model_pose)
         between = None
-        if own is None and source == "interpolated":
+        if own is None and source in ("interpolated", "extrapolated"):
             between = self._between(frame, model_pose, kf_sorted)
             if between is None or any(p is None or (p[2] == "tracked" and not self._carried(f, model_pose))
                                       for f, p in ((between[0], between[1]), (between[2], between[3]))):
