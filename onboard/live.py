@@ -100,7 +100,8 @@ class LiveFrames:
 
     def telemetry(self, c: Capture) -> wire.Telemetry:
         s = sample_when_bracketed(self.telemetry_link, c.t_capture, c.t_read + self.max_wait_s)
-        self._expected = float(telemetry_radius_px(self.fx, s)[0])
+        r = float(telemetry_radius_px(self.fx, s)[0])
+        self._expected = r if np.isfinite(r) else self._expected  # a sample without a height keeps the last size
         return telemetry_record(s)
 
 

@@ -22,7 +22,7 @@ from onboard.loop import Capture, camera_message, publish_frames, telemetry_reco
 from onboard.sources import LatestFrame, SourceError, VideoSource
 from pomar.telemetry import Flags, TelemetryError, read_log
 from pomar import wire
-from pomar.apple_scale import policy_for, scale_argument, telemetry_radius_px
+from pomar.apple_scale import held_radius_px, policy_for, scale_argument, telemetry_radius_px
 from pomar.flight import FlightDir
 
 log = logging.getLogger(__name__)
@@ -155,7 +155,7 @@ class OnboardNode:
         if meta.frame_count and (tel["flags"] & Flags.NO_GIMBAL).all():
             log.warning("%s has no camera attitude (no gimbal reports): frames get poses from the images alone; "
                         "give the camera's mount tilt (--camera-tilt-deg) to use the vehicle's attitude", log_path)
-        tel["expected_radius_px"] = telemetry_radius_px(cam.fx, tel)
+        tel["expected_radius_px"] = held_radius_px(telemetry_radius_px(cam.fx, tel))
         if self.s.detector_scale == "auto" and not np.isfinite(tel["expected_radius_px"]).any():
             log.warning("%s places no take-off point (no relative altitude) or no camera attitude: the apple size "
                         "cannot be foreseen, and frames go to the detector at their own size (--detector-scale N sets "

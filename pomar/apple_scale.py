@@ -150,6 +150,20 @@ def telemetry_radius_px(fx: float, tel: dict) -> np.ndarray:
     return expected_radius_px(fx, tel["height"], off_nadir_deg(tel["q_gimbal"]))
 
 
+def held_radius_px(radius: np.ndarray) -> np.ndarray:
+    """Foreseen apple radii per frame, a frame without one (past the log's end, in a gap of its heights) given the
+    last one before it (else the first after it): the drone's height does not jump between two frames, and a frame at
+    its own size would reach the detector at another scale than its neighbours."""
+    r = np.asarray(radius, float).copy()
+    ok = np.isfinite(r)
+    if ok.all() or not ok.any():
+        return r
+    idx = np.where(ok, np.arange(len(r)), -1)
+    last = np.maximum.accumulate(idx)  # the last finite index at or before each frame
+    first = np.nonzero(ok)[0][0]
+    return r[np.where(last >= 0, last, first)]
+
+
 def envelope_height_m(fx: float, off_nadir: float, min_px: float, max_scale: float,
                       canopy_mid_m: float = CANOPY_MID_M, apple_radius_m: float = APPLE_RADIUS_M) -> float:
     """The highest flight (m above take-off) at which apples still reach a detector at ``min_px`` (the smallest radius

@@ -249,3 +249,13 @@ def test_apples_whose_views_meet_at_a_narrow_angle_are_left_out():
     assert list(count.checks()["left_out"]) == ["", "narrow", ""]
     count.s.min_parallax_deg = 0.0
     assert count.counted_ids() == [1, 2, 3] and count.parallax_rejected == 0
+
+
+def test_a_frame_without_a_foreseen_size_keeps_its_neighbours():
+    """Frames past a once-a-second log's last subtitle (no height): the last size foreseen before them, so that they
+    reach the detector at their neighbours' scale, not at their own size; frames before the first, the first's."""
+    from pomar.apple_scale import held_radius_px
+
+    r = np.array([np.nan, 4.0, 4.2, np.nan, 4.4, np.nan, np.nan])
+    np.testing.assert_array_equal(held_radius_px(r), [4.0, 4.0, 4.2, 4.2, 4.4, 4.4, 4.4])
+    assert np.isnan(held_radius_px(np.full(3, np.nan))).all()
