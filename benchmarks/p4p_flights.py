@@ -27,9 +27,10 @@ F1_WITHIN = 0.03
 SCALE_WITHIN_PCT = 2.0
 
 
-def ground_only(flight: Path, run: Path, out: Path) -> None:
-    """The ground alone, lock-step, from the journal ``run`` recorded."""
-    r = subprocess.run([sys.executable, "-m", "ground", "replay", str(flight), "--recorded", str(run / "journal.bin"),
+def ground_only(run: Path, out: Path) -> None:
+    """The ground alone, lock-step, from the journal ``run`` recorded (the stream alone says the flight: the DJI
+    command named it after its video; it is scored here, against the simulated flight)."""
+    r = subprocess.run([sys.executable, "-m", "ground", "replay", "--recorded", str(run / "journal.bin"),
                         "--speed", "0", "--out", str(out), "--quiet"], capture_output=True, text=True)
     if r.returncode != 0:
         raise SystemExit(f"ground replay of {run / 'journal.bin'} failed:\n{r.stderr[-3000:]}")
@@ -74,7 +75,7 @@ def main(argv=None) -> int:
             res = base / name
             if a.ground_only:
                 res = base / f"{name}-{a.tag}"
-                ground_only(flight, base / name, res)
+                ground_only(base / name, res)
             table[(flight.name, name)] = s = scores(flight, res)
             print(f"{flight.name:10s} {name:7s} F1 {s['f1']:.3f} count {s['count']:4d}/{s['truth']:4d} "
                   f"({s['count_error_pct']:+5.1f} %) dup {s['duplicates']:3d} scale {s['scale_error_pct']:+6.2f} % "

@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from ground.poses.stage import PoseStage, Pose
 from ground.poses.telemetry_poses import KeyframeTelemetry
-from pomar.align import IDENTITY
+from pomar.align import IDENTITY, Similarity
 from pomar.camera import Camera
 
 
@@ -43,6 +43,30 @@ def test_frames_follow_the_keyframes_the_mapper_moved(tmp_path):
         # once taken, the same keyframe poses correct nothing more
         given.update(out)
         assert lp.corrected(given, range(0, 101)) == {}
+    finally:
+        lp.close()
+
+
+def test_the_least_correction_is_in_metres_whatever_the_association_frames_unit(tmp_path):
+    """A map whose association frame was fixed at a fifth of a metre a unit (a Phantom 4 Pro's first fit, from
+    positions rounded to 11 m): a keyframe moved by 0.5 mm (2.5 thousandths of a unit) corrects nothing, as in a frame of metres (MIN_CORRECTION_M);
+    moved by 2 cm, it does. Before, the least correction was taken in units: 0.2 mm in such a frame, and twice as many
+    frames were corrected (issue 62)."""
+    lp = PoseStage(Camera.from_fov(1280, 720, 50.0), tmp_path)
+    try:
+        unit = 0.2  # metres per association unit
+        lp.assoc.frozen = IDENTITY
+        lp.mapper.fit = Similarity(unit, np.eye(3), np.zeros(3))
+        assert abs(lp.metres_per_unit() - unit) < 1e-12
+        R0 = np.eye(3)
+        for moved_m, corrected in ((0.5e-3, False), (0.02, True)):
+            given = {f: _pose(f, R0, (0.5 * f, 0.0, 50.0)) for f in range(0, 21)}
+            now = {10: _pose(10, R0, given[10].centre + [0, moved_m / unit, 0])}
+            lp.mapper.model_pose.clear()
+            lp.mapper.model_pose.update({k: (p.R, p.t) for k, p in now.items()})
+            lp.mapper.kf_sorted[:] = sorted(now)
+            out = lp.corrected(given, range(0, 21))
+            assert (10 in out) is corrected, (moved_m, out.keys())
     finally:
         lp.close()
 

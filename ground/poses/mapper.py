@@ -187,6 +187,8 @@ class Mapper:
         if not (np.isfinite(fit.similarity.scale) and fit.similarity.scale > 0):
             return None
         k = self._height_scale(fit.similarity, frames, c_m, g, fit.position_rms_m, positions_scale=not still)
+        log.debug("georeference from %d keyframes: scale %.4f from %s (factor %s), GPS rms %.2f m", len(frames),
+                  fit.similarity.scale * (k or 1.0), self.scale_source, k, fit.position_rms_m)
         if k is not None:
             fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att, scale=fit.similarity.scale * k,
                                  up_only=up_only)

@@ -360,13 +360,14 @@ class PoseStage:
         R_was = np.array([given[k].R for k in kfs])
         dC = C_now - np.array([given[k].centre for k in kfs])
         Q = Rotation.from_matrix(np.einsum("nji,njk->nik", R_was, R_now))  # R_now = R_was @ Q
+        unit = self.metres_per_unit()  # the poses are in the association frame's units, the least correction in metres
         out = {}
         for f in frames:
             p = given[f]
             held = self._held_pose(f, p.source, model_pose, kf_sorted) if p.source != "apples" else None
             if held is not None:
                 dc, turn = held.centre - p.centre, Rotation.from_matrix(p.R.T @ held.R).magnitude()
-                if np.linalg.norm(dc) >= self.MIN_CORRECTION_M or turn >= self.MIN_CORRECTION_RAD:
+                if np.linalg.norm(dc) * unit >= self.MIN_CORRECTION_M or turn >= self.MIN_CORRECTION_RAD:
                     out[f] = Pose(f, held.R, held.t, p.source, p.sigma_m, p.sigma_deg)
                 continue
             j = bisect.bisect_left(kfs, f)
@@ -382,7 +383,7 @@ class PoseStage:
                 q, dc = Q[near[0]], dC[near[0]]
             R = p.R @ q.as_matrix()
             c = p.centre + dc
-            if np.linalg.norm(dc) < self.MIN_CORRECTION_M and q.magnitude() < self.MIN_CORRECTION_RAD:
+            if np.linalg.norm(dc) * unit < self.MIN_CORRECTION_M and q.magnitude() < self.MIN_CORRECTION_RAD:
                 continue
             out[f] = Pose(f, R, -R @ c, p.source, p.sigma_m, p.sigma_deg)
         return out
