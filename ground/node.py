@@ -159,7 +159,7 @@ class GroundNode:
             if rr is not None:
                 rr.fps = self.pipe.fps
                 rejected = self.stream.rejected if self.stream else {}
-                to_enu = self.pipe.poses.assoc_to_enu() if self.pipe.poses is not None else None
+                to_enu = self.pipe.poses.map_to_enu() if self.pipe.poses is not None else None
                 rr.frame(e, self.pipe.camera, {
                     "rate/ground": fps, "rate/drone": drone_fps,
                     "delay/behind_drone_s": behind, "delay/ground_latency_s": latency,

@@ -5,7 +5,7 @@
         for event in pipe.take(msg):
             ...                   # FrameEvent: a frame went through the association (its pose, new apples)
     pipe.finish()
-    pipe.apples.count.apples      # id -> Apple (association frame); ground.outputs.tables.apple_table(snapshot(pipe)): ENU, WGS84
+    pipe.apples.count.apples      # id -> Apple (map frame); ground.outputs.tables.apple_table(snapshot(pipe)): ENU, WGS84
 
 The camera message opens a stream (:meth:`GroundPipeline.start`); its frame, keyframe and status messages are fed
 (:meth:`GroundPipeline.feed`); ``take`` does either. A frame goes down once and comes back once: the arrivals
@@ -75,7 +75,7 @@ class GroundSettings:
     #: The map's drift along the flight, corrected from the GPS: each camera is moved by the GPS's disagreement with
     #: the map, a line fitted over the registered keyframes within about this much flight (Gaussian sigma, s), and each
     #: apple by its views' mean; 0 = one similarity for the whole map. Wider than the GPS error's wander (tens of
-    #: seconds), so that it stays out of the map's shape; and only where the map drifted (AssociationFrame.correction).
+    #: seconds), so that it stays out of the map's shape; and only where the map drifted (MapFrame.correction).
     drift_sigma_s: float = 60.0
 
 
@@ -355,5 +355,5 @@ class GroundPipeline:
             self.poses.wait_for_mapping(timeout_s)
 
     def metres_per_unit(self) -> float:
-        """:meth:`AssociationFrame.metres_per_unit` (1 before the poses exist)."""
+        """:meth:`MapFrame.metres_per_unit` (1 before the poses exist)."""
         return self.poses.metres_per_unit() if self.poses is not None else 1.0

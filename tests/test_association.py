@@ -268,7 +268,7 @@ def test_a_glimpse_along_another_apples_rays_stays_a_second_apple():
 
 
 def test_the_merge_distances_are_metres_whatever_the_association_frames_unit():
-    """The association frame is fixed by the map's first georeference, whose scale a few keyframes' GPS sets to tens
+    """The map frame is fixed by the map's first georeference, whose scale a few keyframes' GPS sets to tens
     of percent: its distances are turned into metres before they meet merge_m, merge_search_m and
     max_merge_shift_m, and the spatial index looks as far as the search reaches in the frame's units."""
     from ground.apples.association import Apple, AssociationParams, Detection

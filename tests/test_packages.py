@@ -87,12 +87,12 @@ def test_the_link_sits_below_the_pipeline_and_the_outputs():
 
 def test_nothing_outside_the_pose_stage_reaches_into_its_parts():
     """The pose stage (ground/poses/) answers through PoseStage' own methods: what a frame's pose is, the corrections,
-    when it is ready, its figures. Nothing else in ground/ reaches its tracking, mapper or association frame."""
+    when it is ready, its figures. Nothing else in ground/ reaches its tracking, mapper or map frame."""
     import re
     from pathlib import Path
 
     ground = Path(__file__).resolve().parents[1] / "ground"
-    reach = re.compile(r"(?<![\w.])poses\.(tracking|mapper|assoc)\b|(?<!ground)\.poses\.(tracking|mapper|assoc)\b")
+    reach = re.compile(r"(?<![\w.])poses\.(tracking|mapper|map_frame)\b|(?<!ground)\.poses\.(tracking|mapper|map_frame)\b")
     bad = [f"{p.relative_to(ground)}:{k}: {line.strip()}" for p in sorted(ground.rglob("*.py"))
            if "poses" not in p.relative_to(ground).parts[:1]
            for k, line in enumerate(p.read_text().splitlines(), 1) if reach.search(line)]

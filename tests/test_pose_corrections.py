@@ -19,7 +19,7 @@ def _pose(frame: int, R: np.ndarray, c, source: str = "tracked") -> Pose:
 def test_frames_follow_the_keyframes_the_mapper_moved(tmp_path):
     lp = PoseStage(Camera.from_fov(1280, 720, 50.0), tmp_path)
     try:
-        lp.assoc.frozen = lp.mapper.fit = IDENTITY  # model frame = association frame = ENU
+        lp.map_frame.frozen = lp.mapper.fit = IDENTITY  # model frame = map frame = ENU
         R0 = np.eye(3)
         given = {f: _pose(f, R0, (0.1 * f, 0.0, 10.0), "telemetry" if f == 12 else "tracked") for f in range(0, 101)}
         # the mapper has since moved keyframe 10 by 2 cm and keyframe 20 by 6 cm and 0.2 degrees
@@ -48,14 +48,14 @@ def test_frames_follow_the_keyframes_the_mapper_moved(tmp_path):
 
 
 def test_the_least_correction_is_in_metres_whatever_the_association_frames_unit(tmp_path):
-    """A map whose association frame was fixed at a fifth of a metre a unit (a Phantom 4 Pro's first fit, from
+    """A map whose map frame was fixed at a fifth of a metre a unit (a Phantom 4 Pro's first fit, from
     positions rounded to 11 m): a keyframe moved by 0.5 mm (2.5 thousandths of a unit) corrects nothing, as in a frame of metres (MIN_CORRECTION_M);
     moved by 2 cm, it does. Before, the least correction was taken in units: 0.2 mm in such a frame, and twice as many
     frames were corrected (issue 62)."""
     lp = PoseStage(Camera.from_fov(1280, 720, 50.0), tmp_path)
     try:
         unit = 0.2  # metres per association unit
-        lp.assoc.frozen = IDENTITY
+        lp.map_frame.frozen = IDENTITY
         lp.mapper.fit = Similarity(unit, np.eye(3), np.zeros(3))
         assert abs(lp.metres_per_unit() - unit) < 1e-12
         R0 = np.eye(3)
@@ -74,7 +74,7 @@ def test_the_least_correction_is_in_metres_whatever_the_association_frames_unit(
 def test_a_frame_given_its_pose_after_a_correction_agrees_with_the_frames_the_correction_moved(tmp_path):
     lp = PoseStage(Camera.from_fov(1280, 720, 50.0), tmp_path)
     try:
-        lp.assoc.frozen = lp.mapper.fit = IDENTITY  # model frame = association frame = ENU
+        lp.map_frame.frozen = lp.mapper.fit = IDENTITY  # model frame = map frame = ENU
         R0 = np.eye(3)
         kf = _pose(10, R0, (1.0, 0.0, 10.0), "registered")
         lp.mapper.model_pose[10] = (kf.R, kf.t)
@@ -112,7 +112,7 @@ def test_a_tracked_frame_is_corrected_with_the_keyframe_it_was_tracked_from_and_
     them."""
     lp = PoseStage(Camera.from_fov(1280, 720, 50.0), tmp_path)
     try:
-        lp.assoc.frozen = lp.mapper.fit = IDENTITY  # model frame = association frame = ENU
+        lp.map_frame.frozen = lp.mapper.fit = IDENTITY  # model frame = map frame = ENU
         R0 = np.eye(3)
         kf = {k: _pose(k, R0, (0.1 * k, 0.0, 10.0), "registered") for k in (10, 20)}
         lp.mapper.model_pose.update({k: (p.R, p.t) for k, p in kf.items()})
@@ -146,12 +146,12 @@ def test_a_tracked_frame_is_corrected_with_the_keyframe_it_was_tracked_from_and_
 
 
 def test_drift_correction_applies_only_where_the_map_drifted_beyond_the_gps_wander(tmp_path):
-    """The GPS's gate of AssociationFrame.correction: a map rigid within the GPS's stated accuracy is left as it is (what a
+    """The GPS's gate of MapFrame.correction: a map rigid within the GPS's stated accuracy is left as it is (what a
     correction would follow there is the GPS error's wander); a map that bent away from the GPS is taken back to it."""
     lp = PoseStage(Camera.from_fov(1280, 720, 50.0), tmp_path)
     try:
         rng = np.random.default_rng(5)
-        lp.assoc.frozen = IDENTITY
+        lp.map_frame.frozen = IDENTITY
         lp.mapper.fit = IDENTITY  # model frame = ENU
         kf = np.arange(0, 3000, 2)
         truth = np.stack([0.3 * kf, np.zeros(len(kf)), np.full(len(kf), 10.0)], 1)
@@ -165,17 +165,17 @@ def test_drift_correction_applies_only_where_the_map_drifted_beyond_the_gps_wand
                                                    0.5)
 
         gps(np.zeros((len(kf), 3)))  # rigid map, 0.5-m GPS noise stated as 0.5 m
-        assert not lp.assoc.correction(q, 60.0)[0].any()
-        assert not lp.assoc.drift_corrected and lp.assoc.drift_m < lp.assoc.DRIFT_MIN_GPS_SIGMAS * 0.5, lp.assoc.drift_m
+        assert not lp.map_frame.correction(q, 60.0)[0].any()
+        assert not lp.map_frame.drift_corrected and lp.map_frame.drift_m < lp.map_frame.DRIFT_MIN_GPS_SIGMAS * 0.5, lp.map_frame.drift_m
 
         bend = np.stack([np.zeros(len(kf)), 15 * (1 - kf / 3000) ** 2, np.zeros(len(kf))], 1)
         gps(bend)  # the map's start lies 15 m from the GPS, its end on it
-        off = lp.assoc.correction(q, 60.0)[0]
-        assert lp.assoc.drift_corrected and lp.assoc.drift_m > 10, lp.assoc.drift_m
+        off = lp.map_frame.correction(q, 60.0)[0]
+        assert lp.map_frame.drift_corrected and lp.map_frame.drift_m > 10, lp.map_frame.drift_m
         want = np.stack([np.zeros(len(q)), 15 * (1 - q / 3000) ** 2, np.zeros(len(q))], 1)
         err = np.linalg.norm(off - want, axis=1)
         assert np.median(err) < 0.15 and err.max() < 0.5, (np.median(err), err.max())
-        assert not lp.assoc.correction(q, 0.0)[0].any()  # switched off
+        assert not lp.map_frame.correction(q, 0.0)[0].any()  # switched off
     finally:
         lp.close()
 
@@ -193,7 +193,7 @@ def test_a_map_that_turns_along_a_long_pass_is_bent_back_by_the_attitudes(tmp_pa
     lp = PoseStage(cam, tmp_path)
     try:
         rng = np.random.default_rng(3)
-        lp.assoc.frozen = IDENTITY
+        lp.map_frame.frozen = IDENTITY
         lp.mapper.fit = IDENTITY  # model frame = ENU
         kf = np.arange(0, 900, 2)
         s = kf / kf.max() - 0.5  # along the pass, -0.5 .. 0.5
@@ -219,15 +219,15 @@ def test_a_map_that_turns_along_a_long_pass_is_bent_back_by_the_attitudes(tmp_pa
             return c
 
         bent = fly(0.8)
-        off, rot = lp.assoc.correction(q, 60.0)
-        assert lp.assoc.bend_corrected and 0.3 < lp.assoc.bend_deg < 0.6, lp.assoc.bend_deg  # +-0.4 at the ends
+        off, rot = lp.map_frame.correction(q, 60.0)
+        assert lp.map_frame.bend_corrected and 0.3 < lp.map_frame.bend_deg < 0.6, lp.map_frame.bend_deg  # +-0.4 at the ends
         at = np.searchsorted(kf, q)
         before = np.linalg.norm(bent[at] - truth_c[at], axis=1)
         after = np.linalg.norm(bent[at] + off - truth_c[at], axis=1)
         assert before.max() > 0.15 and after.max() < 0.2 * before.max(), (before.max(), after.max())
         for turn, axis in ((0.0, (1.0, 0, 0)), (0.8, (0, 0, 1.0))):  # none; about the vertical (a compass's heading)
             c = fly(turn, axis)
-            off, rot = lp.assoc.correction(q, 60.0)
+            off, rot = lp.map_frame.correction(q, 60.0)
             # the noise's share of a fitted tilt passes (a Wiener gain): centimetres, a tenth of the bent map's error
             turned = np.degrees(np.arccos(np.clip((np.trace(rot, axis1=1, axis2=2) - 1) / 2, -1, 1)))
             assert np.abs(off).max() < 0.1 * before.max() and turned.max() < 0.3, (np.abs(off).max(), turned.max())

@@ -49,7 +49,7 @@ class AssociationParams:
 
 @dataclass(frozen=True, order=True)
 class Detection:
-    """One detection, as an apple keeps it (norfair's ``Detection``): the association frame it was seen in, its
+    """One detection, as an apple keeps it (norfair's ``Detection``): the map frame it was seen in, its
     index there, and the detector's box (xyxy, px; NaN where only the centre is known) and score. Two detections are
     the same when frame and index are."""
 

@@ -50,17 +50,17 @@ class CountingSettings:
 class Counting:
     #: Apples with a radius needed before the size check applies.
     MIN_SIZED = 20
-    #: Frames either side of an apple's track (association frames) searched for the views it should have had.
+    #: Frames either side of an apple's track (map frames) searched for the views it should have had.
     VIEW_SEARCH = 300
     VIEW_MARGIN_PX = 10
 
     def __init__(self, settings: CountingSettings, frames: AssociationFrames, reach: int):
         self.s = settings
         self.frames = frames
-        self.reach = reach  # association frames back from the newest that an apple's views are judged over
+        self.reach = reach  # map frames back from the newest that an apple's views are judged over
         self.camera = None  # pomar.camera.Camera, once known: the expected views need its size and focal length
         self.apples: dict[int, Apple] = {}  # confirmed apples, by id
-        self.radius: dict[int, float] = {}  # apple id -> radius from its boxes and depths (association frame's unit)
+        self.radius: dict[int, float] = {}  # apple id -> radius from its boxes and depths (map frame's unit)
         self.strong: dict[int, int] = {}  # apple id -> views scored confirm_score or more
         self.size_rejected = 0  # confirmed apples left out of the map by the size check (counted_ids)
         self.views_rejected = 0  # ... by the expected views
@@ -104,7 +104,7 @@ class Counting:
         return [o for o in a.observations if o.frame > oldest]
 
     def radius_of(self, a: Apple) -> float:
-        """The apple's radius in the association frame's unit: the median over its views of the box's half-size
+        """The apple's radius in the map frame's unit: the median over its views of the box's half-size
         times depth over focal length (compared with the others' median)."""
         r = []
         for o in self.in_reach(a):
@@ -148,7 +148,7 @@ class Counting:
         return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
     def checks(self, all_expected: bool = False) -> dict[str, np.ndarray]:
-        """Every confirmed apple and what the checks made of it: id, radius (association frame's unit), observations,
+        """Every confirmed apple and what the checks made of it: id, radius (map frame's unit), observations,
         strong views, expected views (NaN where the check is off or the size check already left the apple out, unless
         ``all_expected``) and ``left_out`` ("" counted, "small" by the size check, "narrow" by the parallax of its
         views, "few_views" by expected views)."""

@@ -9,9 +9,9 @@ import numpy as np
 
 class AssociationFrames:
     def __init__(self):
-        self.frame: list[int] = []  # association frame -> frame index
-        self.seq: dict[int, int] = {}  # frame index -> association frame
-        self.P: list[np.ndarray] = []  # association frame -> camera matrix (association frame of reference)
+        self.frame: list[int] = []  # map frame -> frame index
+        self.seq: dict[int, int] = {}  # frame index -> map frame
+        self.P: list[np.ndarray] = []  # map frame -> camera matrix (map frame of reference)
         self.poses: dict = {}  # frame index -> its pose (ground.poses.stage.Pose), corrected since
 
     def __len__(self) -> int:
@@ -19,11 +19,11 @@ class AssociationFrames:
 
     @property
     def newest(self) -> int:
-        """The newest association frame (-1 before the first)."""
+        """The newest map frame (-1 before the first)."""
         return len(self.frame) - 1
 
     def add(self, frame: int, pose, P: np.ndarray) -> int:
-        """A frame fed to the association; returns its association frame number."""
+        """A frame fed to the association; returns its map frame number."""
         seq = len(self.frame)
         self.frame.append(frame)
         self.seq[frame] = seq
@@ -32,16 +32,16 @@ class AssociationFrames:
         return seq
 
     def correct(self, frame: int, pose, P: np.ndarray) -> int:
-        """A fed frame's corrected pose; returns its association frame number."""
+        """A fed frame's corrected pose; returns its map frame number."""
         seq = self.seq[frame]
         self.poses[frame] = pose
         self.P[seq] = P
         return seq
 
     def pose_at(self, seq: int):
-        """The pose of an association frame (None where it has none)."""
+        """The pose of an map frame (None where it has none)."""
         return self.poses.get(self.frame[seq]) if 0 <= seq < len(self.frame) else None
 
     def projections(self) -> np.ndarray:
-        """Every association frame's camera matrix, (N, 3, 4)."""
+        """Every map frame's camera matrix, (N, 3, 4)."""
         return np.asarray(self.P).reshape(-1, 3, 4)

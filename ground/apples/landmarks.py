@@ -36,7 +36,7 @@ def predict(before, last) -> tuple[np.ndarray, np.ndarray]:
 
 def place_by_apples(camera, centres: np.ndarray, landmarks: np.ndarray, before, last) -> tuple | None:
     """The frame's world-to-camera (R, t) from its detection centres (n, 2; OpenCV pixels) and the mapped apples
-    (m, 3; association frame), given the poses of the two frames placed before it; None where too few pairs
+    (m, 3; map frame), given the poses of the two frames placed before it; None where too few pairs
     agree."""
     if len(centres) < MIN_PAIRS or len(landmarks) < MIN_PAIRS:
         return None

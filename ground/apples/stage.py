@@ -6,7 +6,7 @@ go to the counting, and a frame's corrected pose moves the apples seen in it.
     new = apples.take_frame(msg, pose, steps, metres_per_unit)  # a released frame: the apples it confirmed
     apples.repose(corrected_poses, steps, metres_per_unit)  # frame -> corrected pose
     apples.finish(steps, metres_per_unit)                   # end of the flight
-    apples.count.apples                                     # id -> Apple (association frame)
+    apples.count.apples                                     # id -> Apple (map frame)
 """
 
 from __future__ import annotations

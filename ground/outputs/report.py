@@ -65,7 +65,7 @@ def flight_report(p, table, rows, final: bool, *, apples_seen, wall_s: float, la
         "corrections": dict(p.corrections),
         "association": {"params": vars(p.s.association).copy(), "stats": dict(p.apples.assoc.stats),
                         "strong_views_needed": p.apples.count.views_needed(p.arrivals.steps),
-                        # the association frame's unit in metres: its first georeference's scale error
+                        # the map frame's unit in metres: its first georeference's scale error
                         "metres_per_unit": p.metres_per_unit()},
         "timings": {"wall_seconds": wall_s,
                     "pose_seconds": p.seconds["poses"],

@@ -220,7 +220,7 @@ class RerunLog:
     def frame(self, event, camera, stats: dict | None = None, to_enu=None):
         """A frame through the association: camera pose, and, on frames with an image, the image, its detections
         and the epipolar lines of the previous image's detections. ``stats``: entity path under ``stats/`` ->
-        value; ``to_enu``: the association frame -> ENU similarity (None: they are the same)."""
+        value; ``to_enu``: the map frame -> ENU similarity (None: they are the same)."""
         self._time(event.frame, event.t_capture)
         self.camera = camera
         msg = event.msg
@@ -422,9 +422,9 @@ class RerunLog:
             if aid in self._tracks_logged or a.views is None or aid not in enu:
                 continue
             Ps, _ = a.views
-            # the views are in the association frame; their centres go through the same map as the apple
+            # the views are in the map frame; their centres go through the same map as the apple
             centres = [-np.linalg.inv(P[:, :3]) @ P[:, 3] for P in Ps[:max_rays]]
-            shift = enu[aid] - a.X  # association frame -> ENU is close to a translation over one apple
+            shift = enu[aid] - a.X  # map frame -> ENU is close to a translation over one apple
             strips = [np.array([c + shift, enu[aid]]) for c in centres]
             # static, and sent as columns: rerun keeps less per entity that way (one entity per apple)
             n = len(strips)

@@ -14,17 +14,17 @@ from pomar.wire import ABSOLUTE_ALTITUDES
 
 @dataclass
 class MapSnapshot:
-    """What the map's outputs read, in the association frame with what takes it to ENU and WGS84."""
+    """What the map's outputs read, in the map frame with what takes it to ENU and WGS84."""
     #: Every apple the count holds, by id (ground.apples.association.Apple), and the ids counted.
     apples: dict
     counted_ids: list[int]
     #: Each apple's radius (association units) where known.
     radius: dict[int, float]
-    #: Association frame index -> frame number.
+    #: Map frame index -> frame number.
     frame_of: list[int]
-    #: Frame number -> its pose (ground.poses.georeference.Pose, association frame).
+    #: Frame number -> its pose (ground.poses.georeference.Pose, map frame).
     poses: dict
-    #: Association frame -> ENU; None before the poses exist.
+    #: Map frame -> ENU; None before the poses exist.
     to_enu: Similarity | None
     #: The map's bend and drift corrections at every posed frame (frames, ENU offsets, ENU rotations), computed once.
     corrections: tuple[np.ndarray, np.ndarray, np.ndarray] | None
@@ -52,7 +52,7 @@ def snapshot(pipe, final: bool = False) -> MapSnapshot:
         corr = (posed, *pipe.poses.correction(posed, pipe.s.drift_sigma_s * (pipe.fps or 0.0)))
     count = pipe.apples.count
     return MapSnapshot(apples=count.apples, counted_ids=count.counted_ids(), radius=count.radius, frame_of=frames.frame,
-                       poses=frames.poses, to_enu=pipe.poses.assoc_to_enu() if pipe.poses is not None else None,
+                       poses=frames.poses, to_enu=pipe.poses.map_to_enu() if pipe.poses is not None else None,
                        corrections=corr, origin=pipe.poses.origin if pipe.poses is not None else None,
                        frame_times=pipe.arrivals.frame_times, metres_per_unit=pipe.metres_per_unit(),
                        checks=count.checks(all_expected=True) if final else None,

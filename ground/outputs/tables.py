@@ -30,7 +30,7 @@ import numpy as np
 
 
 def apples_enu(snap, A: list) -> np.ndarray:
-    """(N, 3) ENU positions of these apples (ground.apples.association.Apple, in the association frame of the map
+    """(N, 3) ENU positions of these apples (ground.apples.association.Apple, in the map frame of the map
     ``snap``, a :class:`ground.outputs.snapshot.MapSnapshot`): the map's similarity, then the corrections of the map's
     bend and drift of the frames each apple was seen in, each moving it with its camera, and averaged (an apple seen
     again on a later pass takes both stretches' corrections)."""

@@ -352,7 +352,7 @@ class MapperProcess:
             if "closed" in r:
                 points = r.get("points")
                 if points is not None and self._map_before:
-                    points = self._to_map_frame({}, None, None, points)[3]
+                    points = self._to_first_model({}, None, None, points)[3]
                 if points is not None:
                     self._points = points
                 self._submodels = r["closed"]
@@ -367,7 +367,7 @@ class MapperProcess:
                           r["frame"], r["ok"], max(moved, default=0.0))
             poses, fit, ref, points = r["poses"], r["fit"][0], r["ref"], r.get("points")
             if self._map_before:  # a restarted process: its frame is moved onto the map's, once both share keyframes
-                poses, fit, ref, points = self._to_map_frame(poses, fit, ref, points)
+                poses, fit, ref, points = self._to_first_model(poses, fit, ref, points)
             elif r["first_refs"]:
                 self.first_references = r["first_refs"]
             if points is not None:
@@ -400,8 +400,9 @@ class MapperProcess:
             out["in_memory_from"] = self._earlier_stats["in_memory_from"]
         return out
 
-    def _to_map_frame(self, poses, fit, ref, points):
-        """A restarted process's poses, fit, reference and points in the map's frame; nothing until it can be placed."""
+    def _to_first_model(self, poses, fit, ref, points):
+        """A restarted process's poses, fit, reference and points in the coordinates the mapper gave before the
+        restart; nothing until it can be placed."""
         self._new_frames.update(poses)
         if self._to_old is None:
             self._new_pose.update(poses)

@@ -3,7 +3,7 @@
 Behind it: :class:`ground.poses.tracking.ImageTracking` takes the images in frame order and gives every frame that
 carries one a pose from its own pixels against the map (KLT + PnP, milliseconds), proposing *mapping keyframes* to
 :mod:`ground.poses.mapper`, which registers them (pycolmap, in its own process when live) and georeferences the
-model; :class:`ground.poses.georeference.AssociationFrame` is the frame the association works in. Fed each frame's
+model; :class:`ground.poses.map_frame.MapFrame` is the frame the poses and the association work in. Fed each frame's
 telemetry and each image in frame order, it says when a frame's pose can be decided and gives it with its source and
 uncertainty:
 
@@ -17,9 +17,9 @@ uncertainty:
   whether or not the log reaches it (a log that ends before the video, a once-a-second log's last frames);
 - ``telemetry``: GPS + gimbal attitude alone.
 
-Poses come in the *association frame*: the model's coordinates taken through the first good
+Poses come in the *map frame*: the model's coordinates taken through the first good
 georeferencing fit, then frozen (so that the frames in the association's window stay consistent
-while later fits move a little). ``assoc.to_enu`` takes points from the association frame to the
+while later fits move a little). ``assoc.to_enu`` takes points from the map frame to the
 current best ENU frame; :attr:`origin` is the ENU origin (the first GPS fix, unless given).
 """
 
@@ -32,7 +32,8 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from ground.poses.georeference import AssociationFrame, Pose, georeference_poses
+from ground.poses.georeference import Pose, georeference_poses
+from ground.poses.map_frame import MapFrame
 from ground.poses.mapper import Mapper
 from ground.poses.mapper_process import MapperProcess, MappingWorker
 from ground.poses.telemetry_poses import KeyframeTelemetry
@@ -61,7 +62,7 @@ def no_pose_figures() -> dict:
 
 class PoseStage:
     """The ground's poses, wired: the frames' telemetry, the images in order (:class:`ImageTracking`: the tracker and
-    the mapper), the association frame (:class:`AssociationFrame`), and which pose each frame gets."""
+    the mapper), the map frame (:class:`MapFrame`), and which pose each frame gets."""
 
     def __init__(self, camera: Camera, workdir, keyframe_width: int | None = None,
                  settings: RegistrationSettings | None = None, origin: Origin | None = None,
@@ -75,7 +76,7 @@ class PoseStage:
         self.mapper = (MapperProcess(self.kf_cam, camera, workdir, settings, sigma_att_deg, worker=mapping_worker)
                        if mapping_worker is not None else Mapper(self.kf_cam, camera, workdir, settings, sigma_att_deg))
         self.tracking = ImageTracking(self.kf_cam, self.mapper, self.tel, tracking, init_spacing_s)
-        self.assoc = AssociationFrame(self.mapper, self.tel, camera, sigma_att_deg)
+        self.map_frame = MapFrame(self.mapper, self.tel, camera, sigma_att_deg)
         self.origin = origin
         self.max_interp_gap = max_interp_gap
         self.sigma_att = np.radians(sigma_att_deg)
@@ -106,20 +107,20 @@ class PoseStage:
         """The mapper's sub-models (for their model files)."""
         return self.mapper.submodels()
 
-    # the association frame, as the apples and the map files read it
+    # the map frame, as the apples and the map files read it
     def metres_per_unit(self) -> float:
-        return self.assoc.metres_per_unit()
+        return self.map_frame.metres_per_unit()
 
-    def assoc_to_enu(self) -> Similarity:
-        """The association frame -> ENU similarity."""
-        return self.assoc.assoc_to_enu()
+    def map_to_enu(self) -> Similarity:
+        """The map frame -> ENU similarity."""
+        return self.map_frame.map_to_enu()
 
     def to_enu(self, X: np.ndarray) -> np.ndarray:
-        return self.assoc.to_enu(X)
+        return self.map_frame.to_enu(X)
 
     def correction(self, frames, sigma_frames: float):
-        """The map's bend and drift corrections at ``frames`` (:meth:`AssociationFrame.correction`)."""
-        return self.assoc.correction(frames, sigma_frames)
+        """The map's bend and drift corrections at ``frames`` (:meth:`MapFrame.correction`)."""
+        return self.map_frame.correction(frames, sigma_frames)
 
     # the images, as the pipeline hands them over
     def add_image(self, frame: int, jpeg: bytes, t_capture: float) -> bool:
@@ -140,7 +141,7 @@ class PoseStage:
     def figures(self) -> dict:
         """What report.json says of the poses: ``registration`` and ``tracking``, and their ``timings``."""
         reg = self.mapper.stats()
-        m, t, a = self.mapper, self.tracking, self.assoc
+        m, t, a = self.mapper, self.tracking, self.map_frame
         return {
             "registration": {
                 "keyframes_processed": reg["keyframes_processed"],
@@ -230,7 +231,7 @@ class PoseStage:
             return True
         if frame > self.tracking.processed:
             return False
-        if self.mapper.has_model or self.assoc.fixed:
+        if self.mapper.has_model or self.map_frame.fixed:
             return True
         return self.mapper.attempts >= self.mapper.settings.first_model_tries
 
@@ -291,13 +292,13 @@ class PoseStage:
         return None
 
     def pose(self, frame: int) -> Pose | None:
-        """The frame's pose in the association frame (call once :meth:`ready`): its own if it was registered or
+        """The frame's pose in the map frame (call once :meth:`ready`): its own if it was registered or
         tracked, else interpolated between its nearest posed frames, else carried on from the two nearest on one side
         (:meth:`_beside`), else its telemetry's; None without any."""
         model_pose, kf_sorted, _ = self.mapper.registered()
         own = self._model_frame_pose(frame, model_pose)
         between = self._between(frame, model_pose, kf_sorted) if own is None else None
-        return self.assoc.frame_pose(frame, own, between, self.tel.get(frame), self.cam,
+        return self.map_frame.frame_pose(frame, own, between, self.tel.get(frame), self.cam,
                                      float(np.degrees(self.sigma_att)))
 
     def _between(self, frame: int, model_pose, kf_sorted):
@@ -333,7 +334,7 @@ class PoseStage:
                 return None
         elif own is None or (own[2] == "tracked" and not self._carried(frame, model_pose)):
             return None
-        return self.assoc.frame_pose(frame, own, between, None, self.cam, float(np.degrees(self.sigma_att)))
+        return self.map_frame.frame_pose(frame, own, between, None, self.cam, float(np.degrees(self.sigma_att)))
 
     def corrected(self, given: dict[int, Pose], frames) -> dict[int, Pose]:
         """The poses given earlier for ``frames`` (from ``given``), moved as the mapper has since moved the keyframes
@@ -341,9 +342,9 @@ class PoseStage:
         (:meth:`_held_pose`), so that a tracked frame keeps the pose relative to its keyframe that tracking measured
         (the keyframe after it, placed later and moved by its own errors, has no say). A frame whose tracking is
         forgotten moves by the corrections of the keyframes on either side of it, interpolated (rotation by slerp,
-        centre linearly), or of the nearest one. Telemetry poses, and any pose before the association frame was fixed,
+        centre linearly), or of the nearest one. Telemetry poses, and any pose before the map frame was fixed,
         stay as they were; only the poses that changed are returned."""
-        if self.assoc.frozen is None:
+        if self.map_frame.frozen is None:
             return {}
         model_pose, kf_sorted, _ = self.mapper.registered()
         frames = sorted(f for f in frames if f in given and given[f].source != "telemetry")
@@ -355,12 +356,12 @@ class PoseStage:
         if not kfs:
             return {}
         R_now, t_now = georeference_poses(np.array([model_pose[k][0] for k in kfs]),
-                                          np.array([model_pose[k][1] for k in kfs]), self.assoc.frozen)
+                                          np.array([model_pose[k][1] for k in kfs]), self.map_frame.frozen)
         C_now = -np.einsum("nji,nj->ni", R_now, t_now)
         R_was = np.array([given[k].R for k in kfs])
         dC = C_now - np.array([given[k].centre for k in kfs])
         Q = Rotation.from_matrix(np.einsum("nji,njk->nik", R_was, R_now))  # R_now = R_was @ Q
-        unit = self.metres_per_unit()  # the poses are in the association frame's units, the least correction in metres
+        unit = self.metres_per_unit()  # the poses are in the map frame's units, the least correction in metres
         out = {}
         for f in frames:
             p = given[f]
