@@ -124,7 +124,7 @@ def main() -> None:
         for mp in (20, 100, 500):
             r = evaluate_prefix(args.flight, args.bound_frames, AssociationParams(max_paths=mp), pert)
             bound.append({"max_paths": mp, **r})
-            print(f"  max_paths {mp:>4}: bound binds at {r['dfs_bound_hit_rate']:.0%} of nodes with paths, "
+            print(f"  max_paths {mp:>4}: bound binds at {r['dfs_bound_hit_rate']:.0%} of vertices with paths, "
                   f"F1 {r['f1']:.3f}, count {r['count']} (truth {r['truth_count']}), {r['seconds']:.1f} s")
         out["dfs_bound"] = bound
 
@@ -194,7 +194,7 @@ def evaluate_prefix(flight, n_frames, params, pert):
     prec = len(pi) / max(len(apples), 1)
     rec = np.isin(vis, a["apple_id"][ti]).mean() if len(vis) else 0.0
     return {"f1": 2 * prec * rec / max(prec + rec, 1e-12), "count": len(apples), "truth_count": len(vis),
-            "seconds": seconds, **{k: fa.stats[k] for k in ("dfs_bound_hit_rate", "dfs_bound_hits", "nodes_with_paths")}}
+            "seconds": seconds, **{k: fa.stats[k] for k in ("dfs_bound_hit_rate", "dfs_bound_hits", "vertices_with_paths")}}
 
 
 if __name__ == "__main__":

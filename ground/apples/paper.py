@@ -1,9 +1,9 @@
 """The paper's association, offline (Santos & Gebler 2021, Algorithms 1 and 2): an epipolar graph over all
-detections (edge i -> j when j is in the next k frames and lies within tau_epipolar of the epipolar line), then for
-each node in frame order a DFS to all paths, RANSAC triangulation of each path (:mod:`ground.apples.ransac`), the path
-with the best inlier ratio (longest first) becomes an apple, its edges are removed, its nodes kept. DFS is bounded by
-``max_paths`` per node (the number of paths grows exponentially with track length and k); how often the bound binds
-is reported in :attr:`FruitAssociation.stats`."""
+detections, one vertex each (edge i -> j when j is in the next k frames and lies within tau_epipolar of the epipolar
+line), then for each vertex in frame order a DFS to all paths, RANSAC triangulation of each path
+(:mod:`ground.apples.ransac`), the path with the best inlier ratio (longest first) becomes an apple, its edges are
+removed, its vertices kept. DFS is bounded by ``max_paths`` per vertex (the number of paths grows exponentially with
+track length and k); how often the bound binds is reported in :attr:`FruitAssociation.stats`."""
 
 from __future__ import annotations
 
@@ -17,12 +17,12 @@ from ground.apples.ransac import polish, ransac_paths
 
 def _stack_frames(frames: list[FrameDetections]):
     counts = [len(f.xy) for f in frames]
-    node_frame = np.repeat(np.arange(len(frames)), counts)
-    node_det = np.concatenate([np.arange(c) for c in counts]) if counts else np.zeros(0, int)
+    vertex_frame = np.repeat(np.arange(len(frames)), counts)
+    vertex_det = np.concatenate([np.arange(c) for c in counts]) if counts else np.zeros(0, int)
     xs = np.concatenate([f.xy for f in frames]) if counts else np.zeros((0, 2))
-    Ps = np.stack([f.P for f in frames])[node_frame] if len(node_frame) else np.zeros((0, 3, 4))
+    Ps = np.stack([f.P for f in frames])[vertex_frame] if len(vertex_frame) else np.zeros((0, 3, 4))
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    return node_frame, node_det, xs, Ps, offsets
+    return vertex_frame, vertex_det, xs, Ps, offsets
 
 
 class FruitAssociation:
@@ -33,7 +33,7 @@ class FruitAssociation:
         self.stats: dict = {}
 
     def build_graph(self, frames: list[FrameDetections], offsets: np.ndarray) -> list[dict[int, float]]:
-        """Adjacency: for each node, its successors and their epipolar distances (px)."""
+        """Adjacency: for each vertex, its successors and their epipolar distances (px)."""
         p = self.params
         n = int(offsets[-1])
         adj: list[dict[int, float]] = [{} for _ in range(n)]
@@ -53,13 +53,13 @@ class FruitAssociation:
         self.stats["edges"] = edges
         return adj
 
-    def dfs_paths(self, adj: list[dict[int, float]], v: int, node_frame: np.ndarray) -> tuple[list[list[int]], bool]:
+    def dfs_paths(self, adj: list[dict[int, float]], v: int, vertex_frame: np.ndarray) -> tuple[list[list[int]], bool]:
         """All maximal paths from v, stopping at max_paths. Best first: successors in the nearest frame
         first, then nearest their epipolar line, so that a bound keeps the most plausible paths.
         Returns the paths and whether the bound was hit."""
 
         def successors(u):
-            return iter(sorted(adj[u], key=lambda w: (node_frame[w], adj[u][w])))
+            return iter(sorted(adj[u], key=lambda w: (vertex_frame[w], adj[u][w])))
 
         paths: list[list[int]] = []
         stack = [successors(v)]
@@ -83,18 +83,18 @@ class FruitAssociation:
     def run(self, frames: list[FrameDetections]) -> list[Apple]:
         p = self.params
         rng = np.random.default_rng(p.seed)
-        node_frame, node_det, xs, Ps, offsets = _stack_frames(frames)
+        vertex_frame, vertex_det, xs, Ps, offsets = _stack_frames(frames)
         adj = self.build_graph(frames, offsets)
         apples: list[Apple] = []
-        bound_hits = nodes_with_paths = 0
-        for v in range(len(xs)):  # nodes in frame order
+        bound_hits = vertices_with_paths = 0
+        for v in range(len(xs)):  # vertices in frame order
             if not adj[v]:
                 continue
-            paths, hit = self.dfs_paths(adj, v, node_frame)
+            paths, hit = self.dfs_paths(adj, v, vertex_frame)
             paths = [q for q in paths if len(q) >= max(3, p.min_inliers)]
             if not paths:
                 continue
-            nodes_with_paths += 1
+            vertices_with_paths += 1
             bound_hits += hit
             paths.sort(key=len, reverse=True)  # longest first; ties keep the earlier (longer) path
             best, best_r = None, 0.0
@@ -114,12 +114,12 @@ class FruitAssociation:
             for u in inliers:
                 for w in inset.intersection(adj[u]):
                     del adj[u][w]
-            obs = [frames[node_frame[u]].detection(int(node_det[u])) for u in inliers]
+            obs = [frames[vertex_frame[u]].detection(int(vertex_det[u])) for u in inliers]
             views, frames_ = sample_views(Ps[inliers], xs[inliers], [o.frame for o in obs])
             apples.append(Apple(len(apples), X, obs, err, views=views, view_frames=frames_))
         n_found = len(apples)
         apples = merge_duplicates(apples, p)
-        self.stats.update(nodes=len(xs), nodes_with_paths=nodes_with_paths, dfs_bound_hits=bound_hits,
-                          dfs_bound_hit_rate=bound_hits / max(nodes_with_paths, 1), apples=len(apples),
+        self.stats.update(vertices=len(xs), vertices_with_paths=vertices_with_paths, dfs_bound_hits=bound_hits,
+                          dfs_bound_hit_rate=bound_hits / max(vertices_with_paths, 1), apples=len(apples),
                           merged=n_found - len(apples))
         return apples
