@@ -127,3 +127,34 @@ def test_the_floor_is_a_plane_through_the_ground_between_the_rows_not_the_canopy
     assert abs(np.degrees(np.arccos(plane.normal[2])) - 1.2) < 0.1 and plane.normal[0] < 0
     assert plane.sigma_m < 0.05
     assert floor_plane(canopy[:30]) is None  # too few points to say
+
+
+def test_positions_within_their_accuracy_of_one_another_do_not_scale_the_map(tmp_path):
+    """A Phantom 4 Pro's first second: keyframes half a metre apart, their positions one point rounded to 4 decimals
+    (11 m; stated good to 3.2 m), their heights a barometer's, a few centimetres apart. The scale they would give is noise (one such
+    fit froze a map frame at 23 micrometres a unit, issue 62): without heights to scale it there is no fit yet, and the
+    frames wait for one. Over 30 m, the same rounding scales the map within a tenth."""
+    from ground.poses.mapper import Mapper
+    from ground.poses.telemetry_poses import KeyframeTelemetry
+    from pomar.camera import Camera
+
+    cam = Camera.from_fov(1280, 720, 50.0)
+    R_true, t_true = camera_path(100, step_m=0.3)
+    C_true = -np.einsum("nji,nj->ni", R_true, t_true)
+    S = Similarity(0.37, Rotation.from_euler("z", 30, degrees=True).as_matrix(), np.array([3.0, -1.0, 2.0]))
+    c_model = (C_true - S.t) @ S.R / S.scale
+    R_model = R_true @ S.R
+    t_model = -np.einsum("nij,nj->ni", R_model, c_model)
+    rounded = np.round(C_true / 11.0) * 11.0  # 4 decimals of latitude
+    rounded[:, 2] = C_true[:, 2] + 0.01 * np.arange(len(C_true))  # a barometer (to 0.01 m) that drifts up
+    m = Mapper(cam, cam, tmp_path, sigma_att_deg=180.0)  # the attitudes (a level stand-in here) weigh nothing
+    try:
+        for n in (4, 100):
+            m.tel = {f: KeyframeTelemetry(rounded[f], np.array([1.0, 0, 0, 0]), 3.2) for f in range(n)}
+            got = m._refit({f: (R_model[f], t_model[f]) for f in range(n)})
+            if n == 4:
+                assert got is None, got
+            else:
+                assert abs(got[0].scale / S.scale - 1) < 0.1, got[0].scale / S.scale
+    finally:
+        m.close()

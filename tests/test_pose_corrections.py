@@ -246,3 +246,23 @@ def camera_attitude_to_gimbal(R_world_to_camera, cam):
     from pomar.rotations import R_ENU_FROM_NED
 
     return Rotation.from_matrix(R_ENU_FROM_NED.T @ R_world_to_camera.T @ cam.r_gimbal_from_camera.T)
+
+
+def test_frames_wait_for_the_models_georeference_before_the_map_frame_is_fixed(tmp_path):
+    """A model the log cannot georeference yet (a Phantom 4 Pro's first second): its frames are not ready, so that the
+    first frame posed does not fix the map frame on ENU and leave the flight on telemetry poses; once the model has a
+    fit they are, and after as many keyframes as the first model had tries they go on without one."""
+    lp = PoseStage(Camera.from_fov(1280, 720, 50.0), tmp_path)
+    try:
+        lp.tracking.processed = 50  # the images up to frame 50 went through tracking
+        tries = lp.mapper.settings.first_model_tries
+        lp.mapper.model_pose.update({k: (np.eye(3), np.zeros(3)) for k in range(4)})
+        assert lp.mapper.has_model and lp.mapper.fit is None
+        assert not lp.ready(10) and lp.ready(10, final=True)
+        lp.mapper.fit = IDENTITY
+        assert lp.ready(10) and not lp.ready(51)
+        lp.mapper.fit = None
+        lp.mapper.model_pose.update({k: (np.eye(3), np.zeros(3)) for k in range(tries)})
+        assert lp.ready(10)
+    finally:
+        lp.close()

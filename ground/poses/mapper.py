@@ -179,9 +179,12 @@ class Mapper:
         g = np.array([self.tel[f].enu for f in frames])
         sig = np.array([self.tel[f].h_acc for f in frames])
         R_tel = camera_rotations(np.array([self.tel[f].q_gimbal for f in frames]), self.cam)
-        # every position the same (a log's coarse rounding, a drone standing): they cannot scale the map, only the
-        # heights can (a fit at scale 1 places and turns it; the heights' factor is then the scale)
-        still = np.linalg.norm(g - g.mean(0), axis=1).max() < 0.01
+        # positions within their own accuracy of one another (a log's coarse rounding: a Phantom 4 Pro's first second
+        # is one point rounded to 11 m; a drone standing): the scale they give is off by more than itself (its relative
+        # error is their accuracy over their spread), so only the heights can scale the map (a fit at scale 1 places
+        # and turns it; the heights' factor is then the scale)
+        spread = float(np.sqrt(((g - g.mean(0)) ** 2).sum()))
+        still = spread < float(np.median(sig))
         up_only = np.array([not self.tel[f].heading_known for f in frames])
         fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att, scale=1.0 if still else None, up_only=up_only)
         if not (np.isfinite(fit.similarity.scale) and fit.similarity.scale > 0):

@@ -225,15 +225,22 @@ class PoseStage:
     # -- decisions
     def ready(self, frame: int, final: bool = False, stalled: bool = False) -> bool:
         """Whether frame's pose can be decided now: the image at or after it went through tracking, and the model
-        exists (or bootstrapping had its chances), or the images stopped coming (``stalled``)."""
+        exists and is georeferenced (or bootstrapping had its chances), or the images stopped coming (``stalled``).
+        The first frame posed fixes the map frame: a model the log cannot georeference yet (a Phantom 4 Pro's first
+        second, whose positions are one rounded point; its heights scale it once the map sees the floor) would leave
+        the whole flight on telemetry poses in ENU, so the frames wait for its fit, for as many keyframes as the first
+        model had tries."""
         self.tracking.catch_up()
         if final or stalled:
             return True
         if frame > self.tracking.processed:
             return False
-        if self.mapper.has_model or self.map_frame.fixed:
+        if self.map_frame.fixed:
             return True
-        return self.mapper.attempts >= self.mapper.settings.first_model_tries
+        tries = self.mapper.settings.first_model_tries
+        if self.mapper.has_model:
+            return self.mapper.fit is not None or len(self.mapper.model_pose) >= tries
+        return self.mapper.attempts >= tries
 
     def _model_frame_pose(self, frame: int, model_pose) -> tuple[np.ndarray, np.ndarray, str] | None:
         """A registered frame's pose in the model now; a tracked frame's, carried along as the mapper has since moved
