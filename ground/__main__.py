@@ -140,6 +140,11 @@ def _cmd_replay(args) -> int:
         print(describe(built), file=sys.stderr)
         flight, args.log = built["flight_dir"], None  # the built flight names its log
     ground_args = _ground_argv(args)  # the stream says lock-step or live: the ground takes its profile from it
+    if args.harvest:
+        from ground.outputs.tables import read_harvest
+
+        read_harvest(args.harvest)  # a file that does not read stops the replay before it starts
+        ground_args += ["--harvest", str(Path(args.harvest).resolve())]
     try:
         rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
                      keyframe_every=args.keyframe_every, keyframe_width=args.keyframe_width, every=args.every,
@@ -228,6 +233,9 @@ def _registration_settings(args, **extra):
     from pomar.settings import from_options
 
     return replace(from_options(RegistrationSettings(), args, REGISTRATION_FIELDS), **extra)
+
+
+HARVEST_HELP = "CSV row,kg (rows numbered as in rows.csv): report the correlation of per-row counts with yield"
 
 
 def _ground_argv(args) -> list[str]:
@@ -326,6 +334,7 @@ def main(argv=None) -> int:
                                   "the flight directory's telemetry.tlog")
     from pomar.telemetry import mount_arguments
 
+    rp.add_argument("--harvest", help=HARVEST_HELP)
     mount_arguments(rp)
     _ground_options(rp)
     rp.set_defaults(func=_cmd_replay)
@@ -361,7 +370,7 @@ def main(argv=None) -> int:
     g.add_argument("--no-rrd", action="store_true", help="no OUT/flight.rrd")
     g.add_argument("--serve", action="store_true", help="serve the rerun stream over gRPC for a viewer elsewhere")
     g.add_argument("--viewer", help="send the rerun stream to a running viewer at this URL")
-    g.add_argument("--harvest", help="CSV row,kg: report the correlation of per-row counts with yield")
+    g.add_argument("--harvest", help=HARVEST_HELP)
     g.add_argument("--idle-timeout", type=float, default=60.0, help="finish after this long without a message (s; the ground's own work not counted)")
     g.add_argument("--fresh", action="store_true", help="ignore OUT/journal.bin (default: resume from it)")
     g.add_argument("--expected-frames", type=int, help="frames the flight will have, when known (progress ETA)")

@@ -17,6 +17,7 @@ import pytest
 
 from ground.link.journal import Journal, read_journal
 from ground.outputs.tables import APPLE_COLUMNS, CANDIDATE_COLUMNS, harvest_correlation, read_harvest
+from pomar.cli import InputError
 
 
 def test_replay_end_to_end(replayed_test_flight):
@@ -668,6 +669,35 @@ def test_harvest_correlation(tmp_path):
     bad.write_text("row,weight\n0,1\n")
     with pytest.raises(ValueError, match="bad.csv"):
         read_harvest(bad)
+    # each bad line named, one line each
+    for text, says in (("row,kg\n0,10\nB,3\n", "bad.csv:3: row 'B' is not a whole number"),
+                       ("row,kg\n0,ten\n", "bad.csv:2: kg 'ten' is not a number"),
+                       ("row,kg\n0,10\n1,-2\n", "bad.csv:3: kg -2 is not a yield"),
+                       ("row,kg\n0,10\n1,3\n0,4\n", "bad.csv:4: row 0 is given twice")):
+        bad.write_text(text)
+        with pytest.raises(InputError) as e:
+            read_harvest(bad)
+        assert str(e.value).startswith(str(bad.parent / says)) and "\n" not in str(e.value), str(e.value)
+
+
+def test_replay_takes_a_harvest_file(replayed_test_flight, tmp_path):
+    """`ground replay --harvest FILE` (as `ground run`): the report correlates the rows' counts with their yields; a
+    harvest file that does not read stops it before it starts, with one line naming the line, exit 2."""
+    _, out, rep = replayed_test_flight
+    rows = [r["row"] for r in rep["rows"]]
+    h = tmp_path / "harvest.csv"
+    h.write_text("row,kg\n" + "".join(f"{r},{10.0 + 3 * i}\n" for i, r in enumerate(rows)))
+    cmd = [sys.executable, "-m", "ground", "replay", "--recorded", str(out / "journal.bin"), "--speed", "0", "--quiet",
+           "--out", str(tmp_path / "out"), "--harvest", str(h)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = json.loads((tmp_path / "out" / "report.json").read_text())["harvest_correlation"]
+    assert got["rows"] == len(rows), got
+    h.write_text("row,kg\n1,x\n")
+    r = subprocess.run(cmd[:-2] + ["--out", str(tmp_path / "out2"), "--harvest", str(h)], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.strip() == f"error: {h}:2: kg 'x' is not a number", r.stderr
+    assert not (tmp_path / "out2").exists()
 
 
 def test_an_apple_counts_once_enough_views_are_strong(tmp_path):

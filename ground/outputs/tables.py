@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pomar.cli import InputError
+
 
 def apples_enu(snap, A: list) -> np.ndarray:
     """(N, 3) ENU positions of these apples (ground.apples.association.Apple, in the map frame of the map
@@ -321,17 +323,40 @@ def write_map(out_dir: Path, table: dict, direction: float, origin=None, tree_sp
     return rows
 
 
+class HarvestFileError(InputError, ValueError):
+    """A harvest file that does not read: the message names the file, its line and what is wrong."""
+
+
 def read_harvest(path: Path) -> dict[int, float]:
-    """A harvest file: CSV with columns ``row`` and ``kg``."""
+    """A harvest file: CSV with columns ``row`` (numbered as in rows.csv) and ``kg``, one line a row. A row that is not
+    a whole number, a yield that is not a number or is negative, a row given twice: HarvestFileError naming the line."""
     path = Path(path)
     try:
         with open(path, newline="") as f:
             rd = csv.DictReader(f)
             if not rd.fieldnames or not {"row", "kg"} <= set(rd.fieldnames):
-                raise ValueError(f"{path}: a harvest file needs columns row,kg (got {rd.fieldnames})")
-            return {int(r["row"]): float(r["kg"]) for r in rd}
+                raise HarvestFileError(f"{path}: a harvest file needs columns row,kg (got {rd.fieldnames})")
+            out: dict[int, float] = {}
+            for r in rd:
+                line = rd.line_num
+                try:
+                    row = int(r["row"])
+                except (TypeError, ValueError):
+                    raise HarvestFileError(f"{path}:{line}: row {r['row']!r} is not a whole number") from None
+                try:
+                    kg = float(r["kg"])
+                except (TypeError, ValueError):
+                    raise HarvestFileError(f"{path}:{line}: kg {r['kg']!r} is not a number") from None
+                if not np.isfinite(kg) or kg < 0:
+                    raise HarvestFileError(f"{path}:{line}: kg {r['kg']} is not a yield (a number, 0 or more)")
+                if row in out:
+                    raise HarvestFileError(f"{path}:{line}: row {row} is given twice")
+                out[row] = kg
+            return out
     except OSError as e:
-        raise ValueError(f"{path}: {e}") from None
+        raise HarvestFileError(f"{path}: {e.strerror or e}") from None
+    except UnicodeDecodeError:
+        raise HarvestFileError(f"{path}: not a text (CSV) file") from None
 
 
 def harvest_correlation(rows: list[dict], harvest: dict[int, float]) -> dict:
