@@ -1,7 +1,7 @@
 """The replay flight directory format (see docs/flight-format.md).
 
 A flight directory holds ``video.mp4``, ``telemetry.tlog``, ``camera.json``, ``flight.json``
-and, for simulated flights, ``truth/`` (origin, apples, true camera poses, true detections).
+and, for simulated flights, ``truth/`` (origin, apples, trees and their loads, true camera poses, true detections).
 This module is the one place that names those files and their columns.
 """
 
@@ -26,6 +26,9 @@ FLIGHT = "flight.json"
 TRUTH = "truth"
 
 APPLES_COLUMNS = ["apple_id", "row", "variety", "x", "y", "z", "lat", "lon", "alt", "radius_m"]
+#: Written by flights rendered since the trees' truth (issue 59): each apple's tree (1.. from its row's start) and mass.
+APPLE_TREE_COLUMNS = ["tree", "mass_kg"]
+TREES_COLUMNS = ["row", "tree", "x", "y", "z", "lat", "lon", "apples", "mass_kg"]
 FRAMES_COLUMNS = ["frame", "t_unix", "qw", "qx", "qy", "qz", "tx", "ty", "tz", "lat", "lon", "alt"]
 DETECTIONS_COLUMNS = ["frame", "apple_id", "u", "v", "r_px", "visible_fraction"]
 
@@ -199,6 +202,11 @@ class FlightDir:
 
     def truth_apples(self) -> dict[str, np.ndarray]:
         return read_csv(self.truth_dir / "apples.csv", APPLES_COLUMNS, str_columns=("variety",))
+
+    def truth_trees(self) -> dict[str, np.ndarray]:
+        """Every tree of the simulated orchard (truth/trees.csv): row, tree (1.. from the row's start), canopy centre
+        (ENU, WGS84), and its full load: the apples it carries, seen or not, and their mass (kg)."""
+        return read_csv(self.truth_dir / "trees.csv", TREES_COLUMNS)
 
     def truth_frames(self) -> dict[str, np.ndarray]:
         return read_csv(self.truth_dir / "frames.csv", FRAMES_COLUMNS)

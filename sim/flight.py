@@ -124,11 +124,19 @@ def simulate_flight(cfg: SimConfig, out_dir: str | Path, jobs: int | None = None
     # truth
     a = scene.apples
     geo = origin.to_geodetic(a["xyz"])
-    ff.write_csv(out / ff.TRUTH / "apples.csv", ff.APPLES_COLUMNS, {
+    ff.write_csv(out / ff.TRUTH / "apples.csv", ff.APPLES_COLUMNS + ff.APPLE_TREE_COLUMNS, {
         "apple_id": a["apple_id"], "row": a["row"], "variety": a["variety"],
         "x": a["xyz"][:, 0], "y": a["xyz"][:, 1], "z": a["xyz"][:, 2],
         "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2], "radius_m": a["radius_m"],
-    }, {"x": ".6f", "y": ".6f", "z": ".6f", "lat": ".10f", "lon": ".10f", "alt": ".6f", "radius_m": ".6f"})
+        "tree": a["tree"], "mass_kg": a["mass_kg"],
+    }, {"x": ".6f", "y": ".6f", "z": ".6f", "lat": ".10f", "lon": ".10f", "alt": ".6f", "radius_m": ".6f",
+        "mass_kg": ".5f"})
+    tr = scene.trees
+    tgeo = origin.to_geodetic(tr["xyz"])
+    ff.write_csv(out / ff.TRUTH / "trees.csv", ff.TREES_COLUMNS, {
+        "row": tr["row"], "tree": tr["tree"], "x": tr["xyz"][:, 0], "y": tr["xyz"][:, 1], "z": tr["xyz"][:, 2],
+        "lat": tgeo[:, 0], "lon": tgeo[:, 1], "apples": tr["apples"], "mass_kg": tr["mass_kg"],
+    }, {"x": ".4f", "y": ".4f", "z": ".4f", "lat": ".10f", "lon": ".10f", "mass_kg": ".4f"})
     q = rotation_to_quat_wxyz(Rotation.from_matrix(R))
     cgeo = origin.to_geodetic(sample["centre"])
     ff.write_csv(out / ff.TRUTH / "frames.csv", ff.FRAMES_COLUMNS, {

@@ -33,13 +33,26 @@ class Scene:
     colour: np.ndarray  # (N, 3) float32, RGB 0..1, leaves already lit
     kind: np.ndarray  # (N,) int8: LEAF, APPLE, TRUNK
     apple_index: np.ndarray  # (N,) int32: row of `apples` for APPLE primitives, else -1
-    apples: dict  # apple_id, row, variety, xyz (ENU), radius_m
+    apples: dict  # apple_id, row, tree, variety, xyz (ENU), radius_m, mass_kg
     ground: np.ndarray  # (H, W, 3) uint8 RGB texture, row 0 at y_max
     ground_extent: tuple[float, float, float, float]  # x_min, x_max, y_min, y_max (orchard frame)
     ground_res: float
     orchard_to_enu: np.ndarray  # (2, 2) rotation of horizontal coordinates
     sun_enu: np.ndarray  # unit vector towards the sun
     row_x: np.ndarray  # across-row position of each row (orchard frame)
+    #: Every tree: row and tree (1.. from the row's start, the orchard's -y end), its canopy centre (ENU), and its full
+    #: load (the apples it carries, after the overlapping ones are taken out) and their mass.
+    trees: dict | None = None
+
+
+#: The simulator's mass of an apple: a sphere of its diameter at a whole apple's density (its flesh holds a fifth or so
+#: of air; 0.70-0.85 g/cm3, so it floats). A truth for scoring, not a cultivar's mass-diameter relation.
+APPLE_DENSITY_KG_M3 = 800.0
+
+
+def apple_mass_kg(radius_m) -> np.ndarray:
+    """The simulator's mass (kg) of apples of these radii (m): APPLE_DENSITY_KG_M3 times a sphere's volume."""
+    return APPLE_DENSITY_KG_M3 * 4.0 / 3.0 * np.pi * np.asarray(radius_m, float) ** 3
 
 
 def orchard_to_enu_matrix(azimuth_deg: float) -> np.ndarray:
@@ -133,15 +146,19 @@ def build_scene(cfg: SimConfig) -> Scene:
     tree_y = (np.arange(n_trees) - (n_trees - 1) / 2.0) * o.tree_spacing_m
 
     pos, rad, col, kind, aidx = [], [], [], [], []
-    apples = {"apple_id": [], "row": [], "variety": [], "xyz": [], "radius_m": []}
+    apples = {"apple_id": [], "row": [], "tree": [], "variety": [], "xyz": [], "radius_m": []}
+    trees = {"row": [], "tree": [], "xyz": []}
     half_h = (o.canopy_height_m - o.canopy_base_m) / 2.0
     zc = o.canopy_base_m + half_h
     for r, x_r in enumerate(row_x):
         variety = o.varieties[r % len(o.varieties)]
         vcol = VARIETY_COLOURS.get(variety.lower(), VARIETY_COLOURS["gala"])
         row_hue = rng.uniform(-0.02, 0.02)
-        for y_t in tree_y:
+        for t_i, y_t in enumerate(tree_y):
             c = np.array([x_r + rng.normal(0, 0.05), y_t + rng.normal(0, 0.06), zc + rng.normal(0, 0.08)])
+            trees["row"].append(r + 1)
+            trees["tree"].append(t_i + 1)
+            trees["xyz"].append(c)
             axes = np.array([o.canopy_width_m / 2, o.tree_spacing_m * 0.68, half_h]) * rng.uniform(0.85, 1.15, 3)
             k = rng.normal(size=(4, 3)) * 2.5
             ph = rng.uniform(0, 2 * np.pi, 4)
@@ -190,6 +207,7 @@ def build_scene(cfg: SimConfig) -> Scene:
             for j in range(m):
                 apples["apple_id"].append(first + j)
                 apples["row"].append(r + 1)
+                apples["tree"].append(t_i + 1)
                 apples["variety"].append(variety)
                 apples["xyz"].append(p[j])
                 apples["radius_m"].append(radius[j])
@@ -212,6 +230,16 @@ def build_scene(cfg: SimConfig) -> Scene:
     pos_o, rad_a, col_a, kind_a, aidx_a = (v[keep_prim] for v in (pos_o, rad_a, col_a, kind_a, aidx_a))
     xyz_o = xyz_o[keep_apple]
     pos_enu = np.column_stack([pos_o[:, :2] @ to_enu.T, pos_o[:, 2]]).astype(np.float32)
+    # each tree's full load: the apples kept on it (no draw from rng)
+    a_row = np.array(apples["row"], np.int64)[keep_apple]
+    a_tree = np.array(apples["tree"], np.int64)[keep_apple]
+    a_mass = apple_mass_kg(r_apple[keep_apple])
+    t_row, t_tree = np.array(trees["row"], np.int64), np.array(trees["tree"], np.int64)
+    key = (a_row - 1) * n_trees + (a_tree - 1)
+    t_key = (t_row - 1) * n_trees + (t_tree - 1)
+    load = np.bincount(key, minlength=len(t_key))[t_key] if len(key) else np.zeros(len(t_key), int)
+    mass = np.bincount(key, weights=a_mass, minlength=len(t_key))[t_key] if len(key) else np.zeros(len(t_key))
+    t_xyz = np.array(trees["xyz"]).reshape(-1, 3)
     ground, extent = _ground_texture(cfg, rng, row_x, sun, to_enu)
     return Scene(
         pos=pos_enu,
@@ -221,10 +249,12 @@ def build_scene(cfg: SimConfig) -> Scene:
         apple_index=aidx_a,
         apples={
             "apple_id": np.arange(len(xyz_o), dtype=np.int64),
-            "row": np.array(apples["row"], np.int64)[keep_apple],
+            "row": a_row,
+            "tree": a_tree,
             "variety": np.array(apples["variety"], dtype=str)[keep_apple],
             "xyz": np.column_stack([xyz_o[:, :2] @ to_enu.T, xyz_o[:, 2]]),
             "radius_m": r_apple[keep_apple],
+            "mass_kg": a_mass,
         },
         ground=ground,
         ground_extent=extent,
@@ -232,4 +262,6 @@ def build_scene(cfg: SimConfig) -> Scene:
         orchard_to_enu=to_enu,
         sun_enu=sun,
         row_x=row_x,
+        trees={"row": t_row, "tree": t_tree, "xyz": np.column_stack([t_xyz[:, :2] @ to_enu.T, t_xyz[:, 2]]),
+               "apples": load, "mass_kg": mass},
     )

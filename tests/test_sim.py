@@ -241,3 +241,28 @@ def test_an_autopilot_that_takes_its_height_from_the_barometer(bundled_flight, t
     srt = read_log(tmp_path / "dji" / "video.SRT")
     h_srt = srt.height_above_home(srt.position.values[:, 2])
     np.testing.assert_allclose(h_srt, s_baro["height"][:len(h_srt)], atol=0.002)
+
+
+def test_the_truth_holds_every_trees_full_load_and_each_apples_mass(bundled_flight, small_flight):
+    """Every tree's full load (the apples it carries, seen or not) and every apple's tree and mass, for scoring yield
+    (issue 59), drawn without a draw from the generator (a flight rendered before comes out the same apple for apple:
+    checked on issue 62's flights, rendered the same day)."""
+    from sim.orchard import APPLE_DENSITY_KG_M3, build_scene
+
+    scene = build_scene(config.load(bundled_flight.path / "sim_config.toml"))
+    tr = scene.trees
+    assert tr["apples"].sum() == len(scene.apples["xyz"])
+    assert np.isclose(tr["mass_kg"].sum(), scene.apples["mass_kg"].sum())
+    # an apple hangs in its own tree's canopy (its half-length along the row: at most 0.68 x 1.15 x 1.07 tree spacings)
+    own = {(r, t): x for r, t, x in zip(tr["row"], tr["tree"], tr["xyz"])}
+    centre = np.array([own[(r, t)] for r, t in zip(scene.apples["row"], scene.apples["tree"])])
+    spacing = config.load(bundled_flight.path / "sim_config.toml").orchard.tree_spacing_m
+    along = (scene.apples["xyz"][:, :2] - centre[:, :2]) @ (scene.orchard_to_enu @ [0.0, 1.0])
+    assert np.abs(along).max() < 0.9 * spacing, np.abs(along).max()
+    d_m, m_kg = 2 * scene.apples["radius_m"], scene.apples["mass_kg"]
+    assert 0.06 <= d_m.min() and d_m.max() <= 0.09 and 0.09 < m_kg.min() and m_kg.max() < 0.31
+    np.testing.assert_allclose(m_kg, APPLE_DENSITY_KG_M3 * np.pi / 6 * d_m ** 3)
+    # a flight rendered now writes them: truth/trees.csv, and each apple's tree and mass beside it
+    t = small_flight.truth_trees()
+    a = small_flight.truth_apples()
+    assert t["apples"].sum() == len(a["apple_id"]) > 0 and (t["mass_kg"] > 0).sum() == (t["apples"] > 0).sum()
