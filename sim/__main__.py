@@ -84,6 +84,17 @@ def _cmd_logs(args) -> int:
     return 0
 
 
+def _cmd_counts(args) -> int:
+    from pomar.flight import FlightDir
+    from sim.counts import parse_tree, sample_counts, write_counts
+
+    trees = [parse_tree(t) for t in args.trees] if args.trees else None
+    rows = sample_counts(FlightDir(args.flight_dir), trees, args.random or 0, args.seed, args.count_error_cv)
+    write_counts(rows, args.out)
+    print(f"wrote {args.out}: {len(rows)} trees, {sum(r['apples'] for r in rows)} apples counted")
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m sim", description=__doc__)
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -125,6 +136,17 @@ def main(argv=None) -> int:
     lg.add_argument("--no-attitude", action="store_true",
                     help="no attitude fields in video.SRT (most DJI drones write none)")
     lg.set_defaults(func=_cmd_logs)
+    c = sub.add_parser("counts", help="write the hand counts of a few trees a grower would make (row,tree,apples), "
+                                      "from the truth's full loads")
+    c.add_argument("flight_dir")
+    c.add_argument("--out", required=True, help="the sample-count CSV to write")
+    pick = c.add_mutually_exclusive_group(required=True)
+    pick.add_argument("--trees", nargs="+", metavar="ROW:TREE", help="these trees (rows and trees numbered from 1)")
+    pick.add_argument("--random", type=int, metavar="K", help="K trees drawn at random (--seed)")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("--count-error-cv", type=float, default=0.0,
+                   help="a human's counting error: each count times a normal factor of mean 1 and this CV")
+    c.set_defaults(func=_cmd_counts)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     return cli.run(args.func, args)

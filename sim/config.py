@@ -54,6 +54,12 @@ class Apples:
     row_load: list[float] = field(default_factory=list)
     diameter_min_m: float = 0.06
     diameter_max_m: float = 0.09
+    #: Each row's apple diameters (m) as [min, max], cycled across the rows (empty: diameter_min_m..diameter_max_m for
+    #: every row): rows whose fruit differ in size, as two cultivars or two crop loads do.
+    row_diameter_m: list[list[float]] = field(default_factory=list)
+    #: Tree-to-tree vigour: each tree's expected load is multiplied by a gamma factor of mean 1 and this coefficient of
+    #: variation (0: every tree of a row alike, a Poisson load of the same mean, as before).
+    tree_vigour_cv: float = 0.0
     #: Depth of an apple inside the canopy, as a fraction of the canopy radius (1 = surface);
     #: apples deeper than about 0.9 are mostly hidden by leaves.
     depth_min: float = 0.80
@@ -171,6 +177,9 @@ _CHECKS = [
     ("apples.per_tree", lambda v: v >= 0, "must be >= 0"),
     ("apples.row_load", lambda v: all(x >= 0 for x in v), "must hold factors >= 0"),
     ("apples.diameter_min_m", lambda v: v > 0, "must be > 0"),
+    ("apples.row_diameter_m", lambda v: all(len(d) == 2 and 0 < d[0] <= d[1] for d in v),
+     "must hold [min, max] pairs with 0 < min <= max"),
+    ("apples.tree_vigour_cv", lambda v: 0 <= v <= 2, "must be in [0, 2]"),
     ("flight.altitude_m", lambda v: v > 0, "must be > 0"),
     ("flight.speed_mps", lambda v: v > 0, "must be > 0"),
     ("flight.fps", lambda v: v > 0, "must be > 0"),

@@ -191,7 +191,11 @@ def build_scene(cfg: SimConfig) -> Scene:
             kind.append(np.full(8, TRUNK, np.int8))
             aidx.append(np.full(8, -1, np.int32))
             # apples, mostly on the sides and lower half of the canopy
-            m = rng.poisson(a.per_tree * (a.row_load[r % len(a.row_load)] if a.row_load else 1.0))
+            mean = a.per_tree * (a.row_load[r % len(a.row_load)] if a.row_load else 1.0)
+            if a.tree_vigour_cv > 0:  # a draw only when asked: an orchard without it is drawn as before
+                k_shape = 1.0 / a.tree_vigour_cv ** 2
+                mean *= rng.gamma(k_shape, 1.0 / k_shape)
+            m = rng.poisson(mean)
             if m == 0:
                 continue
             d = _unit_vectors(rng, 4 * m + 8)
@@ -199,7 +203,9 @@ def build_scene(cfg: SimConfig) -> Scene:
             m = len(d)
             s = rng.uniform(a.depth_min, a.depth_max, m)
             p = c + (s * lump(d))[:, None] * axes * d
-            radius = rng.uniform(a.diameter_min_m, a.diameter_max_m, m) / 2.0
+            lo, hi = (a.row_diameter_m[r % len(a.row_diameter_m)] if a.row_diameter_m
+                      else (a.diameter_min_m, a.diameter_max_m))
+            radius = rng.uniform(lo, hi, m) / 2.0
             mix = rng.uniform(0, 1, (m, 1))
             base = np.array(vcol[0]) * (1 - mix) + np.array(vcol[1]) * mix
             base = base * rng.uniform(0.9, 1.1, (m, 1))

@@ -266,3 +266,51 @@ def test_the_truth_holds_every_trees_full_load_and_each_apples_mass(bundled_flig
     t = small_flight.truth_trees()
     a = small_flight.truth_apples()
     assert t["apples"].sum() == len(a["apple_id"]) > 0 and (t["mass_kg"] > 0).sum() == (t["apples"] > 0).sum()
+
+
+def test_rows_of_other_fruit_sizes_and_trees_of_other_vigour_leave_a_plain_orchard_as_it_was():
+    """apples.row_diameter_m (each row's [min, max], cycled) and apples.tree_vigour_cv (a gamma factor on each tree's
+    expected load): without them the orchard is drawn as before; with them the rows' fruit differ by their ranges and
+    the trees' loads spread wider than a Poisson load."""
+    from sim.orchard import build_scene
+
+    base = {"seed": 5, "orchard": {"rows": 4, "row_length_m": 30.0, "leaves_per_tree": 50}, "apples": {"per_tree": 20}}
+    plain = build_scene(config.from_dict(base))
+    same = build_scene(config.from_dict({**base, "apples": {"per_tree": 20, "row_diameter_m": [[0.06, 0.09]],
+                                                           "tree_vigour_cv": 0.0}}))
+    assert np.array_equal(plain.apples["xyz"], same.apples["xyz"])
+    sized = build_scene(config.from_dict({**base, "apples": {"per_tree": 20,
+                                                            "row_diameter_m": [[0.06, 0.07], [0.08, 0.09]]}}))
+    d = 2 * sized.apples["radius_m"]
+    odd = sized.apples["row"] % 2 == 1
+    assert d[odd].max() <= 0.07 and d[~odd].min() >= 0.08
+    vigour = build_scene(config.from_dict({**base, "apples": {"per_tree": 20, "tree_vigour_cv": 0.5}}))
+    cv = lambda s: s.trees["apples"].std() / s.trees["apples"].mean()  # noqa: E731
+    assert cv(plain) < 0.3 < cv(vigour), (cv(plain), cv(vigour))
+    for bad, key in (({"row_diameter_m": [[0.08, 0.07]]}, "row_diameter_m"), ({"tree_vigour_cv": -1.0}, "vigour")):
+        with pytest.raises(config.ConfigError, match=key):
+            config.from_dict({**base, "apples": bad})
+
+
+def test_a_growers_hand_counts_come_from_the_trees_full_loads(small_flight, tmp_path):
+    """`python -m sim counts`: the trees asked for, or K drawn at random, with their full loads (exact, or with a
+    human's counting error); a tree the orchard lacks is one line naming it, exit 2."""
+    t = small_flight.truth_trees()
+    load = {(int(r), int(k)): int(n) for r, k, n in zip(t["row"], t["tree"], t["apples"])}
+    out = tmp_path / "counts.csv"
+    asked = sorted(load)[:2]
+    r = subprocess.run([sys.executable, "-m", "sim", "counts", str(small_flight.path), "--out", str(out), "--trees",
+                        *[f"{a}:{b}" for a, b in asked]], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    lines = out.read_text().splitlines()
+    assert lines[0] == "row,tree,apples" and lines[1:] == [f"{a},{b},{load[(a, b)]}" for a, b in asked]
+    from sim.counts import sample_counts
+
+    drawn = sample_counts(small_flight, random=3, seed=2)
+    assert len({(c["row"], c["tree"]) for c in drawn}) == 3 and all(c["apples"] == load[(c["row"], c["tree"])]
+                                                                    for c in drawn)
+    noisy = sample_counts(small_flight, trees=sorted(load), count_error_cv=0.2, seed=2)
+    assert any(c["apples"] != load[(c["row"], c["tree"])] for c in noisy if load[(c["row"], c["tree"])] >= 5)
+    r = subprocess.run([sys.executable, "-m", "sim", "counts", str(small_flight.path), "--out", str(out), "--trees",
+                        "99:1"], capture_output=True, text=True)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "no tree 99:1" in r.stderr, r.stderr
