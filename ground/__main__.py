@@ -118,6 +118,24 @@ def _cmd_play(args) -> int:
     return 0
 
 
+def _cmd_layout(args) -> int:
+    from ground.orchard.layout import layout_from_rows, read_layout, write_layout
+
+    if args.check:
+        rows = read_layout(args.check)
+        print(f"{args.check}: {len(rows)} rows, fine")
+        return 0
+    if not args.map or not args.out:
+        print("error: give a finished map's folder and --out FILE (or --check FILE)", file=sys.stderr)
+        return 2
+    rows = layout_from_rows(Path(args.map) / "rows.csv", args.tree_spacing_m)
+    write_layout(rows, args.out)
+    read_layout(args.out)  # what it wrote reads back (rows that overlap are named)
+    print(f"wrote {args.out}: {len(rows)} rows, numbered as the map numbers them; check each row's number and ends, "
+          "and correct them to the orchard's own")
+    return 0
+
+
 def _cmd_replay(args) -> int:
     from ground.evaluation.scoring import format_evaluation
     from ground.replay import BUNDLED, ReplayError, default_out, replay
@@ -280,6 +298,15 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m ground", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
+    lo = sub.add_parser("layout", help="write an orchard layout file (row,start,end,tree spacing) from a finished "
+                                       "map, for the grower to check and correct; or check one (--check)",
+                        description=__import__("ground.orchard.layout", fromlist=["x"]).__doc__,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    lo.add_argument("map", nargs="?", help="a finished map's folder (its rows.csv)")
+    lo.add_argument("--out", help="the layout file to write (CSV)")
+    lo.add_argument("--tree-spacing-m", type=float, default=1.0, help="the trees' spacing along the rows (m)")
+    lo.add_argument("--check", help="read and check this layout file instead")
+    lo.set_defaults(func=_cmd_layout)
     e = sub.add_parser("evaluate", help="run the association on a simulated flight and score it against the truth",
                        description=evaluate_doc,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
