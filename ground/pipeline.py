@@ -268,12 +268,13 @@ class GroundPipeline:
         return events
 
     def _frame(self, msg: wire.FrameMessage) -> FrameEvent:
-        """One frame, released in order, goes down once: the poses give its pose (where only telemetry would, the
-        apples it sees place it), then the apples take its detections with that pose and give back those it
-        confirmed."""
+        """One frame, released in order, goes down once: the poses give its pose (where only telemetry or the motion
+        before it would, the apples it sees place it), then the apples take its detections with that pose and give
+        back those it confirmed."""
         f = msg.frame
         pose = self.poses.pose(f)
-        placed = self.apples.place(msg) if pose is not None and pose.source == "telemetry" else None
+        # where no image placed it (telemetry, or carried on past the last posed frame), the apples it sees may
+        placed = self.apples.place(msg) if pose is not None and pose.source in ("telemetry", "extrapolated") else None
         if placed is not None:  # no image placed it: the apples it sees did
             pose = Pose(f, *placed, "apples", *APPLES_SIGMA)
         new: list[Apple] = []
