@@ -54,6 +54,11 @@ QUAT_NORM_TOL = 1e-3  # |q| must be 1 within this
 ALTITUDE_REFERENCES = ("msl", "ellipsoid", "takeoff", "unstated", "unknown")
 ABSOLUTE_ALTITUDES = ("msl", "ellipsoid")
 
+
+def above_sea_level(reference: str | None) -> bool:
+    """Whether altitudes of this reference place a map above sea level (None: not said, taken as MAVLink's MSL)."""
+    return reference is None or reference in ABSOLUTE_ALTITUDES
+
 REASONS = ("not_msgpack", "schema_version", "message_type", "malformed", "not_finite", "out_of_range",
            "too_many_boxes", "box_outside_image", "bad_quaternion", "bad_jpeg", "image_size",
            "frame_window", "wrong_flight", "other_drone", "drone_mismatch", "camera_changed")

@@ -8,7 +8,7 @@ import numpy as np
 from ground.memory import children_peak_rss_mb, peak_rss_mb
 from ground.outputs.tables import harvest_correlation
 from ground.poses.stage import no_pose_figures
-from pomar.wire import ABSOLUTE_ALTITUDES
+from pomar.wire import above_sea_level
 
 #: The kinds of pose a mapped frame gets, as the pipeline counts them.
 POSE_SOURCES = ("registered", "tracked", "interpolated", "extrapolated", "apples", "telemetry", "frames_without_pose")
@@ -22,13 +22,13 @@ def delay_stats(delays: list[float]) -> dict:
             "frame_delay_max_s": float(d.max())}
 
 
-def map_frame(p) -> dict:
+def map_section(p) -> dict:
     """The map's ENU frame (x east, y north, z up, metres) as the outputs give it: its origin (the first frame's
     position) and what the drone's altitudes are measured from. A log of heights above take-off (a DJI SRT's ``H``)
     gives the map no altitude above sea level: the outputs' alt is then empty, and the origin's alt is a height above
     take-off."""
     ref = p.altitude_reference
-    above = ref is None or ref in ABSOLUTE_ALTITUDES
+    above = above_sea_level(ref)
     origin = p.poses.origin if p.poses is not None else None
     return {"origin": origin.as_dict() if origin is not None else None,
             "altitude_reference": ref or "msl (not said by the drone)", "above_sea_level": above,
@@ -49,7 +49,7 @@ def flight_report(p, table, rows, final: bool, *, apples_seen, wall_s: float, la
     r = {
         "flight_id": p.flight_id, "drone_id": p.drone_id, "final": final,
         "apples": int(len(table["id"])), "rows": rows,
-        "map": map_frame(p),
+        "map": map_section(p),
         "counting": p.apples.count.report(),
         "frames": counters, "gaps": p.arrivals.gaps[:100],
         # the apples' radius as the drone's detector saw them, and the frames under the smallest it finds reliably

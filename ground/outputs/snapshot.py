@@ -9,7 +9,7 @@ import numpy as np
 
 from pomar.align import Similarity
 from pomar.geo import Origin
-from pomar.wire import ABSOLUTE_ALTITUDES
+from pomar.wire import above_sea_level
 
 
 @dataclass
@@ -40,7 +40,7 @@ class MapSnapshot:
     @property
     def above_sea_level(self) -> bool:
         """Whether the map's heights can be given as altitudes above sea level (not with heights above take-off)."""
-        return self.altitude_reference is None or self.altitude_reference in ABSOLUTE_ALTITUDES
+        return above_sea_level(self.altitude_reference)
 
 
 def snapshot(pipe, final: bool = False) -> MapSnapshot:

@@ -19,7 +19,7 @@ uncertainty:
 
 Poses come in the *map frame*: the model's coordinates taken through the first good
 georeferencing fit, then frozen (so that the frames in the association's window stay consistent
-while later fits move a little). ``assoc.to_enu`` takes points from the map frame to the
+while later fits move a little). ``map_to_enu`` takes points from the map frame to the
 current best ENU frame; :attr:`origin` is the ENU origin (the first GPS fix, unless given).
 """
 
