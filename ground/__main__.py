@@ -79,7 +79,8 @@ def _cmd_run(args) -> int:
     connect = args.connect or (None if args.listen or args.zenoh_config else [DEFAULT_ENDPOINT])
     report = run_ground(args.flight_id, args.out, connect=connect, listen=args.listen, zenoh_config=args.zenoh_config,
                         drone_ids=args.drone_id, settings=_settings(args), rrd=not args.no_rrd, serve=args.serve,
-                        viewer=args.viewer, harvest=args.harvest, idle_timeout_s=args.idle_timeout,
+                        viewer=args.viewer, harvest=args.harvest, orchard=args.orchard,
+                        sample_counts=args.sample_counts, idle_timeout_s=args.idle_timeout,
                         resume=not args.fresh, expected_frames=args.expected_frames, max_ahead_s=args.max_ahead_s)
     rows = ", ".join(f"row {r['row']}: {r['count']}" for r in report["rows"])
     print(f"{report['apples']} apples ({rows}); outputs in {args.out}/")
@@ -118,24 +119,6 @@ def _cmd_play(args) -> int:
     return 0
 
 
-def _cmd_layout(args) -> int:
-    from ground.orchard.layout import layout_from_rows, read_layout, write_layout
-
-    if args.check:
-        rows = read_layout(args.check)
-        print(f"{args.check}: {len(rows)} rows, fine")
-        return 0
-    if not args.map or not args.out:
-        print("error: give a finished map's folder and --out FILE (or --check FILE)", file=sys.stderr)
-        return 2
-    rows = layout_from_rows(Path(args.map) / "rows.csv", args.tree_spacing_m)
-    write_layout(rows, args.out)
-    read_layout(args.out)  # what it wrote reads back (rows that overlap are named)
-    print(f"wrote {args.out}: {len(rows)} rows, numbered as the map numbers them; check each row's number and ends, "
-          "and correct them to the orchard's own")
-    return 0
-
-
 def _cmd_replay(args) -> int:
     from ground.evaluation.scoring import format_evaluation
     from ground.replay import BUNDLED, ReplayError, default_out, replay
@@ -163,6 +146,13 @@ def _cmd_replay(args) -> int:
 
         read_harvest(args.harvest)  # a file that does not read stops the replay before it starts
         ground_args += ["--harvest", str(Path(args.harvest).resolve())]
+    if args.orchard or args.sample_counts:
+        from ground.orchard.files import read_orchard_files
+
+        # as the harvest: a layout or hand counts that do not read stop the replay before it starts
+        read_orchard_files(args.orchard, args.sample_counts, args.load_model)
+        for flag, path in (("--orchard", args.orchard), ("--sample-counts", args.sample_counts)):
+            ground_args += [flag, str(Path(path).resolve())] if path else []
     try:
         rep = replay(flight, out, realtime=args.realtime, detector=args.detector, model=args.model,
                      keyframe_every=args.keyframe_every, keyframe_width=args.keyframe_width, every=args.every,
@@ -233,7 +223,7 @@ COUNTING_FIELDS = ["confirm_score", "confirm_views", "min_radius_ratio", "min_vi
 EVALUATE_ASSOCIATION_FIELDS = ["k", "tau_epipolar", "tau_geom", "ransac_iterations", "min_inliers", "max_paths",
                                "merge_search_m"]
 GROUND_FIELDS = ["max_wait_s", "max_interp_gap", "mapping", "correction_every_s", "init_spacing_s", "min_score",
-                 "tree_spacing_m", "drift_sigma_s"]
+                 "tree_spacing_m", "load_model", "drift_sigma_s"]
 
 
 def _registration_options(p, settings=None):
@@ -254,6 +244,11 @@ def _registration_settings(args, **extra):
 
 
 HARVEST_HELP = "CSV row,kg (rows numbered as in rows.csv): report the correlation of per-row counts with yield"
+SAMPLE_COUNTS_HELP = ("the trees you counted by hand (CSV row,tree,apples, numbered as the --orchard layout numbers "
+                      "them): trees.csv, rows.csv and report.json then give each tree's, row's and the flight's load "
+                      "(every apple, seen or not) with a 90 %% interval")
+ORCHARD_HELP = ("an orchard layout file (`ground layout` writes one from a finished map): rows.csv and trees.csv then "
+                "use its rows' and trees' numbers, the same in every flight (default: the map's own numbering)")
 
 
 def _ground_argv(args) -> list[str]:
@@ -298,15 +293,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m ground", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
-    lo = sub.add_parser("layout", help="write an orchard layout file (row,start,end,tree spacing) from a finished "
-                                       "map, for the grower to check and correct; or check one (--check)",
-                        description=__import__("ground.orchard.layout", fromlist=["x"]).__doc__,
-                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    lo.add_argument("map", nargs="?", help="a finished map's folder (its rows.csv)")
-    lo.add_argument("--out", help="the layout file to write (CSV)")
-    lo.add_argument("--tree-spacing-m", type=float, default=1.0, help="the trees' spacing along the rows (m)")
-    lo.add_argument("--check", help="read and check this layout file instead")
-    lo.set_defaults(func=_cmd_layout)
+    from ground.orchard.cli import add_orchard_commands
+
+    add_orchard_commands(sub)
     e = sub.add_parser("evaluate", help="run the association on a simulated flight and score it against the truth",
                        description=evaluate_doc,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -362,6 +351,8 @@ def main(argv=None) -> int:
     from pomar.telemetry import mount_arguments
 
     rp.add_argument("--harvest", help=HARVEST_HELP)
+    rp.add_argument("--orchard", help=ORCHARD_HELP)
+    rp.add_argument("--sample-counts", help=SAMPLE_COUNTS_HELP)
     mount_arguments(rp)
     _ground_options(rp)
     rp.set_defaults(func=_cmd_replay)
@@ -398,6 +389,8 @@ def main(argv=None) -> int:
     g.add_argument("--serve", action="store_true", help="serve the rerun stream over gRPC for a viewer elsewhere")
     g.add_argument("--viewer", help="send the rerun stream to a running viewer at this URL")
     g.add_argument("--harvest", help=HARVEST_HELP)
+    g.add_argument("--orchard", help=ORCHARD_HELP)
+    g.add_argument("--sample-counts", help=SAMPLE_COUNTS_HELP)
     g.add_argument("--idle-timeout", type=float, default=60.0, help="finish after this long without a message (s; the ground's own work not counted)")
     g.add_argument("--fresh", action="store_true", help="ignore OUT/journal.bin (default: resume from it)")
     g.add_argument("--expected-frames", type=int, help="frames the flight will have, when known (progress ETA)")

@@ -21,6 +21,8 @@ from pathlib import Path
 from ground.link.envelope import ApplesSeen
 from ground.link.journal import Journal, read_journal_report
 from ground.memory import malloc_trim, rss_mb
+from ground.orchard.coverage import Sight
+from ground.orchard.files import read_orchard_files
 from ground.outputs.mapfiles import MapFiles
 from ground.outputs.report import flight_report
 from ground.outputs.snapshot import snapshot
@@ -47,16 +49,18 @@ class GroundNode:
     def __init__(self, out_dir, settings: GroundSettings | None = None, rrd: Path | None | bool = True,
                  serve: bool = False, viewer: str | None = None, harvest: Path | None = None, refresh_s: float = 2.0,
                  stream: wire.StreamFilter | None = None, progress_s: float | None = None,
-                 expected_frames: int | None = None):
+                 expected_frames: int | None = None, orchard: Path | None = None, sample_counts: Path | None = None):
+        self.settings = settings or GroundSettings()
+        # the grower's files first: one that does not read stops the ground before it starts (InputError, one line)
+        self.harvest = read_harvest(harvest) if harvest else None
+        growers = read_orchard_files(orchard, sample_counts, self.settings.load_model)
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
-        self.settings = settings or GroundSettings()
         self.pipe = GroundPipeline(self.out / "work", self.settings)
         self._rr_args = (self.out / "flight.rrd" if rrd is True else (rrd or None), serve, viewer)
         if any(self._rr_args):
             import ground.outputs.rerun_log  # noqa: F401  (now: rerun imports slowly, and the first frames would wait for it)
         self.rr = None
-        self.harvest = read_harvest(harvest) if harvest else None
         self.refresh_s = refresh_s
         self._last_refresh = 0.0
         self.progress_s = progress_s  # a progress line this often (None: none)
@@ -79,7 +83,7 @@ class GroundNode:
         self.history_requeries = 0  # times the publishers' history was asked for again (frames missing at the end)
         self.journal_damage: dict | None = None
         self.journal: Journal | None = None  # the journal being written (run_ground)
-        self.files = MapFiles(self.out, self.settings.tree_spacing_m)
+        self.files = MapFiles(self.out, self.settings.tree_spacing_m, growers, self.settings.load_model)
 
     def _rerun(self):
         if self.rr is None and self.pipe.flight_id is not None and any(self._rr_args):
@@ -217,11 +221,13 @@ class GroundNode:
         if self._trim is not None:  # hand freed heap back to the system: the map's arrays are rebuilt at each refresh
             self._trim(0)
         snap = snapshot(self.pipe, final)  # the map once, for the tables, the report and rerun
-        maps = self.files.write_tables(snap, out)
-        report = flight_report(self.pipe, maps.apples, maps.rows, final, apples_seen=self.apples_seen,
+        seen = self.apples_seen
+        maps = self.files.write_tables(snap, out, Sight(seen.camera, seen.min_px, seen.scales))
+        report = flight_report(self.pipe, maps.apples, maps.rows, final, apples_seen=seen,
                                wall_s=time.monotonic() - self.t_start, latency=self.latency, memory=self.memory,
                                progress=self.progress, link=self.link_stats(), errors=self.errors,
-                               harvest=self.harvest)
+                               harvest=self.harvest, orchard={**maps.orchard, "coverage": maps.coverage()},
+                               load=maps.load)
         rr = self._rerun()
         if rr is not None and self.pipe.arrivals.released >= 0:
             from ground.outputs.summary import summary_markdown
@@ -230,7 +236,8 @@ class GroundNode:
             rr.apples(last, snap.frame_times.get(last, float("nan")), maps.apples, snap.apples, maps.rows,
                       drone_latlon=maps.drone_latlon(), force=True,
                       points=poses.sparse_points() if poses is not None else None,
-                      summary=summary_markdown(report, self._live), trajectory_latlon=maps.trajectory_latlon())
+                      summary=summary_markdown(report, self._live), trajectory_latlon=maps.trajectory_latlon(),
+                      trees=maps.trees)
         self.files.write_report(report, out)
         return report
 
@@ -258,8 +265,8 @@ class GroundNode:
 
 
 def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=None, drone_ids=None,
-               settings: GroundSettings | None = None, rrd=True, serve=False, viewer=None, harvest=None,
-               idle_timeout_s: float = 60.0, end_quiet_s: float = 1.0, resume: bool = True,
+               settings: GroundSettings | None = None, rrd=True, serve=False, viewer=None, harvest=None, orchard=None,
+               sample_counts=None, idle_timeout_s: float = 60.0, end_quiet_s: float = 1.0, resume: bool = True,
                progress_s: float = 5.0, expected_frames: int | None = None, max_ahead_s: float = 60.0) -> dict:
     """Map one flight from its zenoh stream until the drone says it is finished, or idle_timeout_s passes.
 
@@ -275,16 +282,15 @@ def run_ground(flight_id: str, out_dir, connect=None, listen=None, zenoh_config=
     out = Path(out_dir)
     journal_path = out / "journal.bin"
     stream = wire.StreamFilter(flight_id, drone_ids, max_ahead_s=max_ahead_s)
-    if resume and journal_path.is_file():
-        read = read_journal_report(journal_path)  # an unreadable journal raises before anything is overwritten
-    else:
-        read = None
+    # an unreadable journal, harvest or layout file raises before anything is overwritten
+    read = read_journal_report(journal_path) if resume and journal_path.is_file() else None
+    node = GroundNode(out, settings, rrd, serve, viewer, harvest, stream=stream, progress_s=progress_s,
+                      expected_frames=expected_frames, orchard=orchard, sample_counts=sample_counts)
+    if read is None:
         try:
             journal_path.unlink(missing_ok=True)
         except OSError:  # a folder it cannot write (read-only): the journal says so once, and the flight goes on
             pass
-    node = GroundNode(out, settings, rrd, serve, viewer, harvest, stream=stream, progress_s=progress_s,
-                      expected_frames=expected_frames)
     if read is not None:
         log.info("resuming from %s: %d messages%s", journal_path, len(read.records),
                  f", {read.damaged_bytes} damaged bytes skipped" if read.damaged else "")

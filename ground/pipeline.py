@@ -69,6 +69,9 @@ class GroundSettings:
     counting: CountingSettings = field(default_factory=CountingSettings)
     #: Trees along a row are this far apart (m): trees.csv cuts each row's line into segments this long.
     tree_spacing_m: float = 1.0
+    #: How each tree's load is estimated from the hand counts (--sample-counts): ratio, linear or coverage
+    #: (ground.orchard.calibration).
+    load_model: str = field(default="linear", metadata={"choices": ("ratio", "linear", "coverage")})
     #: Live (mapping in its own process), pose corrections run at most this often (s); the keyframes the mapper moves
     #: meanwhile add up, and one round corrects them all. Lock-step corrects after every keyframe (deterministic).
     correction_every_s: float = 2.0

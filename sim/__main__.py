@@ -86,12 +86,25 @@ def _cmd_logs(args) -> int:
 
 def _cmd_counts(args) -> int:
     from pomar.flight import FlightDir
-    from sim.counts import parse_tree, sample_counts, write_counts
+    from pomar.sample_counts import write_sample_counts
+    from sim.counts import parse_tree, sample_counts
 
     trees = [parse_tree(t) for t in args.trees] if args.trees else None
     rows = sample_counts(FlightDir(args.flight_dir), trees, args.random or 0, args.seed, args.count_error_cv)
-    write_counts(rows, args.out)
+    write_sample_counts(rows, args.out)
     print(f"wrote {args.out}: {len(rows)} trees, {sum(r['apples'] for r in rows)} apples counted")
+    return 0
+
+
+def _cmd_layout(args) -> int:
+    from pomar.flight import FlightDir
+    from pomar.layout import read_layout, write_layout
+    from sim.layout import truth_layout
+
+    rows = truth_layout(FlightDir(args.flight_dir))
+    write_layout(rows, args.out)
+    read_layout(args.out)  # what it wrote reads back
+    print(f"wrote {args.out}: {len(rows)} rows, numbered as the truth numbers them")
     return 0
 
 
@@ -147,6 +160,11 @@ def main(argv=None) -> int:
     c.add_argument("--count-error-cv", type=float, default=0.0,
                    help="a human's counting error: each count times a normal factor of mean 1 and this CV")
     c.set_defaults(func=_cmd_counts)
+    lo = sub.add_parser("layout", help="write the orchard layout file a grower would have (rows' ends, tree spacing), "
+                                       "fitted to the truth's trees and numbered as they are")
+    lo.add_argument("flight_dir")
+    lo.add_argument("--out", required=True, help="the orchard layout CSV to write")
+    lo.set_defaults(func=_cmd_layout)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     return cli.run(args.func, args)

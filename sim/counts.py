@@ -11,9 +11,6 @@ end). ``--count-error-cv`` adds a human's counting error: each count is the true
 
 from __future__ import annotations
 
-import csv
-from pathlib import Path
-
 import numpy as np
 
 from pomar.cli import InputError
@@ -65,12 +62,3 @@ def sample_counts(flight, trees: list[tuple[int, int]] | None = None, random: in
             n = max(0, int(round(n * rng.normal(1.0, count_error_cv))))
         out.append({"row": r, "tree": k, "apples": n})
     return out
-
-
-def write_counts(rows: list[dict], path: Path) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, ["row", "tree", "apples"], lineterminator="\n")
-        w.writeheader()
-        w.writerows(rows)

@@ -134,7 +134,8 @@ def test_a_rescaled_frame_gives_boxes_in_the_full_frames_pixels(bundled_flight):
 
 
 def test_trees_csv_cuts_rows_into_tree_segments(tmp_path):
-    from ground.outputs.tables import rows_summary, trees_summary, write_map
+    from ground.orchard.map_rows import rows_summary, trees_summary
+    from ground.outputs.tables import write_map
 
     rng = np.random.default_rng(1)
     n = 120
@@ -152,9 +153,12 @@ def test_trees_csv_cuts_rows_into_tree_segments(tmp_path):
         assert sum(t["count"] for t in mine) == r["count"]
         assert len(mine) == int(np.ceil(r["length_m"] / 1.5 - 1e-9))
         assert np.allclose(np.diff([t["along_m"] for t in mine]), 1.5)
-    write_map(tmp_path, table, direction, tree_spacing_m=1.5)
+    write_map(tmp_path, table, rows, trees)
     lines = (tmp_path / "trees.csv").read_text().splitlines()
-    assert lines[0] == "row,tree,along_m,x,y,lat,lon,count" and len(lines) == len(trees) + 1
+    from ground.outputs.tables import TREE_COLUMNS
+
+    assert lines[0] == ",".join(TREE_COLUMNS) and lines[0].startswith("row,tree,along_m,x,y,lat,lon,count,")
+    assert len(lines) == len(trees) + 1
     with pytest.raises(ValueError, match="spacing"):
         trees_summary(table, rows, direction, 0.0)
 

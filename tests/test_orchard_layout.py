@@ -1,4 +1,4 @@
-"""The orchard layout file (ground/orchard/layout.py): written from a finished map, read back, and every way a grower's
+"""The orchard layout file (pomar/layout.py): written from a finished map, read back, and every way a grower's
 edit can break it named by its line."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from ground.orchard.layout import COLUMNS, LayoutError, read_layout, tree_positions
+from pomar.layout import COLUMNS, LayoutError, read_layout, tree_positions
 from pomar.geo import Origin
 
 HEAD = ",".join(COLUMNS) + "\n"
@@ -64,3 +64,179 @@ def test_a_good_layout_reads_and_a_broken_one_stops_the_command(tmp_path):
     assert [r.row for r in rows] == [12, 13] and rows[1].line == 3
     t = tree_positions(rows[0], Origin(rows[0].start[0], rows[0].start[1], 0.0))
     assert len(t) == 20 and abs(t[0, 1] + 0.5) < 0.01  # the row runs south: its first tree half a metre south
+
+
+def _tilted_layout(origin, rows=(21, 22, 23), gap=3.5, length=12.0, spacing=1.2, first=0.6, azimuth_deg=30.0):
+    """Rows ``gap`` m apart running ``azimuth_deg`` from north, each ``length`` m long: LayoutRows (WGS84 ends from
+    ``origin``) and each row's start, along and across unit vectors in ENU."""
+    from pomar.layout import LayoutRow
+
+    a = np.radians(azimuth_deg)
+    u, n = np.array([np.sin(a), np.cos(a)]), np.array([np.cos(a), -np.sin(a)])
+    out, lines = [], []
+    for k, number in enumerate(rows):
+        s = k * gap * n
+        e = s + length * u
+        (la, lo, _), (lb, lb_lon, _) = np.asarray(origin.to_geodetic(np.array([[*s, 0.0], [*e, 0.0]])), float)
+        out.append(LayoutRow(number, (la, lo), (lb, lb_lon), spacing, first, k + 2))
+        lines.append((s, u, n))
+    return out, lines
+
+
+def test_apples_take_the_layouts_row_and_nearest_tree_and_those_off_every_row_are_outside():
+    """Three tilted rows numbered 21-23 by the grower: an apple within its row's strip goes to that row's nearest tree;
+    one between two rows to the nearer; one past a row's end, or far off, is outside (row 0); every tree is listed,
+    counted or not, and the rows' counts add up to the apples inside."""
+    from ground.orchard.assign import OUTSIDE, orchard_rows
+
+    origin = Origin(-28.516, -50.8811, 20.0)
+    layout, lines = _tilted_layout(origin)
+    rng = np.random.default_rng(3)
+    pts, want_row, want_tree = [], [], []
+    for (s, u, n), r in zip(lines, layout):
+        for tree in rng.integers(1, 10, 25):  # trees 1..10 of 10 (0.6 + 9 x 1.2 = 11.4 m)
+            along = 0.6 + (tree - 1) * 1.2 + rng.uniform(-0.5, 0.5)
+            across = rng.uniform(-1.2, 1.2)  # within the canopy, less than half the 3.5-m gap
+            pts.append(s + along * u + across * n)
+            want_row.append(r.row)
+            want_tree.append(tree)
+    s, u, n = lines[0]
+    pts += [s - 1.5 * u, s + 14.0 * u, s - 30.0 * n, s + 5.0 * u + 1.6 * n]  # before, past, far off; 1.6 m toward 22
+    want_row += [OUTSIDE, OUTSIDE, OUTSIDE, 21]
+    want_tree += [0, 0, 0, 5]
+    P = np.array(pts)
+    table = {"id": np.arange(len(P)), "x": P[:, 0], "y": P[:, 1], "z": np.full(len(P), 2.0)}
+    row_of, rows, trees = orchard_rows(table, layout, origin)
+    assert list(row_of) == want_row
+    assert [r["row"] for r in rows] == [21, 22, 23] and sum(r["count"] for r in rows) == len(P) - 3
+    assert all(abs(r["length_m"] - 12.0) < 0.01 for r in rows)
+    assert len(trees) == 30 and [t["tree"] for t in trees[:10]] == list(range(1, 11))
+    got = {(t["row"], t["tree"]): t["count"] for t in trees}
+    for r in (21, 22, 23):
+        tr = np.array(want_tree)[np.array(want_row) == r]
+        assert all(got[(r, k)] == int((tr == k).sum()) for k in range(1, 11)), r
+    # a tree's position is its layout position: tree 1 of row 21 is 0.6 m along the row from its start
+    t1 = next(t for t in trees if (t["row"], t["tree"]) == (21, 1))
+    assert np.allclose([t1["x"], t1["y"]], lines[0][0] + 0.6 * lines[0][1], atol=0.01)
+    assert abs(t1["lat"] - layout[0].start[0]) < 1e-5
+
+
+def test_replay_with_an_orchard_layout_numbers_rows_and_trees_as_the_grower_does(replayed_test_flight, tmp_path):
+    """`ground replay --orchard FILE`: the layout written from the map, its rows renumbered as a grower would (31, 30,
+    ... : the other way round): rows.csv holds the layout's rows in its order, apples.csv each apple's layout row,
+    trees.csv every tree of the layout; report.json says whose numbering it is. A layout that does not read stops the
+    replay before it starts (one line, exit 2); without one, the report says the numbering is the map's own."""
+    import csv
+    import json
+
+    from pomar.layout import write_layout
+
+    _, out, rep = replayed_test_flight
+    path = tmp_path / "orchard.csv"
+    r = subprocess.run([sys.executable, "-m", "ground", "layout", str(out), "--out", str(path)], capture_output=True,
+                       text=True)
+    assert r.returncode == 0, r.stderr
+    from dataclasses import replace
+
+    rows = [replace(x, row=31 - k) for k, x in enumerate(read_layout(path))]
+    write_layout(rows, path)
+    cmd = [sys.executable, "-m", "ground", "replay", "--recorded", str(out / "journal.bin"), "--speed", "0", "--quiet",
+           "--out", str(tmp_path / "out"), "--orchard", str(path)]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = tmp_path / "out"
+    report = json.loads((got / "report.json").read_text())
+    assert report["orchard"]["numbering"] == "layout" and report["orchard"]["layout"] == str(path.resolve())
+    read = lambda name: list(csv.DictReader(open(got / name)))  # noqa: E731
+    assert [int(x["row"]) for x in read("rows.csv")] == [x.row for x in rows]
+    apples = read("apples.csv")
+    assert {int(a["row"]) for a in apples} <= {x.row for x in rows} | {0}
+    assert sum(int(x["count"]) for x in read("rows.csv")) == len(apples) - report["orchard"]["apples_outside"]
+    origin = Origin(rows[0].start[0], rows[0].start[1], 0.0)
+    trees = read("trees.csv")
+    assert len(trees) == sum(len(tree_positions(x, origin)) for x in rows)
+    assert sum(int(t["count"]) for t in trees) == sum(int(x["count"]) for x in read("rows.csv"))
+    # what each tree's canopy showed the camera: a share in [0, 1], some trees seen, each row's the mean of its trees'
+    cov = np.array([float(t["coverage"]) for t in trees])
+    assert np.isfinite(cov).all() and (cov >= 0).all() and (cov <= 1).all() and (cov > 0).any(), cov
+    for x in read("rows.csv"):
+        mine = [float(t["coverage"]) for t in trees if t["row"] == x["row"]]
+        assert abs(float(x["coverage"]) - np.mean(mine)) < 1e-3
+    assert report["orchard"]["coverage"]["trees"] == len(trees)
+    # and in the recording: each tree, labelled with its coverage
+    from ground.outputs.rrd_file import rrd_rows
+
+    last = rrd_rows(got / "flight.rrd", "/world/trees")["/world/trees"][-1]
+    assert sorted(last["Points3D:labels"]) == sorted(f"row {t['row']} tree {t['tree']}: coverage "
+                                                     f"{float(t['coverage']):.2f}" for t in trees)
+    # the map's apples are the same as without the layout: only their rows' numbers change
+    assert report["apples"] == rep["apples"] and report["orchard"]["apples_outside"] <= max(1, 0.05 * rep["apples"])
+    assert rep["orchard"]["numbering"] == "map"
+    path.write_text(",".join(COLUMNS) + "\n7,-28.516,-50.8811,-28.516,-50.8811,1.0,0.5\n")
+    r = subprocess.run(cmd[:-4] + ["--out", str(tmp_path / "out2"), "--orchard", str(path)], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.strip() == f"error: {path}:2: row 7's two ends are in one place (0.00 m apart)"
+    assert not (tmp_path / "out2").exists()
+
+
+def test_the_growers_chain_layout_trees_to_count_hand_counts_and_the_load(replayed_test_flight, tmp_path):
+    """The grower's chain on the tiny flight: the orchard's layout (`sim layout`, the truth's numbers); the flight mapped
+    with it; `ground choose-trees` names 6 trees to count, and the grower's counts (the truth's loads) fill the file;
+    `ground load` gives each tree, row and the flight a load from them, and `ground replay --sample-counts` the same
+    loads live: the counted trees keep their counts, every other tree and each row gets a load inside its interval,
+    report.json the flight's and the sample's leave-one-out error. Hand counts of a tree the layout lacks stop the
+    replay before it starts."""
+    import csv
+    import json
+
+    flight, out, _ = replayed_test_flight
+    layout, todo, counts = tmp_path / "orchard.csv", tmp_path / "todo.csv", tmp_path / "counts.csv"
+    r = subprocess.run([sys.executable, "-m", "sim", "layout", str(flight.path), "--out", str(layout)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    replay = [sys.executable, "-m", "ground", "replay", "--recorded", str(out / "journal.bin"), "--speed", "0",
+              "--quiet", "--orchard", str(layout)]
+    mapped = tmp_path / "mapped"
+    r = subprocess.run(replay + ["--out", str(mapped)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    r = subprocess.run([sys.executable, "-m", "ground", "choose-trees", str(mapped), "--trees", "6", "--out",
+                        str(todo)], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    chosen = list(csv.DictReader(open(todo)))
+    # every row the camera saw has some (the rows behind them, which it never saw, tell nothing of their counts)
+    seen_rows = {t["row"] for t in csv.DictReader(open(mapped / "trees.csv")) if float(t["coverage"]) > 0}
+    assert len(chosen) == 6 and all(c["apples"] == "" for c in chosen) and {c["row"] for c in chosen} == seen_rows
+    t = flight.truth_trees()
+    truth = {(int(a), int(b)): int(n) for a, b, n in zip(t["row"], t["tree"], t["apples"])}
+    hand = {(int(c["row"]), int(c["tree"])): truth[(int(c["row"]), int(c["tree"]))] for c in chosen}
+    counts.write_text("row,tree,apples\n" + "".join(f"{a},{b},{n}\n" for (a, b), n in hand.items()))
+    r = subprocess.run([sys.executable, "-m", "ground", "load", str(mapped), "--sample-counts", str(counts)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0 and r.stdout.startswith("load: "), r.stderr
+    read = lambda folder, name: list(csv.DictReader(open(folder / name)))  # noqa: E731
+    after_map = {(t["row"], t["tree"]): t["load"] for t in read(mapped, "trees.csv")}
+    got = tmp_path / "live"
+    r = subprocess.run(replay + ["--out", str(got), "--sample-counts", str(counts)], capture_output=True, text=True,
+                       timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    trees = read(got, "trees.csv")
+    assert {(t["row"], t["tree"]): t["load"] for t in trees} == after_map
+    for t in trees:
+        key, load, lo, hi = (int(t["row"]), int(t["tree"])), float(t["load"]), float(t["load_lo"]), float(t["load_hi"])
+        if key in hand:
+            assert int(t["hand_count"]) == hand[key] and load == lo == hi == hand[key], t
+        else:
+            assert t["hand_count"] == "nan" and 0 <= lo <= load <= hi, t
+    rows = read(got, "rows.csv")
+    assert all(float(x["load_lo"]) <= float(x["load"]) <= float(x["load_hi"]) for x in rows)
+    report = json.loads((got / "report.json").read_text())
+    assert report["load"]["model"] == "linear" and report["load"]["loo"]["trees"] == 6
+    assert abs(report["load"]["flight"]["load"] - sum(float(x["load"]) for x in rows)) < 1.0
+    # a tree the orchard does not have
+    bad = tmp_path / "bad.csv"
+    bad.write_text(counts.read_text() + "1,999,40\n")
+    r = subprocess.run(replay + ["--out", str(tmp_path / "out2"), "--sample-counts", str(bad)], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 2 and r.stderr.strip() == f"error: {bad}:8: no tree 999 in row 1 in the orchard layout " \
+                                                     f"{layout}", r.stderr
+    assert not (tmp_path / "out2").exists()

@@ -314,3 +314,25 @@ def test_a_growers_hand_counts_come_from_the_trees_full_loads(small_flight, tmp_
     r = subprocess.run([sys.executable, "-m", "sim", "counts", str(small_flight.path), "--out", str(out), "--trees",
                         "99:1"], capture_output=True, text=True)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "no tree 99:1" in r.stderr, r.stderr
+
+
+def test_the_orchards_layout_fitted_to_its_trees_puts_each_tree_where_it_stands(small_flight, tmp_path):
+    """`python -m sim layout`: one line a row, numbered as the truth; read back, its tree k of row r lies within the
+    canopies' jitter (a few cm) of the truth's tree k of row r, and each row has as many trees as the truth's."""
+    from pomar.layout import read_layout, tree_positions
+
+    out = tmp_path / "orchard.csv"
+    r = subprocess.run([sys.executable, "-m", "sim", "layout", str(small_flight.path), "--out", str(out)],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    t = small_flight.truth_trees()
+    origin = small_flight.origin()
+    rows = read_layout(out)
+    assert [x.row for x in rows] == sorted(set(t["row"].astype(int)))
+    for x in rows:
+        sel = t["row"].astype(int) == x.row
+        order = np.argsort(t["tree"][sel])
+        truth = np.stack([t["x"][sel], t["y"][sel]], 1)[order]
+        got = tree_positions(x, origin)
+        assert len(got) == sel.sum(), (x.row, len(got), sel.sum())
+        assert np.abs(got - truth).max() < 0.25, np.abs(got - truth).max()

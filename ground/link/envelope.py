@@ -29,6 +29,8 @@ log = logging.getLogger(__name__)
 class ApplesSeen:
     def __init__(self):
         self.fx = float("nan")
+        self.camera: Camera | None = None  # the drone's camera, from its camera message
+        self.scales: dict[int, float] = {}  # frame -> the scale it was resized by for the detector
         self.min_px = 0.0  # the detector's smallest reliable apple radius; 0: the drone did not say
         self.radii: list[float] = []  # per frame with a foreseeable size: the radius the detector saw (px)
         self.below: list[int] = []  # frames whose apples reached the detector under min_px
@@ -37,7 +39,8 @@ class ApplesSeen:
 
     def take(self, msg) -> None:
         if isinstance(msg, wire.CameraMessage):
-            self.fx = Camera.from_dict(msg.camera, source="camera message").fx  # the wire checked it already
+            self.camera = Camera.from_dict(msg.camera, source="camera message")  # the wire checked it already
+            self.fx = self.camera.fx
             self.min_px = float(msg.min_apple_radius_px or 0.0)
             if msg.score_thresh is not None and msg.score_thresh != self.published_from:
                 self.published_from = float(msg.score_thresh)
@@ -46,6 +49,7 @@ class ApplesSeen:
                                 "(pomar.countable.PUBLISH_SCORE), so apples seen weakly in some views may go uncounted "
                                 "(start the onboard node without --score-thresh)", self.published_from, PUBLISH_SCORE)
         elif isinstance(msg, wire.FrameMessage) and np.isfinite(self.fx):
+            self.scales[int(msg.frame)] = float(msg.scale)
             tel = msg.telemetry
             r = float(np.asarray(expected_radius_px(self.fx, tel.height, off_nadir_deg(tel.q_gimbal))).reshape(-1)[0])
             if not np.isfinite(r):

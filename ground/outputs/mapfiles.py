@@ -11,20 +11,36 @@ from pathlib import Path
 
 import numpy as np
 
+from ground.orchard.tables import orchard_tables
 from ground.outputs.snapshot import MapSnapshot
 from ground.outputs.tables import (apple_table, candidate_table, candidates_csv, pose_table, poses_csv, rescue_folder,
-                                   rows_summary, write_atomic, write_json, write_map)
+                                   write_atomic, write_json, write_map)
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class MapTables:
-    """One refresh's tables: the counted apples (columns), the rows' direction (rad), the rows, the cameras."""
+    """One refresh's tables: the counted apples (columns), the rows' direction (rad), the rows, the cameras, and
+    whose numbering the rows and trees use (report.json's ``orchard``)."""
     apples: dict
     direction: float
     rows: list[dict]
     cameras: dict
+    orchard: dict
+    trees: list[dict]
+    #: The load estimated from the hand counts (report.json's ``load``); None without them.
+    load: dict | None = None
+
+    def coverage(self) -> dict | None:
+        """The flight's coverage (report.json): its trees' mean, and how many were seen at all; None before it is
+        known."""
+        c = np.array([t.get("coverage", np.nan) for t in self.trees], float)
+        if not np.isfinite(c).any():
+            return None
+        c = c[np.isfinite(c)]
+        return {"mean": float(c.mean()), "trees": int(len(c)), "trees_seen": int((c > 0).sum()),
+                "trees_both_sides": int(sum(t.get("sides_seen", 0) == 2 for t in self.trees))}
 
     def drone_latlon(self) -> list[float] | None:
         return [self.cameras["lat"][-1], self.cameras["lon"][-1]] if len(self.cameras["frame"]) else None
@@ -37,28 +53,31 @@ class MapTables:
 class MapFiles:
     """The map files of one flight in ``out``; ``failed`` says why the last refresh could not write them."""
 
-    def __init__(self, out: Path, tree_spacing_m: float):
+    def __init__(self, out: Path, tree_spacing_m: float, growers=None, load_model: str = "linear"):
         self.out = Path(out)
         self.tree_spacing_m = tree_spacing_m
+        self.growers = growers  # the grower's layout and hand counts (ground.orchard.files.OrchardFiles)
+        self.load_model = load_model
         self.failed: str | None = None  # why the map files could not be written at the last refresh
         self._was_failing = False  # the refresh before failed to write
         self.rescued_to: Path | None = None  # where the map files went when they could not be written to out
 
-    def write_tables(self, snap: MapSnapshot, out: Path | None = None) -> MapTables:
+    def write_tables(self, snap: MapSnapshot, out: Path | None = None, sight=None) -> MapTables:
         """The tables of the map ``snap``, written to ``out`` (default: the flight's folder); candidates.csv where
-        the snapshot was made at the end (it holds the candidates' checks)."""
+        the snapshot was made at the end (it holds the candidates' checks). With ``sight``
+        (ground.orchard.coverage.Sight: how the drone saw), each tree's and row's coverage."""
         out = out or self.out
         table, direction = apple_table(snap)
-        self._was_failing, self.failed = self.failed is not None, None
-        rows = self._written(lambda: write_map(out, table, direction, snap.origin, self.tree_spacing_m))
-        if rows is None:
-            rows = rows_summary(table, direction, snap.origin)
         cams = pose_table(snap)
+        rows, trees, orchard, load = orchard_tables(table, direction, snap, cams, sight, self.growers,
+                                                    self.tree_spacing_m, self.load_model)
+        self._was_failing, self.failed = self.failed is not None, None
+        self._written(lambda: write_map(out, table, rows, trees))
         self._written(lambda: write_atomic(out / "poses.csv", poses_csv(cams)))
         if snap.checks is not None:
             candidates = candidate_table(snap)
             self._written(lambda: write_atomic(out / "candidates.csv", candidates_csv(candidates)))
-        return MapTables(table, direction, rows, cams)
+        return MapTables(table, direction, rows, cams, orchard, trees, load)
 
     def write_report(self, report: dict, out: Path | None = None) -> None:
         out = out or self.out

@@ -38,10 +38,12 @@ def map_section(p) -> dict:
 
 
 def flight_report(p, table, rows, final: bool, *, apples_seen, wall_s: float, latency: list[float],
-                  memory: list, progress: list, link: dict, errors: list[str], harvest=None) -> dict:
+                  memory: list, progress: list, link: dict, errors: list[str], harvest=None, orchard=None,
+                  load=None) -> dict:
     """The report of pipeline ``p`` with its apple ``table`` and ``rows``; the rest comes from the ground's program:
     the detections' envelope (``apples_seen``), its wall time, the frames' latency, memory and progress samples, the
-    link's figures and the errors it caught."""
+    link's figures and the errors it caught; ``orchard``: whose numbering the rows and trees use (MapTables.orchard);
+    ``load``: the load estimated from the grower's hand counts (ground.orchard.calibration.apply_load)."""
     st = p.status
     poses = p.poses.figures() if p.poses is not None else no_pose_figures()
     counters = p.counters
@@ -49,6 +51,7 @@ def flight_report(p, table, rows, final: bool, *, apples_seen, wall_s: float, la
     r = {
         "flight_id": p.flight_id, "drone_id": p.drone_id, "final": final,
         "apples": int(len(table["id"])), "rows": rows,
+        "orchard": orchard or {"numbering": "map"},
         "map": map_section(p),
         "counting": p.apples.count.report(),
         "frames": counters, "gaps": p.arrivals.gaps[:100],
@@ -89,6 +92,8 @@ def flight_report(p, table, rows, final: bool, *, apples_seen, wall_s: float, la
         "link": link,
         "errors": errors[-50:],
     }
+    if load is not None:
+        r["load"] = load
     if harvest is not None:
         r["harvest_correlation"] = harvest_correlation(rows, harvest)
     return r

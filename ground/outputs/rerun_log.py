@@ -18,6 +18,8 @@ Entity tree::
     world/apples                Points3D at each apple's estimated radius, coloured by row, labelled
     world/rows                  LineStrips3D: each row's line, in its row's colour
     world/row_labels            Points3D: "row N" in white at each row's end
+    world/trees, map/trees      Points3D on the ground and GeoPoints: each tree, coloured by its coverage (the share of
+                                its canopy the camera saw, ground.orchard.coverage: dark purple none, yellow all)
     world/tracks/<id>           LineStrips3D from each observing camera to the apple (hidden)
     map/apples, map/drone, map/trajectory, map/rows     GeoPoints and GeoLineStrings (WGS84)
     stats/apples                Scalars: apples so far
@@ -157,6 +159,19 @@ def height_colours(z: np.ndarray, ground_z: float) -> np.ndarray:
     ground, low, high = np.array([120, 105, 85]), np.array([40, 120, 50]), np.array([150, 210, 110])
     canopy = low + h * (high - low)
     return np.where(h > 0, canopy, ground).astype(np.uint8)
+
+
+#: Viridis at five stops (perceptually even, colour-blind safe): a tree's coverage 0, 0.25, ..., 1.
+VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], float)
+
+
+def coverage_colours(coverage: np.ndarray) -> np.ndarray:
+    """RGB (uint8) of coverages in [0, 1] on VIRIDIS; grey where not known."""
+    c = np.asarray(coverage, float)
+    x = np.clip(np.nan_to_num(c, nan=0.0), 0, 1) * (len(VIRIDIS) - 1)
+    out = np.stack([np.interp(x, np.arange(len(VIRIDIS)), VIRIDIS[:, k]) for k in range(3)], 1)
+    out[~np.isfinite(c)] = 160
+    return out.astype(np.uint8)
 
 
 def ground_level(points: dict[int, np.ndarray], apples_z: np.ndarray) -> float | None:
@@ -323,7 +338,7 @@ class RerunLog:
 
     def apples(self, frame: int, t_capture: float, table: dict, apples=None, rows: list[dict] | None = None,
                drone_latlon=None, force: bool = False, points: dict[int, np.ndarray] | None = None,
-               summary: str | None = None, trajectory_latlon=None):
+               summary: str | None = None, trajectory_latlon=None, trees: list[dict] | None = None):
         """The apple map (every ``apples_every`` frames, or when forced): apples, rows, sparse points, per-row
         counts, the map view and the summary."""
         if not force and frame % self.apples_every:
@@ -351,6 +366,7 @@ class RerunLog:
         self.rec.log("stats/apples", rr.Scalars(float(n)))
         if self.ground_z is None:
             self.ground_z = ground_level(points or {}, np.asarray(table["z"]) if n else np.zeros(0))
+        self._trees(trees or [])
         for k, p in (points or {}).items():
             if self.ground_z is not None:
                 self.rec.log(f"world/points/{k}", rr.Points3D(p, colors=height_colours(p[:, 2], self.ground_z),
@@ -394,6 +410,21 @@ class RerunLog:
                     self.rec.send_columns(path, indexes=[rr.TimeColumn("frame", sequence=[self._first])],
                                           columns=rr.Scalars.columns(scalars=[0.0]))
             self.rec.log(path, rr.Scalars(float(r["count"])))
+
+    def _trees(self, trees: list[dict]):
+        """Each tree where it stands, coloured by its coverage (grey where not known yet), labelled."""
+        cov = np.array([t.get("coverage", np.nan) for t in trees], float)
+        if not len(trees) or not np.isfinite(cov).any():
+            return
+        col = coverage_colours(cov)
+        z = self.ground_z if self.ground_z is not None else 0.0
+        labels = [f"row {t['row']} tree {t['tree']}: coverage {c:.2f}" for t, c in zip(trees, cov)]
+        self.rec.log("world/trees", rr.Points3D([[t["x"], t["y"], z] for t in trees], colors=col, labels=labels,
+                                                radii=rr.Radius.ui_points(4.0), show_labels=False))
+        ok = np.array([np.isfinite([t["lat"], t["lon"]]).all() for t in trees])
+        if ok.any():
+            self.rec.log("map/trees", rr.GeoPoints(lat_lon=[[t["lat"], t["lon"]] for t, k in zip(trees, ok) if k],
+                                                   colors=col[ok], radii=rr.Radius.ui_points(4.0)))
 
     def _frame_view(self):
         """Send the layout again, now with the grid on the ground, the eye above the rows looking across them from

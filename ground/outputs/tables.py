@@ -1,6 +1,7 @@
 """The apple map's files, written atomically (write to a temporary name, then rename).
 
-- ``apples.csv``: id, x, y, z (ENU m), lat, lon, alt (WGS84), row (1..N), radius (m, from the boxes and
+- ``apples.csv``: id, x, y, z (ENU m), lat, lon, alt (WGS84), row (1..N, or the orchard layout's number, 0 outside
+  its rows: ground.orchard.assign), radius (m, from the boxes and
   depths), observations, reprojection error, first and last frame;
 - ``apples.geojson``: a FeatureCollection of WGS84 points (lon, lat, alt) with the same properties;
   alt is empty (NaN in the CSVs, 2-D points in GeoJSON) where the drone's log gives no altitude above sea level;
@@ -9,7 +10,7 @@
   start and end in ENU and WGS84 (the span of its apples along the row, at their median across-row offset);
 - ``trees.csv``: row, tree (1.. from the row's start), position along the row (m, the segment's centre from the
   row's start), the segment's centre (ENU and WGS84), and its count: each row's line cut into segments one tree
-  spacing long;
+  spacing long (with an orchard layout: its trees, where they stand, each apple to its row's nearest tree);
 - ``candidates.csv`` (at the end): every apple the count was chosen from, counted or not: id, x, y, z (ENU m),
   lat, lon, alt, radius (m), observations, strong views, expected views, first and last frame, and ``left_out``
   (empty when counted, else the check that left it out: ``small``, ``narrow`` or ``few_views``);
@@ -128,7 +129,7 @@ def pose_table(snap) -> dict[str, np.ndarray]:
 APPLE_COLUMNS = ["id", "x", "y", "z", "lat", "lon", "alt", "row", "radius_m", "observations", "reprojection_error_px",
                  "first_frame", "last_frame"]
 ROW_COLUMNS = ["row", "count", "length_m", "apples_per_m", "start_x", "start_y", "end_x", "end_y",
-               "start_lat", "start_lon", "end_lat", "end_lon"]
+               "start_lat", "start_lon", "end_lat", "end_lon", "coverage", "load", "load_lo", "load_hi"]
 
 #: Row colours (RGB), cycled by row number; also used by the rerun log. Okabe & Ito's colour-blind-safe
 #: palette without its black: blue, orange, bluish green, vermillion, sky blue, reddish purple, yellow.
@@ -212,34 +213,8 @@ def apples_ply(table: dict) -> str:
     return "\n".join(head + lines) + "\n"
 
 
-def rows_summary(table: dict, direction: float, origin=None) -> list[dict]:
-    """Per row: count, length along the row direction, apples per metre, and the row's line (ENU, and WGS84 when
-    ``origin`` is given): its apples' span along the row (1st to 99th percentile when it has 20 or more, so that a
-    stray estimate does not stretch it) at their median across-row offset and height."""
-    out = []
-    if not len(table["id"]):
-        return out
-    u = np.array([np.cos(direction), np.sin(direction)])
-    n = np.array([-u[1], u[0]])
-    xy = np.stack([table["x"], table["y"]], 1)
-    along, across = xy @ u, xy @ n
-    for r in np.unique(table["row"]):
-        sel = table["row"] == r
-        a = along[sel]
-        lo, hi = np.percentile(a, [1, 99]) if sel.sum() >= 20 else (a.min(), a.max())
-        c, z = np.median(across[sel]), np.median(table["z"][sel])
-        ends = np.array([[*(lo * u + c * n), z], [*(hi * u + c * n), z]])
-        geo = np.asarray(origin.to_geodetic(ends)) if origin is not None else np.full((2, 3), np.nan)
-        length = float(np.ptp(a))
-        out.append({"row": int(r), "count": int(sel.sum()), "length_m": length,
-                    "apples_per_m": float(sel.sum() / length) if length > 0 else float("nan"),
-                    "start_x": float(ends[0, 0]), "start_y": float(ends[0, 1]), "end_x": float(ends[1, 0]),
-                    "end_y": float(ends[1, 1]), "z": float(z), "start_lat": float(geo[0, 0]),
-                    "start_lon": float(geo[0, 1]), "end_lat": float(geo[1, 0]), "end_lon": float(geo[1, 1])})
-    return out
-
-
-ROW_FORMATS = {"length_m": ".2f", "apples_per_m": ".2f", "start_x": ".3f", "start_y": ".3f", "end_x": ".3f",
+ROW_FORMATS = {"length_m": ".2f", "apples_per_m": ".2f", "coverage": ".3f", "load": ".0f", "load_lo": ".0f",
+               "load_hi": ".0f", "start_x": ".3f", "start_y": ".3f", "end_x": ".3f",
                "end_y": ".3f", "start_lat": ".9f", "start_lon": ".9f", "end_lat": ".9f", "end_lon": ".9f"}
 
 
@@ -249,7 +224,7 @@ def records_csv(records: list[dict], columns: list[str], formats: dict[str, str]
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(columns)
     for r in records:
-        w.writerow([format(r[c], formats.get(c, "")) for c in columns])
+        w.writerow([format(r.get(c, float("nan")), formats.get(c, "")) for c in columns])
     return buf.getvalue()
 
 
@@ -257,35 +232,16 @@ def rows_csv(rows: list[dict]) -> str:
     return records_csv(rows, ROW_COLUMNS, ROW_FORMATS)
 
 
-TREE_COLUMNS = ["row", "tree", "along_m", "x", "y", "lat", "lon", "count"]
-
-
-def trees_summary(table: dict, rows: list[dict], direction: float, spacing_m: float, origin=None) -> list[dict]:
-    """Per tree: each row's line (rows_summary) cut into segments ``spacing_m`` long from its start; an apple
-    belongs to the segment its position along the row falls in (those beyond the line's ends to the end segments)."""
-    if spacing_m <= 0:
-        raise ValueError(f"tree spacing must be > 0 m, got {spacing_m}")
-    out = []
-    u = np.array([np.cos(direction), np.sin(direction)])
-    xy = np.stack([table["x"], table["y"]], 1) if len(table["id"]) else np.zeros((0, 2))
-    for r in rows:
-        start = np.array([r["start_x"], r["start_y"]])
-        n = max(1, int(np.ceil(r["length_m"] / spacing_m - 1e-9)))
-        sel = np.asarray(table["row"]) == r["row"]
-        k = np.clip(np.floor((xy[sel] - start) @ u / spacing_m), 0, n - 1).astype(int)
-        counts = np.bincount(k, minlength=n)
-        along = (np.arange(n) + 0.5) * spacing_m
-        centres = start + along[:, None] * u
-        geo = (np.asarray(origin.to_geodetic(np.column_stack([centres, np.full(n, r.get("z", 0.0))])))
-               if origin is not None else np.full((n, 3), np.nan))
-        out += [{"row": r["row"], "tree": i + 1, "along_m": float(along[i]), "x": float(centres[i, 0]),
-                 "y": float(centres[i, 1]), "lat": float(geo[i, 0]), "lon": float(geo[i, 1]), "count": int(counts[i])}
-                for i in range(n)]
-    return out
+#: With what each tree's canopy showed the camera (ground.orchard.coverage.COVERAGE_COLUMNS): empty where not known.
+#: And the load estimated from the hand counts (ground.orchard.calibration.LOAD_COLUMNS): empty without them.
+TREE_COLUMNS = ["row", "tree", "along_m", "x", "y", "lat", "lon", "count", "coverage", "sides_seen", "frames_seen",
+                "range_m", "angle_deg", "apple_px", "hand_count", "load", "load_lo", "load_hi"]
 
 
 def trees_csv(trees: list[dict]) -> str:
-    return records_csv(trees, TREE_COLUMNS, {"along_m": ".2f", "x": ".3f", "y": ".3f", "lat": ".9f", "lon": ".9f"})
+    return records_csv(trees, TREE_COLUMNS, {"along_m": ".2f", "x": ".3f", "y": ".3f", "lat": ".9f", "lon": ".9f",
+                                             "coverage": ".3f", "range_m": ".2f", "angle_deg": ".1f", "apple_px": ".2f",
+                                             "load": ".1f", "load_lo": ".1f", "load_hi": ".1f"})
 
 
 POSE_COLUMNS = ["frame", "t_unix", "source", "x", "y", "z", "lat", "lon", "alt", "qw", "qx", "qy", "qz", "sigma_m"]
@@ -311,16 +267,14 @@ def poses_csv(poses: dict) -> str:
     return buf.getvalue()
 
 
-def write_map(out_dir: Path, table: dict, direction: float, origin=None, tree_spacing_m: float = 1.0) -> list[dict]:
-    """apples.csv, apples.geojson, apples.ply, rows.csv and trees.csv; returns the rows summary."""
+def write_map(out_dir: Path, table: dict, rows: list[dict], trees: list[dict]) -> None:
+    """apples.csv, apples.geojson, apples.ply, rows.csv and trees.csv."""
     out = Path(out_dir)
-    rows = rows_summary(table, direction, origin)
-    write_atomic(out / "trees.csv", trees_csv(trees_summary(table, rows, direction, tree_spacing_m, origin)))
+    write_atomic(out / "trees.csv", trees_csv(trees))
     write_atomic(out / "apples.csv", apples_csv(table))
     write_atomic(out / "apples.geojson", apples_geojson(table))
     write_atomic(out / "apples.ply", apples_ply(table))
     write_atomic(out / "rows.csv", rows_csv(rows))
-    return rows
 
 
 class HarvestFileError(InputError, ValueError):

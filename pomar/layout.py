@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from pomar.cli import InputError
+from pomar.user_csv import user_csv
 
 COLUMNS = ["row", "start_lat", "start_lon", "end_lat", "end_lon", "tree_spacing_m", "first_tree_m"]
 #: A row shorter than this has its two ends in one place (a GPS fix's spread).
@@ -59,25 +60,22 @@ def tree_positions(r: LayoutRow, origin) -> np.ndarray:
     return a + along[:, None] * (b - a) / max(length, 1e-12)
 
 
+def layout_trees(rows: list[LayoutRow]) -> set[tuple[int, int]]:
+    """Every (row, tree) number of a layout."""
+    from pomar.geo import Origin
+
+    if not rows:
+        return set()
+    origin = Origin(rows[0].start[0], rows[0].start[1], 0.0)
+    return {(r.row, k + 1) for r in rows for k in range(len(tree_positions(r, origin)))}
+
+
 def read_layout(path) -> list[LayoutRow]:
     """The rows of an orchard layout file, checked (module docstring); LayoutError naming the line otherwise."""
     from pomar.geo import Origin
 
     path = Path(path)
-    try:
-        with open(path, newline="") as f:
-            rd = csv.DictReader(f)
-            missing = [c for c in COLUMNS if c not in (rd.fieldnames or [])]
-            if missing:
-                raise LayoutError(f"{path}:1: an orchard layout needs the columns {','.join(COLUMNS)} "
-                                  f"(missing: {', '.join(missing)})")
-            rows: list[LayoutRow] = []
-            for d in rd:
-                rows.append(_row(path, rd.line_num, d))
-    except OSError as e:
-        raise LayoutError(f"{path}: {e.strerror or e}") from None
-    except UnicodeDecodeError:
-        raise LayoutError(f"{path}: not a text (CSV) file") from None
+    rows = [_row(path, line, d) for line, d in user_csv(path, COLUMNS, LayoutError, "an orchard layout")]
     if not rows:
         raise LayoutError(f"{path}: no rows")
     seen: dict[int, int] = {}

@@ -1,0 +1,129 @@
+"""The grower's commands on a finished map: `ground layout` (an orchard layout file from the map, or a check of one),
+`ground choose-trees` (the trees to count by hand) and `ground load` (each tree's, row's and the flight's load from the
+hand counts), each a library function's thin shell."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from pathlib import Path
+
+from ground.pipeline import GroundSettings
+from pomar.settings import add_options
+
+
+def _cmd_layout(args) -> int:
+    from pomar.layout import layout_from_rows, read_layout, write_layout
+
+    if args.check:
+        rows = read_layout(args.check)
+        print(f"{args.check}: {len(rows)} rows, fine")
+        return 0
+    if not args.map or not args.out:
+        print("error: give a finished map's folder and --out FILE (or --check FILE)", file=sys.stderr)
+        return 2
+    rows = layout_from_rows(Path(args.map) / "rows.csv", args.tree_spacing_m)
+    write_layout(rows, args.out)
+    read_layout(args.out)  # what it wrote reads back (rows that overlap are named)
+    print(f"wrote {args.out}: {len(rows)} rows, numbered as the map numbers them; check each row's number and ends, "
+          "and correct them to the orchard's own")
+    return 0
+
+
+def _cmd_load(args) -> int:
+    from ground.orchard.calibration import LOAD_COLUMNS, apply_load, check_samples, estimate_load
+    from ground.outputs.tables import records_csv, write_atomic, write_json
+    from pomar.sample_counts import read_sample_counts
+
+    folder = Path(args.map)
+    trees = _read_trees(folder, ["row", "tree", "count"] + (["coverage"] if args.load_model == "coverage" else []))
+    if trees is None:
+        return 2
+    with open(folder / "rows.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    keys = {(t["row"], t["tree"]) for t in trees}
+    samples = read_sample_counts(args.sample_counts, keys)
+    check_samples(samples, keys, args.load_model, args.sample_counts)
+    load = apply_load(trees, rows, estimate_load(trees, samples, args.load_model))
+    fmt = {"load": ".1f", "load_lo": ".1f", "load_hi": ".1f"}
+    write_atomic(folder / "trees.csv", records_csv(trees, [c for c in trees[0] if c not in LOAD_COLUMNS] + LOAD_COLUMNS,
+                                                   fmt))
+    write_atomic(folder / "rows.csv", records_csv(rows, [c for c in rows[0] if c not in fmt] + list(fmt), fmt))
+    report_path = folder / "report.json"
+    report = json.loads(report_path.read_text()) if report_path.is_file() else {}
+    write_json(report_path, {**report, "load": load})
+    fl, loo = load["flight"], load["loo"]
+    print(f"load: {fl['load']:.0f} apples ({load['level']:.0%} interval {fl['load_lo']:.0f}-{fl['load_hi']:.0f}) on "
+          f"{fl['trees']} trees, {fl['trees_counted']} counted by hand; the sample's leave-one-out error "
+          f"{loo['median_abs_pct']:.0f} % (median), model {load['model']}")
+    for r in rows:
+        print(f"  row {r['row']}: {r['load']:.0f} ({r['load_lo']:.0f}-{r['load_hi']:.0f})")
+    print(f"trees.csv and rows.csv in {folder}/ now give each tree's and row's load; report.json its 'load'")
+    return 0
+
+
+def _read_trees(folder: Path, need: list[str]) -> list[dict] | None:
+    """A finished map's trees.csv as records (row, tree, count and coverage as numbers); None, with one line on
+    stderr, where it has no trees or lacks a column in ``need`` (a map of an older version)."""
+    with open(folder / "trees.csv", newline="") as f:
+        trees = list(csv.DictReader(f))
+    lacking = [c for c in need if trees and c not in trees[0]]
+    if not trees or lacking:
+        print(f"error: {folder / 'trees.csv'}: no trees" + (f" (no column {', '.join(lacking)}: a map of an older "
+              "version; replay it again)" if lacking else ""), file=sys.stderr)
+        return None
+    for t in trees:
+        t.update(row=int(t["row"]), tree=int(t["tree"]), count=int(t["count"]),
+                 coverage=float(t.get("coverage") or "nan"))
+    return trees
+
+
+def _cmd_choose(args) -> int:
+    from ground.orchard.choose import choose_trees
+    from ground.outputs.tables import records_csv, write_atomic
+
+    if args.trees < 1:
+        print(f"error: --trees must be at least 1, got {args.trees}", file=sys.stderr)
+        return 2
+    trees = _read_trees(Path(args.map), ["row", "tree", "count", "lat", "lon", "coverage"])
+    if trees is None:
+        return 2
+    chosen = choose_trees(trees, args.trees, args.load_model)
+    for t in chosen:
+        t["apples"] = ""
+    write_atomic(Path(args.out), records_csv(chosen, ["row", "tree", "apples", "lat", "lon", "count", "coverage"], {}))
+    print(f"wrote {args.out}: {len(chosen)} trees to count by hand, spread over the rows and what the map saw of them; "
+          "count every apple on each, write it in the apples column, then give the file as --sample-counts")
+    for t in chosen:
+        print(f"  row {t['row']} tree {t['tree']} at {t['lat']}, {t['lon']}")
+    return 0
+
+
+def add_orchard_commands(sub) -> None:
+    """The three commands' parsers, on `python -m ground`'s subparsers."""
+    lo = sub.add_parser("layout", help="write an orchard layout file (row,start,end,tree spacing) from a finished "
+                                       "map, for the grower to check and correct; or check one (--check)",
+                        description=__import__("pomar.layout", fromlist=["x"]).__doc__,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    lo.add_argument("map", nargs="?", help="a finished map's folder (its rows.csv)")
+    lo.add_argument("--out", help="the layout file to write (CSV)")
+    lo.add_argument("--tree-spacing-m", type=float, default=1.0, help="the trees' spacing along the rows (m)")
+    lo.add_argument("--check", help="read and check this layout file instead")
+    lo.set_defaults(func=_cmd_layout)
+    ld = sub.add_parser("load", help="each tree's, row's and the flight's load from a finished map and the trees you "
+                                     "counted by hand (without replaying the flight)")
+    ld.add_argument("map", help="a finished map's folder (its trees.csv and rows.csv)")
+    ld.add_argument("--sample-counts", required=True, help="the trees you counted (CSV row,tree,apples, numbered as "
+                                                            "the map's trees.csv)")
+    add_options(ld, GroundSettings(), ["load_model"])
+    ld.set_defaults(func=_cmd_load)
+    ch = sub.add_parser("choose-trees", help="name the trees to count by hand, from a finished map: spread over the "
+                                             "rows and what the map saw of them (writes the sample-count file to fill)")
+    ch.add_argument("map", help="a finished map's folder (its trees.csv; mapped with --orchard, so that the trees' "
+                                "numbers are yours)")
+    ch.add_argument("--trees", type=int, default=10, help="how many trees (default 10)")
+    ch.add_argument("--out", required=True, help="the sample-count file to write, its apples column empty")
+    add_options(ch, GroundSettings(), ["load_model"])
+    ch.set_defaults(func=_cmd_choose)

@@ -1,0 +1,39 @@
+"""The orchard's rows and trees at one refresh: numbered by the grower's layout once the map is georeferenced, else the
+map's own; what each tree's canopy showed the camera; and, with hand counts, each tree's and row's load."""
+
+from __future__ import annotations
+
+
+def orchard_tables(table: dict, direction: float, snap, cams: dict, sight, growers, tree_spacing_m: float,
+                   load_model: str) -> tuple[list[dict], list[dict], dict, dict | None]:
+    """(rows, trees, report.json's ``orchard`` section, its ``load`` section or None) for the apples of ``table``
+    (apple_table's; with a layout, each apple's row becomes its layout row, 0 outside every row) in the map ``snap``
+    (ground.outputs.snapshot.MapSnapshot) with its cameras ``cams`` (pose_table's); ``sight``
+    (ground.orchard.coverage.Sight, or None: no coverage), ``growers`` (ground.orchard.files.OrchardFiles, or None)."""
+    layout = growers.layout if growers is not None else None
+    if layout is not None and snap.to_enu is not None and snap.origin is not None:
+        from ground.orchard.assign import OUTSIDE, orchard_rows
+
+        table["row"], rows, trees = orchard_rows(table, layout, snap.origin)
+        info = {"numbering": "layout", "layout": str(growers.layout_path),
+                "apples_outside": int((table["row"] == OUTSIDE).sum())}
+    else:
+        from ground.orchard.map_rows import rows_summary, trees_summary
+
+        rows = rows_summary(table, direction, snap.origin)
+        trees = trees_summary(table, rows, direction, tree_spacing_m, snap.origin)
+        info = {"numbering": "map", "layout": str(growers.layout_path) if layout is not None else None,
+                "note": ("the map's own: the layout is applied once the map is georeferenced" if layout is not None
+                         else "the map's own (no orchard layout given)")}
+    if sight is not None and sight.camera is not None:
+        from ground.orchard.coverage import row_coverage, tree_coverage
+
+        for t, c in zip(trees, tree_coverage(trees, rows, table, cams, sight)):
+            t.update(c)
+        row_coverage(rows, trees)
+    load = None
+    if growers is not None and growers.samples and info["numbering"] == "layout":
+        from ground.orchard.calibration import apply_load, estimate_load
+
+        load = apply_load(trees, rows, estimate_load(trees, growers.samples, load_model))
+    return rows, trees, info, load

@@ -1,0 +1,121 @@
+"""The load estimate from hand counts (ground/orchard/calibration.py) and the sample-count file (pomar/sample_counts.py)
+on made-up orchards whose true loads are known: the intervals hold what they say, the hand counts stay as counted, and
+every broken line of a sample-count file is named."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ground.orchard.calibration import CalibrationError, estimate_load
+from pomar.sample_counts import SampleCountsError, read_sample_counts
+
+
+def _orchard(rng, rows=4, per_row=25, row_means=None, vigour_cv=0.25, coverage=None):
+    """Trees whose load is Poisson about their row's mean (120 unless ``row_means``) times a tree's vigour (gamma, CV
+    ``vigour_cv``), of which the camera sees 40 % of the share its coverage shows (uniform 0.3-1, or ``coverage`` for
+    every tree): (trees' records, true loads)."""
+    trees, load = [], []
+    for r in range(1, rows + 1):
+        for k in range(1, per_row + 1):
+            mean = row_means[r - 1] if row_means else 120.0
+            n = rng.poisson(mean * rng.gamma(1 / vigour_cv ** 2, vigour_cv ** 2))
+            cov = rng.uniform(0.3, 1.0) if coverage is None else coverage
+            seen = rng.binomial(n, 0.4 * cov)
+            trees.append({"row": r, "tree": k, "count": seen, "coverage": cov})
+            load.append(n)
+    return trees, np.array(load, float)
+
+
+@pytest.mark.parametrize("model,coverage", [("ratio", 0.7), ("linear", 0.7), ("linear", None), ("coverage", None)])
+def test_the_90_percent_intervals_hold_the_true_loads_about_90_percent_of_the_time(model, coverage):
+    """200 orchards, 10 trees counted on each, each model where it holds (the count in proportion to the load where
+    every tree is seen alike; the count over the coverage where the coverage varies): the trees' intervals hold their
+    true load 80-97 % of the time, the rows' and the flight's too; the counted trees keep their hand counts."""
+    rng = np.random.default_rng(7)
+    tree_in, row_in, flight_in = [], [], []
+    for _ in range(200):
+        trees, load = _orchard(rng, coverage=coverage)
+        pick = rng.choice(len(trees), 10, replace=False)
+        samples = {(trees[i]["row"], trees[i]["tree"]): int(load[i]) for i in pick}
+        est = estimate_load(trees, samples, model)
+        t = est["trees"]
+        assert all(t[i]["load"] == load[i] == t[i]["hand_count"] for i in pick)
+        free = np.setdiff1d(np.arange(len(trees)), pick)
+        tree_in += [t[i]["load_lo"] <= load[i] <= t[i]["load_hi"] for i in free]
+        for r, e in est["rows"].items():
+            truth = load[[x["row"] == r for x in trees]].sum()
+            row_in.append(e["load_lo"] <= truth <= e["load_hi"])
+        flight_in.append(est["flight"]["load_lo"] <= load.sum() <= est["flight"]["load_hi"])
+    for name, hits in (("trees", tree_in), ("rows", row_in), ("flight", flight_in)):
+        assert 0.80 <= np.mean(hits) <= 0.97, (model, name, np.mean(hits))
+
+
+def test_the_coverage_model_beats_the_ratio_where_the_seen_share_follows_coverage():
+    """Where the camera sees 40 % of what the coverage shows, the count over coverage predicts the load better
+    (leave-one-out error of 30 counted trees) than the count alone."""
+    rng = np.random.default_rng(3)
+    trees, load = _orchard(rng, rows=6)
+    pick = rng.choice(len(trees), 30, replace=False)
+    samples = {(trees[i]["row"], trees[i]["tree"]): int(load[i]) for i in pick}
+    ratio, cov = (estimate_load(trees, samples, m)["loo"]["rms_error"] for m in ("ratio", "coverage"))
+    assert cov < ratio, (cov, ratio)
+
+
+def test_too_few_hand_counts_say_how_many_the_model_needs():
+    trees, load = _orchard(np.random.default_rng(0), rows=1)
+    with pytest.raises(CalibrationError, match="3 trees counted by hand: the 'linear' model needs at least 4"):
+        estimate_load(trees, {(1, k): int(load[k - 1]) for k in (1, 2, 3)}, "linear")
+
+
+@pytest.mark.parametrize("text,says", [
+    ("row,tree,apples\n1,2,x\n", ":2: apples 'x' is not a whole number"),
+    ("row,tree,apples\n1,2,-4\n", ":2: apples -4 is negative"),
+    ("row,tree,apples\n1,2,40\n1,3,50\n1,2,41\n", ":4: row 1 tree 2 is given twice (first on line 2)"),
+    ("row,tree,apples\n1,99,40\n", ":2: no tree 99 in row 1 in the map's trees.csv"),
+    ("row,tree\n1,2\n", ":1: a sample-count file needs the columns row,tree,apples"),
+    ("row,tree,apples\n", ": no trees counted"),
+])
+def test_a_broken_sample_count_file_is_one_line_naming_its_line(tmp_path, text, says):
+    path = tmp_path / "counts.csv"
+    path.write_text(text)
+    with pytest.raises(SampleCountsError) as e:
+        read_sample_counts(path, {(1, k) for k in range(1, 11)})
+    assert str(e.value).startswith(str(path)) and says in str(e.value) and "\n" not in str(e.value), str(e.value)
+
+
+def test_a_good_sample_count_file_reads_in_its_order(tmp_path):
+    path = tmp_path / "counts.csv"
+    path.write_text("row,tree,apples\n3,12,148\n1,2,0\n")
+    assert list(read_sample_counts(path).items()) == [((3, 12), 148), ((1, 2), 0)]
+
+
+def test_the_chosen_trees_span_the_counts_and_rows_and_estimate_no_worse_than_random_draws():
+    """10 trees chosen from 100 on 4 rows of different mean loads: every row has some, the chosen counts span the
+    orchard's, and over 30 orchards the median per-row load error they give is within 5 % of that of random draws of
+    10 trees (20 an orchard), where the 10 trees the camera saw least give far more. (Issue 59 asks more of it on the
+    evaluation flights: no larger error than the median random draw on each.)"""
+    from ground.orchard.choose import choose_trees
+
+    rng = np.random.default_rng(11)
+    chosen_error, random_error, worst_error = [], [], []
+    for _ in range(30):
+        trees, load = _orchard(rng, row_means=(80, 120, 160, 100))
+        chosen = choose_trees(trees, 10)
+        assert len(chosen) == 10 and {t["row"] for t in chosen} == {1, 2, 3, 4}
+        counts = np.array([t["count"] for t in trees])
+        got = np.array([t["count"] for t in chosen])
+        assert got.min() <= np.percentile(counts, 10) and got.max() >= np.percentile(counts, 90)
+
+        def row_error(picked):
+            est = estimate_load(trees, {(t["row"], t["tree"]): int(load[(t["row"] - 1) * 25 + t["tree"] - 1])
+                                        for t in picked})
+            truth = {r: load[[x["row"] == r for x in trees]].sum() for r in est["rows"]}
+            return np.median([abs(e["load"] - truth[r]) / truth[r] for r, e in est["rows"].items()])
+
+        chosen_error.append(row_error(chosen))
+        worst_error.append(row_error(sorted(trees, key=lambda t: t["count"])[:10]))
+        random_error.append(np.median([row_error([trees[i] for i in rng.choice(len(trees), 10, replace=False)])
+                                       for _ in range(20)]))
+    got, random, worst = np.median(chosen_error), np.median(random_error), np.median(worst_error)
+    assert got <= 1.05 * random and worst > 1.5 * random, (got, random, worst)
