@@ -1,11 +1,12 @@
 """The orchard as the grower knows it: an orchard layout file (issue 59), one line a row.
 
-    row,start_lat,start_lon,end_lat,end_lon,tree_spacing_m,first_tree_m
-    12,-28.5163188,-50.8811460,-28.5160002,-50.8811460,1.0,0.5
+    row,start_lat,start_lon,end_lat,end_lon,tree_spacing_m,first_tree_m,cultivar
+    12,-28.5163188,-50.8811460,-28.5160002,-50.8811460,1.0,0.5,Gala
 
 ``row`` is the row's number as the grower uses it (any whole number, each once); ``start`` and ``end`` its two ends in
 WGS84 (degrees); the trees stand along the line from start to end, the first ``first_tree_m`` from the start, then one
 every ``tree_spacing_m`` up to the end: tree 1, 2, ... So the same tree has the same ``row,tree`` in every flight.
+``cultivar`` (optional, may be empty) names the row's cultivar: its apples' mass from their size (pomar.fruit).
 
 :func:`read_layout` reads and checks one (a line that does not parse, a row given twice, a row whose two ends are in one
 place, trees that overlap: one line naming the line and what is wrong); :func:`layout_from_rows` writes one from a
@@ -44,6 +45,7 @@ class LayoutRow:
     tree_spacing_m: float
     first_tree_m: float
     line: int = 0  # its line in the file (0: not read from one)
+    cultivar: str = ""  # the row's cultivar, where the grower says it (its apples' mass: pomar.fruit)
 
 
 def row_length_m(r: LayoutRow, origin) -> float:
@@ -114,7 +116,7 @@ def _row(path: Path, line: int, d: dict) -> LayoutRow:
         raise LayoutError(f"{path}:{line}: tree_spacing_m must be more than 0 m, got {d['tree_spacing_m']}")
     return LayoutRow(row, (number("start_lat", -90, 90), number("start_lon", -180, 180)),
                      (number("end_lat", -90, 90), number("end_lon", -180, 180)), spacing,
-                     number("first_tree_m", 0.0, 10_000.0), line)
+                     number("first_tree_m", 0.0, 10_000.0), line, (d.get("cultivar") or "").strip())
 
 
 def _check_overlaps(path: Path, rows: list[LayoutRow], origin) -> None:
@@ -154,7 +156,7 @@ def write_layout(rows: list[LayoutRow], path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w", newline="") as f:
         w = csv.writer(f, lineterminator="\n")
-        w.writerow(COLUMNS)
+        w.writerow(COLUMNS + ["cultivar"])
         for r in rows:
             w.writerow([r.row, f"{r.start[0]:.9f}", f"{r.start[1]:.9f}", f"{r.end[0]:.9f}", f"{r.end[1]:.9f}",
-                        f"{r.tree_spacing_m:g}", f"{r.first_tree_m:g}"])
+                        f"{r.tree_spacing_m:g}", f"{r.first_tree_m:g}", r.cultivar])

@@ -20,6 +20,8 @@ def truth_layout(flight) -> list[LayoutRow]:
     """The layout of a flight directory (pomar.flight.FlightDir) from its trees' truth; rows with fewer than two trees
     have no line and are left out."""
     t = flight.truth_trees()
+    a = flight.truth_apples()
+    cultivar = {int(r): str(v) for r, v in zip(a["row"], a["variety"])}  # each row's one variety
     origin = flight.origin()
     xy = np.stack([t["x"], t["y"]], 1)
     out = []
@@ -36,5 +38,5 @@ def truth_layout(flight) -> list[LayoutRow]:
         ends = np.array([c + (a0 - spacing / 2) * u, c + (a0 + (number.max() - 0.5) * spacing) * u])
         geo = np.asarray(origin.to_geodetic(np.column_stack([ends, np.zeros(2)])), float)
         out.append(LayoutRow(int(row), (geo[0, 0], geo[0, 1]), (geo[1, 0], geo[1, 1]), round(float(spacing), 4),
-                             round(float(spacing) / 2, 4)))
+                             round(float(spacing) / 2, 4), cultivar=cultivar.get(int(row), "")))
     return out

@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from pomar.fruit import apple_mass_kg
 from sim.config import SimConfig
 
 LEAF, APPLE, TRUNK = 0, 1, 2
@@ -47,12 +48,6 @@ class Scene:
 
 #: The simulator's mass of an apple: a sphere of its diameter at a whole apple's density (its flesh holds a fifth or so
 #: of air; 0.70-0.85 g/cm3, so it floats). A truth for scoring, not a cultivar's mass-diameter relation.
-APPLE_DENSITY_KG_M3 = 800.0
-
-
-def apple_mass_kg(radius_m) -> np.ndarray:
-    """The simulator's mass (kg) of apples of these radii (m): APPLE_DENSITY_KG_M3 times a sphere's volume."""
-    return APPLE_DENSITY_KG_M3 * 4.0 / 3.0 * np.pi * np.asarray(radius_m, float) ** 3
 
 
 def orchard_to_enu_matrix(azimuth_deg: float) -> np.ndarray:
@@ -239,7 +234,10 @@ def build_scene(cfg: SimConfig) -> Scene:
     # each tree's full load: the apples kept on it (no draw from rng)
     a_row = np.array(apples["row"], np.int64)[keep_apple]
     a_tree = np.array(apples["tree"], np.int64)[keep_apple]
-    a_mass = apple_mass_kg(r_apple[keep_apple])
+    variety = np.array(apples["variety"])[keep_apple]
+    a_mass = np.zeros(len(variety))
+    for v in np.unique(variety):  # the mass of each apple of its diameter and cultivar (pomar.fruit)
+        a_mass[variety == v] = apple_mass_kg(2.0 * r_apple[keep_apple][variety == v], v)
     t_row, t_tree = np.array(trees["row"], np.int64), np.array(trees["tree"], np.int64)
     key = (a_row - 1) * n_trees + (a_tree - 1)
     t_key = (t_row - 1) * n_trees + (t_tree - 1)

@@ -119,3 +119,27 @@ def test_the_chosen_trees_span_the_counts_and_rows_and_estimate_no_worse_than_ra
                                        for _ in range(20)]))
     got, random, worst = np.median(chosen_error), np.median(random_error), np.median(worst_error)
     assert got <= 1.05 * random and worst > 1.5 * random, (got, random, worst)
+
+
+def test_each_rows_fruit_size_and_kilograms_follow_its_apples_diameters():
+    """Two rows, apples of 60-70 mm and of 75-85 mm (a few with no fit): each row's median, its shares of the size
+    classes, the mean mass of its apples by pomar.fruit's relation, and its kilograms the load times that mass."""
+    from ground.orchard.size import row_sizes
+    from pomar.fruit import apple_mass_kg
+
+    rng = np.random.default_rng(2)
+    d = np.concatenate([rng.uniform(0.060, 0.070, 200), rng.uniform(0.075, 0.085, 200)])
+    row = np.repeat([3, 4], 200)
+    radius = d / 2
+    radius[[0, 250]] = np.nan
+    table = {"id": np.arange(400), "row": row, "radius_m": radius}
+    rows = [{"row": 3, "load": 1000.0, "load_lo": 900.0, "load_hi": 1100.0}, {"row": 4}]
+    flight = row_sizes(table, rows, {3: "Fuji"})
+    a, b = rows
+    assert abs(a["diameter_mm"] - 65) < 1 and abs(b["diameter_mm"] - 80) < 1
+    assert a["share_60_70"] == 1.0 and a["share_lt60"] == a["share_70_80"] == a["share_gt80"] == 0
+    assert 0.4 < b["share_70_80"] < 0.6 and abs(b["share_70_80"] + b["share_gt80"] - 1) < 1e-9
+    assert np.isclose(a["apple_kg"], apple_mass_kg(d[1:200], "Fuji").mean())
+    assert np.isclose(a["kg"], 1000 * a["apple_kg"]) and np.isclose(a["kg_hi"], 1100 * a["apple_kg"])
+    assert np.isnan(b["kg"]) and np.isnan(flight["kg"])  # no load, no kilograms
+    assert flight["apples_measured"] == 398 and 70 < flight["diameter_mm"] < 76

@@ -229,6 +229,10 @@ def test_the_growers_chain_layout_trees_to_count_hand_counts_and_the_load(replay
             assert t["hand_count"] == "nan" and 0 <= lo <= load <= hi, t
     rows = read(got, "rows.csv")
     assert all(float(x["load_lo"]) <= float(x["load"]) <= float(x["load_hi"]) for x in rows)
+    # the fruit's size per row from the apples' 3-D fits, and the load in kilograms (the truth's apples: 60-90 mm)
+    sized = [x for x in rows if x["diameter_mm"] != "nan"]
+    assert sized and all(50 < float(x["diameter_mm"]) < 100 for x in sized)
+    assert all(abs(float(x["kg"]) - float(x["load"]) * float(x["apple_kg"])) < 0.1 for x in sized)
     report = json.loads((got / "report.json").read_text())
     assert report["load"]["model"] == "linear" and report["load"]["loo"]["trees"] == 6
     assert abs(report["load"]["flight"]["load"] - sum(float(x["load"]) for x in rows)) < 1.0

@@ -247,7 +247,8 @@ def test_the_truth_holds_every_trees_full_load_and_each_apples_mass(bundled_flig
     """Every tree's full load (the apples it carries, seen or not) and every apple's tree and mass, for scoring yield
     (issue 59), drawn without a draw from the generator (a flight rendered before comes out the same apple for apple:
     checked on issue 62's flights, rendered the same day)."""
-    from sim.orchard import APPLE_DENSITY_KG_M3, build_scene
+    from pomar.fruit import apple_mass_kg
+    from sim.orchard import build_scene
 
     scene = build_scene(config.load(bundled_flight.path / "sim_config.toml"))
     tr = scene.trees
@@ -260,8 +261,11 @@ def test_the_truth_holds_every_trees_full_load_and_each_apples_mass(bundled_flig
     along = (scene.apples["xyz"][:, :2] - centre[:, :2]) @ (scene.orchard_to_enu @ [0.0, 1.0])
     assert np.abs(along).max() < 0.9 * spacing, np.abs(along).max()
     d_m, m_kg = 2 * scene.apples["radius_m"], scene.apples["mass_kg"]
-    assert 0.06 <= d_m.min() and d_m.max() <= 0.09 and 0.09 < m_kg.min() and m_kg.max() < 0.31
-    np.testing.assert_allclose(m_kg, APPLE_DENSITY_KG_M3 * np.pi / 6 * d_m ** 3)
+    assert 0.06 <= d_m.min() and d_m.max() <= 0.09 and 0.09 < m_kg.min() and m_kg.max() < 0.34
+    # its mass is pomar.fruit's of its diameter and cultivar, the ground's relation
+    for v in np.unique(scene.apples["variety"]):
+        sel = np.asarray(scene.apples["variety"]) == v
+        np.testing.assert_allclose(m_kg[sel], apple_mass_kg(d_m[sel], v))
     # a flight rendered now writes them: truth/trees.csv, and each apple's tree and mass beside it
     t = small_flight.truth_trees()
     a = small_flight.truth_apples()

@@ -47,7 +47,10 @@ def _cmd_load(args) -> int:
     samples = read_sample_counts(args.sample_counts, keys)
     check_samples(samples, keys, args.load_model, args.sample_counts)
     load = apply_load(trees, rows, estimate_load(trees, samples, args.load_model))
-    fmt = {"load": ".1f", "load_lo": ".1f", "load_hi": ".1f"}
+    for r in rows:  # kilograms: the load times the mean mass of the row's measured apples (ground.orchard.size)
+        m = float(r.get("apple_kg") or "nan")
+        r.update(kg=r["load"] * m, kg_lo=r["load_lo"] * m, kg_hi=r["load_hi"] * m)
+    fmt = {"load": ".1f", "load_lo": ".1f", "load_hi": ".1f", "kg": ".1f", "kg_lo": ".1f", "kg_hi": ".1f"}
     write_atomic(folder / "trees.csv", records_csv(trees, [c for c in trees[0] if c not in LOAD_COLUMNS] + LOAD_COLUMNS,
                                                    fmt))
     write_atomic(folder / "rows.csv", records_csv(rows, [c for c in rows[0] if c not in fmt] + list(fmt), fmt))

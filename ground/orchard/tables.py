@@ -1,5 +1,6 @@
 """The orchard's rows and trees at one refresh: numbered by the grower's layout once the map is georeferenced, else the
-map's own; what each tree's canopy showed the camera; and, with hand counts, each tree's and row's load."""
+map's own; what each tree's canopy showed the camera; with hand counts, each tree's and row's load; the fruit's size
+per row, and the load in kilograms."""
 
 from __future__ import annotations
 
@@ -36,4 +37,8 @@ def orchard_tables(table: dict, direction: float, snap, cams: dict, sight, growe
         from ground.orchard.calibration import apply_load, estimate_load
 
         load = apply_load(trees, rows, estimate_load(trees, growers.samples, load_model))
+    from ground.orchard.size import row_sizes
+
+    cultivars = {r.row: r.cultivar for r in layout} if info["numbering"] == "layout" else {}
+    info["size"] = row_sizes(table, rows, cultivars)
     return rows, trees, info, load

@@ -1,0 +1,48 @@
+"""The fruit's size per row, and the load in kilograms (issue 59): each counted apple's diameter from its 3-D fit
+(apples.csv's radius_m), the row's median and its share in each size class, and the row's load (apples, from the
+hand counts) times the mean mass of its measured apples (pomar.fruit, by the row's cultivar where the layout says it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pomar.fruit import apple_mass_kg
+
+#: Size classes' bounds (mm): < 60, 60-70, 70-80, > 80.
+CLASS_BOUNDS_MM = (60.0, 70.0, 80.0)
+#: Columns added to rows.csv: median diameter (mm), the share of each class, the mean mass of an apple (kg) and the
+#: load in kg with its interval (empty without hand counts).
+SIZE_COLUMNS = ["diameter_mm", "share_lt60", "share_60_70", "share_70_80", "share_gt80", "apple_kg", "kg", "kg_lo",
+                "kg_hi"]
+
+
+def size_figures(diameter_m: np.ndarray, cultivar: str = "") -> dict:
+    """The median diameter (mm), the share of each class and the mean mass (kg) of apples of these diameters (m; NaN
+    ones left out); NaN where none is measured."""
+    d = np.asarray(diameter_m, float)
+    d = d[np.isfinite(d) & (d > 0)]
+    if not len(d):
+        return {c: float("nan") for c in SIZE_COLUMNS[:6]}
+    mm = d * 1000.0
+    lo, mid, hi = CLASS_BOUNDS_MM
+    return {"diameter_mm": float(np.median(mm)), "share_lt60": float((mm < lo).mean()),
+            "share_60_70": float(((mm >= lo) & (mm < mid)).mean()), "share_70_80": float(((mm >= mid) & (mm < hi)).mean()),
+            "share_gt80": float((mm >= hi).mean()), "apple_kg": float(apple_mass_kg(d, cultivar).mean())}
+
+
+def row_sizes(table: dict, rows: list[dict], cultivars: dict[int, str] | None = None) -> dict:
+    """SIZE_COLUMNS into each row's record, from its apples in ``table`` (apple_table's columns); returns report.json's
+    ``size`` section for the flight (the same figures over every apple; kg the sum of the rows')."""
+    cultivars = cultivars or {}
+    diameter = 2.0 * np.asarray(table["radius_m"], float) if len(table["id"]) else np.zeros(0)
+    row_of = np.asarray(table["row"])
+    for r in rows:
+        f = size_figures(diameter[row_of == r["row"]], cultivars.get(r["row"], ""))
+        load = np.array([r.get(k, np.nan) for k in ("load", "load_lo", "load_hi")], float)
+        r.update(f, **dict(zip(("kg", "kg_lo", "kg_hi"), (load * f["apple_kg"]).tolist())))
+    out = size_figures(diameter)
+    kg = np.array([[r["kg"], r["kg_lo"], r["kg_hi"]] for r in rows], float).reshape(-1, 3)
+    out["kg"] = float(kg[:, 0].sum()) if len(kg) and np.isfinite(kg[:, 0]).all() else float("nan")
+    out["apples_measured"] = int(np.isfinite(diameter).sum())
+    return out
