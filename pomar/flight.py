@@ -200,8 +200,11 @@ class FlightDir:
         except (KeyError, ValueError, TypeError) as exc:
             raise FlightFormatError(f"{p}: malformed origin ({exc})") from None
 
-    def truth_apples(self) -> dict[str, np.ndarray]:
-        return read_csv(self.truth_dir / "apples.csv", APPLES_COLUMNS, str_columns=("variety",))
+    def truth_apples(self, trees: bool = False) -> dict[str, np.ndarray]:
+        """Every apple of the simulated orchard; with ``trees``, each one's tree and mass too (APPLE_TREE_COLUMNS:
+        a flight rendered since the trees' truth)."""
+        return read_csv(self.truth_dir / "apples.csv", APPLES_COLUMNS + (APPLE_TREE_COLUMNS if trees else []),
+                        str_columns=("variety",))
 
     def truth_trees(self) -> dict[str, np.ndarray]:
         """Every tree of the simulated orchard (truth/trees.csv): row, tree (1.. from the row's start), canopy centre

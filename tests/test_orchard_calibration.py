@@ -143,3 +143,28 @@ def test_each_rows_fruit_size_and_kilograms_follow_its_apples_diameters():
     assert np.isclose(a["kg"], 1000 * a["apple_kg"]) and np.isclose(a["kg_hi"], 1100 * a["apple_kg"])
     assert np.isnan(b["kg"]) and np.isnan(flight["kg"])  # no load, no kilograms
     assert flight["apples_measured"] == 398 and 70 < flight["diameter_mm"] < 76
+
+
+def test_the_yield_score_compares_loads_intervals_sizes_and_kilograms_with_the_truth():
+    """score_yield on records as trees.csv and rows.csv give them: a tree counted by hand is left out of the trees'
+    figures; a row whose interval holds its true load is covered, one that misses it is not; sizes and kilograms
+    against the truth's, and the constant median's error beside the rows'."""
+    from ground.evaluation.yield_score import score_yield
+
+    truth = {"trees": {(1, 1): (100, 20.0), (1, 2): (120, 24.0), (1, 3): (90, 18.0), (2, 1): (50, 9.0)},
+             "rows": {1: {"diameters_m": np.full(310, 0.080), "load": 310, "kg": 62.0},
+                      2: {"diameters_m": np.full(50, 0.065), "load": 50, "kg": 9.0}}}
+    trees = [{"row": "1", "tree": "1", "hand_count": "100", "load": "100"},
+             {"row": "1", "tree": "2", "hand_count": "nan", "load": "110"},
+             {"row": "1", "tree": "3", "hand_count": "nan", "load": "95"},
+             {"row": "2", "tree": "1", "hand_count": "nan", "load": "70"}]
+    rows = [{"row": "1", "load": "305", "load_lo": "280", "load_hi": "330", "diameter_mm": "79", "kg": "61"},
+            {"row": "2", "load": "70", "load_lo": "60", "load_hi": "80", "diameter_mm": "66", "kg": "12"}]
+    s = score_yield(trees, rows, truth)
+    assert s["trees"]["n"] == 3 and s["trees"]["median_abs_error"] == 10.0
+    a, b = s["rows"]
+    assert a["covered"] and not b["covered"] and s["coverage"] == 0.5
+    assert np.isclose(a["load_error"], -5 / 310) and np.isclose(b["load_error"], 0.4)
+    assert np.isclose(a["diameter_error_mm"], -1.0) and np.isclose(b["diameter_error_mm"], 1.0)
+    assert np.isclose(a["constant_error_mm"], 72.5 - 80) and np.isclose(b["constant_error_mm"], 72.5 - 65)
+    assert np.isclose(a["kg_error"], -1 / 62) and np.isclose(b["kg_error"], 3 / 9)

@@ -34,6 +34,7 @@ def _cmd_layout(args) -> int:
 
 def _cmd_load(args) -> int:
     from ground.orchard.calibration import LOAD_COLUMNS, apply_load, check_samples, estimate_load
+    from ground.orchard.size import row_kilograms
     from ground.outputs.tables import records_csv, write_atomic, write_json
     from pomar.sample_counts import read_sample_counts
 
@@ -47,9 +48,7 @@ def _cmd_load(args) -> int:
     samples = read_sample_counts(args.sample_counts, keys)
     check_samples(samples, keys, args.load_model, args.sample_counts)
     load = apply_load(trees, rows, estimate_load(trees, samples, args.load_model))
-    for r in rows:  # kilograms: the load times the mean mass of the row's measured apples (ground.orchard.size)
-        m = float(r.get("apple_kg") or "nan")
-        r.update(kg=r["load"] * m, kg_lo=r["load_lo"] * m, kg_hi=r["load_hi"] * m)
+    row_kilograms(rows)
     fmt = {"load": ".1f", "load_lo": ".1f", "load_hi": ".1f", "kg": ".1f", "kg_lo": ".1f", "kg_hi": ".1f"}
     write_atomic(folder / "trees.csv", records_csv(trees, [c for c in trees[0] if c not in LOAD_COLUMNS] + LOAD_COLUMNS,
                                                    fmt))

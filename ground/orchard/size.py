@@ -38,11 +38,19 @@ def row_sizes(table: dict, rows: list[dict], cultivars: dict[int, str] | None = 
     diameter = 2.0 * np.asarray(table["radius_m"], float) if len(table["id"]) else np.zeros(0)
     row_of = np.asarray(table["row"])
     for r in rows:
-        f = size_figures(diameter[row_of == r["row"]], cultivars.get(r["row"], ""))
-        load = np.array([r.get(k, np.nan) for k in ("load", "load_lo", "load_hi")], float)
-        r.update(f, **dict(zip(("kg", "kg_lo", "kg_hi"), (load * f["apple_kg"]).tolist())))
+        r.update(size_figures(diameter[row_of == r["row"]], cultivars.get(r["row"], "")))
+        r.update({k: r.get(k, np.nan) for k in ("load", "load_lo", "load_hi")})
+    row_kilograms(rows)
     out = size_figures(diameter)
     kg = np.array([[r["kg"], r["kg_lo"], r["kg_hi"]] for r in rows], float).reshape(-1, 3)
     out["kg"] = float(kg[:, 0].sum()) if len(kg) and np.isfinite(kg[:, 0]).all() else float("nan")
     out["apples_measured"] = int(np.isfinite(diameter).sum())
     return out
+
+
+def row_kilograms(rows: list[dict]) -> None:
+    """Each row's load in kilograms, with its interval (kg, kg_lo, kg_hi): its load times the mean mass of its
+    measured apples (``apple_kg``; rows read back from rows.csv carry it as text)."""
+    for r in rows:
+        m = float(r.get("apple_kg") or "nan")
+        r.update(kg=float(r["load"]) * m, kg_lo=float(r["load_lo"]) * m, kg_hi=float(r["load_hi"]) * m)
