@@ -121,126 +121,96 @@ def test_apples_take_the_layouts_row_and_nearest_tree_and_those_off_every_row_ar
     assert abs(t1["lat"] - layout[0].start[0]) < 1e-5
 
 
-def test_replay_with_an_orchard_layout_numbers_rows_and_trees_as_the_grower_does(replayed_test_flight, tmp_path):
-    """`ground replay --orchard FILE`: the layout written from the map, its rows renumbered as a grower would (31, 30,
-    ... : the other way round): rows.csv holds the layout's rows in its order, apples.csv each apple's layout row,
-    trees.csv every tree of the layout; report.json says whose numbering it is. A layout that does not read stops the
-    replay before it starts (one line, exit 2); without one, the report says the numbering is the map's own."""
+def test_readmes_yield_commands_as_written(replayed_test_flight, tmp_path):
+    """README's "Yield" commands, as written, in a folder holding a finished map where they say (``out/demo``: the tiny
+    flight's replay, its journal in it):
+    - the layout from the map, its rows renumbered as a grower corrects them (31, 30, ...: the other way round);
+    - the map made with it: rows.csv holds the layout's rows in its order, apples.csv each apple's layout row (0
+      outside every row), trees.csv every tree, with what its canopy showed the camera (also in the recording);
+      report.json says whose numbering it is;
+    - choose-trees names trees of every row the camera saw, the apples column left to fill;
+    - with the counts filled in, load gives the counted trees their counts, every other tree and each row a load
+      inside its interval, each row its fruit's size and kilograms, report.json the flight's load;
+    - `replay --sample-counts` gives the same loads live; counts of a tree the layout lacks stop it before it starts.
+    """
     import csv
     import json
-
-    from pomar.layout import write_layout
-
-    _, out, rep = replayed_test_flight
-    path = tmp_path / "orchard.csv"
-    r = subprocess.run([sys.executable, "-m", "ground", "layout", str(out), "--out", str(path)], capture_output=True,
-                       text=True)
-    assert r.returncode == 0, r.stderr
     from dataclasses import replace
 
-    rows = [replace(x, row=31 - k) for k, x in enumerate(read_layout(path))]
-    write_layout(rows, path)
-    cmd = [sys.executable, "-m", "ground", "replay", "--recorded", str(out / "journal.bin"), "--speed", "0", "--quiet",
-           "--out", str(tmp_path / "out"), "--orchard", str(path)]
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    from ground.outputs.rrd_file import rrd_rows
+    from pomar.layout import write_layout
+    from tests.test_readme_commands import readme_commands, run
+
+    _, out, rep = replayed_test_flight
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "demo").symlink_to(out)
+    layout_cmd, replay_cmd, choose_cmd, load_cmd = readme_commands("### Yield")
+    r = run(layout_cmd, tmp_path)
+    assert r.returncode == 0, r.stderr
+    layout = tmp_path / "orchard.csv"
+    rows = [replace(x, row=31 - k) for k, x in enumerate(read_layout(layout))]
+    write_layout(rows, layout)
+    r = run(replay_cmd, tmp_path, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
-    got = tmp_path / "out"
+    got = tmp_path / "out" / "plot"
+    read = lambda folder, name: list(csv.DictReader(open(folder / name)))  # noqa: E731
     report = json.loads((got / "report.json").read_text())
-    assert report["orchard"]["numbering"] == "layout" and report["orchard"]["layout"] == str(path.resolve())
-    read = lambda name: list(csv.DictReader(open(got / name)))  # noqa: E731
-    assert [int(x["row"]) for x in read("rows.csv")] == [x.row for x in rows]
-    apples = read("apples.csv")
+    assert report["orchard"]["numbering"] == "layout" and report["orchard"]["layout"] == str(layout.resolve())
+    assert rep["orchard"]["numbering"] == "map"  # without a layout, the map's own
+    assert [int(x["row"]) for x in read(got, "rows.csv")] == [x.row for x in rows]
+    apples = read(got, "apples.csv")
     assert {int(a["row"]) for a in apples} <= {x.row for x in rows} | {0}
-    assert sum(int(x["count"]) for x in read("rows.csv")) == len(apples) - report["orchard"]["apples_outside"]
+    assert report["apples"] == rep["apples"] and report["orchard"]["apples_outside"] <= max(1, 0.05 * rep["apples"])
+    assert sum(int(x["count"]) for x in read(got, "rows.csv")) == len(apples) - report["orchard"]["apples_outside"]
     origin = Origin(rows[0].start[0], rows[0].start[1], 0.0)
-    trees = read("trees.csv")
+    trees = read(got, "trees.csv")
     assert len(trees) == sum(len(tree_positions(x, origin)) for x in rows)
-    assert sum(int(t["count"]) for t in trees) == sum(int(x["count"]) for x in read("rows.csv"))
     # what each tree's canopy showed the camera: a share in [0, 1], some trees seen, each row's the mean of its trees'
     cov = np.array([float(t["coverage"]) for t in trees])
     assert np.isfinite(cov).all() and (cov >= 0).all() and (cov <= 1).all() and (cov > 0).any(), cov
-    for x in read("rows.csv"):
+    for x in read(got, "rows.csv"):
         mine = [float(t["coverage"]) for t in trees if t["row"] == x["row"]]
         assert abs(float(x["coverage"]) - np.mean(mine)) < 1e-3
     assert report["orchard"]["coverage"]["trees"] == len(trees)
-    # and in the recording: each tree, labelled with its coverage
-    from ground.outputs.rrd_file import rrd_rows
-
     last = rrd_rows(got / "flight.rrd", "/world/trees")["/world/trees"][-1]
     assert sorted(last["Points3D:labels"]) == sorted(f"row {t['row']} tree {t['tree']}: coverage "
                                                      f"{float(t['coverage']):.2f}" for t in trees)
-    # the map's apples are the same as without the layout: only their rows' numbers change
-    assert report["apples"] == rep["apples"] and report["orchard"]["apples_outside"] <= max(1, 0.05 * rep["apples"])
-    assert rep["orchard"]["numbering"] == "map"
-    path.write_text(",".join(COLUMNS) + "\n7,-28.516,-50.8811,-28.516,-50.8811,1.0,0.5\n")
-    r = subprocess.run(cmd[:-4] + ["--out", str(tmp_path / "out2"), "--orchard", str(path)], capture_output=True,
-                       text=True, timeout=120)
-    assert r.returncode == 2 and r.stderr.strip() == f"error: {path}:2: row 7's two ends are in one place (0.00 m apart)"
-    assert not (tmp_path / "out2").exists()
-
-
-def test_the_growers_chain_layout_trees_to_count_hand_counts_and_the_load(replayed_test_flight, tmp_path):
-    """The grower's chain on the tiny flight: the orchard's layout (`sim layout`, the truth's numbers); the flight mapped
-    with it; `ground choose-trees` names 6 trees to count, and the grower's counts (the truth's loads) fill the file;
-    `ground load` gives each tree, row and the flight a load from them, and `ground replay --sample-counts` the same
-    loads live: the counted trees keep their counts, every other tree and each row gets a load inside its interval,
-    report.json the flight's and the sample's leave-one-out error. Hand counts of a tree the layout lacks stop the
-    replay before it starts."""
-    import csv
-    import json
-
-    flight, out, _ = replayed_test_flight
-    layout, todo, counts = tmp_path / "orchard.csv", tmp_path / "todo.csv", tmp_path / "counts.csv"
-    r = subprocess.run([sys.executable, "-m", "sim", "layout", str(flight.path), "--out", str(layout)],
-                       capture_output=True, text=True)
+    # the trees to count: every row the camera saw has some (those it never saw tell nothing of their counts)
+    r = run(choose_cmd, tmp_path)
     assert r.returncode == 0, r.stderr
-    replay = [sys.executable, "-m", "ground", "replay", "--recorded", str(out / "journal.bin"), "--speed", "0",
-              "--quiet", "--orchard", str(layout)]
-    mapped = tmp_path / "mapped"
-    r = subprocess.run(replay + ["--out", str(mapped)], capture_output=True, text=True, timeout=600)
-    assert r.returncode == 0, r.stderr[-2000:]
-    r = subprocess.run([sys.executable, "-m", "ground", "choose-trees", str(mapped), "--trees", "6", "--out",
-                        str(todo)], capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
-    chosen = list(csv.DictReader(open(todo)))
-    # every row the camera saw has some (the rows behind them, which it never saw, tell nothing of their counts)
-    seen_rows = {t["row"] for t in csv.DictReader(open(mapped / "trees.csv")) if float(t["coverage"]) > 0}
-    assert len(chosen) == 6 and all(c["apples"] == "" for c in chosen) and {c["row"] for c in chosen} == seen_rows
-    t = flight.truth_trees()
-    truth = {(int(a), int(b)): int(n) for a, b, n in zip(t["row"], t["tree"], t["apples"])}
-    hand = {(int(c["row"]), int(c["tree"])): truth[(int(c["row"]), int(c["tree"]))] for c in chosen}
+    counts = tmp_path / "counts.csv"
+    chosen = list(csv.DictReader(open(counts)))
+    seen_rows = {t["row"] for t in trees if float(t["coverage"]) > 0}
+    assert len(chosen) == min(10, sum(cov > 0)) and all(c["apples"] == "" for c in chosen)
+    assert {c["row"] for c in chosen} == seen_rows
+    hand = {(int(c["row"]), int(c["tree"])): 20 + 7 * i for i, c in enumerate(chosen)}
     counts.write_text("row,tree,apples\n" + "".join(f"{a},{b},{n}\n" for (a, b), n in hand.items()))
-    r = subprocess.run([sys.executable, "-m", "ground", "load", str(mapped), "--sample-counts", str(counts)],
-                       capture_output=True, text=True)
+    r = run(load_cmd, tmp_path)
     assert r.returncode == 0 and r.stdout.startswith("load: "), r.stderr
-    read = lambda folder, name: list(csv.DictReader(open(folder / name)))  # noqa: E731
-    after_map = {(t["row"], t["tree"]): t["load"] for t in read(mapped, "trees.csv")}
-    got = tmp_path / "live"
-    r = subprocess.run(replay + ["--out", str(got), "--sample-counts", str(counts)], capture_output=True, text=True,
-                       timeout=600)
-    assert r.returncode == 0, r.stderr[-2000:]
     trees = read(got, "trees.csv")
-    assert {(t["row"], t["tree"]): t["load"] for t in trees} == after_map
     for t in trees:
         key, load, lo, hi = (int(t["row"]), int(t["tree"])), float(t["load"]), float(t["load_lo"]), float(t["load_hi"])
         if key in hand:
             assert int(t["hand_count"]) == hand[key] and load == lo == hi == hand[key], t
         else:
             assert t["hand_count"] == "nan" and 0 <= lo <= load <= hi, t
-    rows = read(got, "rows.csv")
-    assert all(float(x["load_lo"]) <= float(x["load"]) <= float(x["load_hi"]) for x in rows)
-    # the fruit's size per row from the apples' 3-D fits, and the load in kilograms (the truth's apples: 60-90 mm)
-    sized = [x for x in rows if x["diameter_mm"] != "nan"]
-    assert sized and all(50 < float(x["diameter_mm"]) < 100 for x in sized)
+    plot_rows = read(got, "rows.csv")
+    assert all(float(x["load_lo"]) <= float(x["load"]) <= float(x["load_hi"]) for x in plot_rows)
+    sized = [x for x in plot_rows if x["diameter_mm"] != "nan"]
+    assert sized and all(50 < float(x["diameter_mm"]) < 100 for x in sized)  # the truth's apples: 60-90 mm
     assert all(abs(float(x["kg"]) - float(x["load"]) * float(x["apple_kg"])) < 0.1 for x in sized)
     report = json.loads((got / "report.json").read_text())
-    assert report["load"]["model"] == "linear" and report["load"]["loo"]["trees"] == 6
-    assert abs(report["load"]["flight"]["load"] - sum(float(x["load"]) for x in rows)) < 1.0
-    # a tree the orchard does not have
-    bad = tmp_path / "bad.csv"
-    bad.write_text(counts.read_text() + "1,999,40\n")
-    r = subprocess.run(replay + ["--out", str(tmp_path / "out2"), "--sample-counts", str(bad)], capture_output=True,
-                       text=True, timeout=120)
-    assert r.returncode == 2 and r.stderr.strip() == f"error: {bad}:8: no tree 999 in row 1 in the orchard layout " \
-                                                     f"{layout}", r.stderr
-    assert not (tmp_path / "out2").exists()
+    assert report["load"]["model"] == "linear" and report["load"]["loo"]["trees"] == len(hand)
+    assert abs(report["load"]["flight"]["load"] - sum(float(x["load"]) for x in plot_rows)) < 1.0
+    # the same loads live, from the recorded stream with the counts
+    live = replay_cmd.replace("out/plot", "out/live") + " --sample-counts counts.csv"
+    r = run(live, tmp_path, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert {(t["row"], t["tree"]): t["load"] for t in read(tmp_path / "out" / "live", "trees.csv")} == \
+        {(t["row"], t["tree"]): t["load"] for t in trees}
+    # a tree the orchard does not have: one line naming the line, before anything starts
+    counts.write_text(counts.read_text() + f"{rows[0].row},999,40\n")
+    r = run(replay_cmd.replace("out/plot", "out/bad") + " --sample-counts counts.csv", tmp_path, timeout=120)
+    assert r.returncode == 2 and r.stderr.strip() == f"error: counts.csv:{len(hand) + 2}: no tree 999 in row " \
+                                                     f"{rows[0].row} in the orchard layout orchard.csv", r.stderr
+    assert not (tmp_path / "out" / "bad").exists()
