@@ -173,7 +173,10 @@ def _cmd_replay(args) -> int:
           f"{rep['frames'].get('tracked', 0)} tracked, {rep['frames']['interpolated']} interpolated, "
           f"{rep['frames'].get('apples', 0)} placed by apples, {rep['frames']['telemetry']} telemetry poses)")
     for r in rep["rows"]:
-        print(f"  row {r['row']}: {r['count']} apples over {r['length_m']:.1f} m")
+        load = r.get("load")
+        print(f"  row {r['row']}: {r['count']} apples over {r['length_m']:.1f} m"
+              + (f"; load {load:.0f} ({r['load_lo']:.0f}-{r['load_hi']:.0f}), {r['kg']:.0f} kg"
+                 if load is not None and load == load else ""))  # NaN: no hand counts
     ob = rep.get("onboard", {})
     played = bool(rep.get("replay", {}).get("recorded"))
     print(f"wall {rep['wall_seconds']:.1f} s for a {rep['flight_seconds']:.1f} s flight: real-time factor "

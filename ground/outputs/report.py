@@ -22,6 +22,15 @@ def delay_stats(delays: list[float]) -> dict:
             "frame_delay_max_s": float(d.max())}
 
 
+def _known(v):
+    """A value for report.json: None for a float that is not finite (NaN is not JSON), in dicts and lists too."""
+    if isinstance(v, dict):
+        return {k: _known(x) for k, x in v.items()}
+    if isinstance(v, list):
+        return [_known(x) for x in v]
+    return None if isinstance(v, float) and not np.isfinite(v) else v
+
+
 def map_section(p) -> dict:
     """The map's ENU frame (x east, y north, z up, metres) as the outputs give it: its origin (the first frame's
     position) and what the drone's altitudes are measured from. A log of heights above take-off (a DJI SRT's ``H``)
@@ -50,8 +59,9 @@ def flight_report(p, table, rows, final: bool, *, apples_seen, wall_s: float, la
     posed = max(1, sum(counters[j] for j in POSE_SOURCES))
     r = {
         "flight_id": p.flight_id, "drone_id": p.drone_id, "final": final,
-        "apples": int(len(table["id"])), "rows": rows,
-        "orchard": orchard or {"numbering": "map"},
+        # a figure not known (no hand counts, no apple measured) is null: report.json stays strict JSON
+        "apples": int(len(table["id"])), "rows": _known(rows),
+        "orchard": _known(orchard or {"numbering": "map"}),
         "map": map_section(p),
         "counting": p.apples.count.report(),
         "frames": counters, "gaps": p.arrivals.gaps[:100],
