@@ -69,3 +69,14 @@ def test_from_above_the_far_row_shows_over_the_near_one_unless_its_apples_are_to
     small = tree_coverage(trees, rows, apples, cams, Sight(cam, min_px=5.0, scales={f: 0.05 for f in range(41)}))
     assert all(g["coverage"] == 0 for g in small)
     assert len(got) == 20 and SURFACE_POINTS == 9
+
+
+def test_a_row_without_apples_takes_the_orchards_canopy_not_the_other_rows_apples():
+    """The far row's apples all unseen (none mapped): its hedge is the near row's, where it stands, so the near row
+    still hides it; before, its faces were placed by the near row's apples, metres away, and showed."""
+    rows, trees, apples = _orchard(np.random.default_rng(0))
+    near = apples["row"] == 1
+    apples = {k: v[near] for k, v in apples.items()}
+    cam = Camera.from_fov(640, 360, 60.0)
+    got = tree_coverage(trees, rows, apples, _cameras(np.linspace(0, 10, 41)), Sight(cam))
+    assert all(g["coverage"] == 0 for g in got[10:]) and all(g["coverage"] > 0 for g in got[1:9])

@@ -41,26 +41,32 @@ class Sight:
 
 
 def _canopies(apples: dict, rows: list[dict]) -> list[dict | None]:
-    """Each row's hedge (line, faces' half-depth, bottom, top), from its apples (or every apple where it has fewer
-    than 5); None where the map has fewer than 5 apples."""
+    """Each row's hedge (line, faces' half-depth, bottom, top) from its own apples; a row with fewer than 5 takes the
+    median hedge of the rows that have them (its canopy is the orchard's, its apples unseen); None for every row where
+    no row has 5."""
     xy_all = np.stack([apples["x"], apples["y"]], 1) if len(apples["id"]) else np.zeros((0, 2))
+    row_of = np.asarray(apples["row"]) if len(apples["id"]) else np.zeros(0)
+    z_all = np.asarray(apples["z"], float) if len(apples["id"]) else np.zeros(0)
     out = []
     for r in rows:
         a, b = np.array([r["start_x"], r["start_y"]]), np.array([r["end_x"], r["end_y"]])
         length = float(np.linalg.norm(b - a))
-        if length <= 0 or len(xy_all) < 5:
+        if length <= 0:
             out.append(None)
             continue
         u = (b - a) / length
-        n = np.array([-u[1], u[0]])
-        sel = np.asarray(apples["row"]) == r["row"]
-        if sel.sum() < 5:
-            sel = np.ones(len(xy_all), bool)
-        across = np.abs((xy_all[sel] - a) @ n)
-        z = np.asarray(apples["z"])[sel]
-        out.append({"a": a, "u": u, "n": n, "length": length, "half_depth": float(np.percentile(across, 75)),
-                    "bottom": float(np.percentile(z, 5)), "top": float(np.percentile(z, 95))})
-    return out
+        c = {"a": a, "u": u, "n": np.array([-u[1], u[0]]), "length": length}
+        sel = row_of == r["row"]
+        if sel.sum() >= 5:
+            across = np.abs((xy_all[sel] - a) @ c["n"])
+            c.update(half_depth=float(np.percentile(across, 75)), bottom=float(np.percentile(z_all[sel], 5)),
+                     top=float(np.percentile(z_all[sel], 95)))
+        out.append(c)
+    known = [c for c in out if c is not None and "top" in c]
+    if not known:
+        return [None] * len(rows)
+    pooled = {k: float(np.median([c[k] for c in known])) for k in ("half_depth", "bottom", "top")}
+    return [None if c is None else {**pooled, **c} for c in out]
 
 
 def _surface(trees: list[dict], rows: list[dict], canopy: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
