@@ -8,6 +8,7 @@ ground.orchard.coverage) relates to its load. One regression, fitted on the coun
 - ``linear``:   load = a + b * count;
 - ``coverage``: load = a + b * count / coverage (the count over the share of the canopy seen; a tree never seen
   gets a).
+``linear`` is the default, chosen on the tuning flights sim/configs/yield/tune-1 and tune-2 (docs/benchmarks.md).
 
 Its residuals give the intervals, as a regression's prediction intervals (Student's t, ``level``): a tree's from the
 residual spread and the fit's own uncertainty there; a row's and the flight's from the sum over their trees not counted
