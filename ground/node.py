@@ -226,7 +226,7 @@ class GroundNode:
         report = flight_report(self.pipe, maps.apples, maps.rows, final, apples_seen=seen,
                                wall_s=time.monotonic() - self.t_start, latency=self.latency, memory=self.memory,
                                progress=self.progress, link=self.link_stats(), errors=self.errors,
-                               harvest=self.harvest, orchard={**maps.orchard, "coverage": maps.coverage()},
+                               harvest=self.harvest, orchard=maps.orchard,
                                load=maps.load)
         rr = self._rerun()
         if rr is not None and self.pipe.arrivals.released >= 0:

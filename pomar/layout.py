@@ -48,15 +48,21 @@ class LayoutRow:
     cultivar: str = ""  # the row's cultivar, where the grower says it (its apples' mass: pomar.fruit)
 
 
-def row_length_m(r: LayoutRow, origin) -> float:
-    """The length (m) of a row, in the ENU frame of ``origin`` (pomar.geo.Origin)."""
+def row_ends_enu(r: LayoutRow, origin) -> tuple[np.ndarray, np.ndarray]:
+    """A row's start and end, horizontal ENU (m) about ``origin`` (pomar.geo.Origin)."""
     a, b = (np.asarray(origin.to_enu(lat, lon, origin.alt), float)[:2] for lat, lon in (r.start, r.end))
+    return a, b
+
+
+def row_length_m(r: LayoutRow, origin) -> float:
+    """The length (m) of a row, in the ENU frame of ``origin``."""
+    a, b = row_ends_enu(r, origin)
     return float(np.linalg.norm(b - a))
 
 
 def tree_positions(r: LayoutRow, origin) -> np.ndarray:
     """(n, 2) ENU positions (m, about ``origin``) of the row's trees, tree 1 first."""
-    a, b = (np.asarray(origin.to_enu(lat, lon, origin.alt), float)[:2] for lat, lon in (r.start, r.end))
+    a, b = row_ends_enu(r, origin)
     length = float(np.linalg.norm(b - a))
     along = np.arange(r.first_tree_m, length + 1e-9, r.tree_spacing_m)
     return a + along[:, None] * (b - a) / max(length, 1e-12)

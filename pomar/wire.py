@@ -59,6 +59,7 @@ def above_sea_level(reference: str | None) -> bool:
     """Whether altitudes of this reference place a map above sea level (None: not said, taken as MAVLink's MSL)."""
     return reference is None or reference in ABSOLUTE_ALTITUDES
 
+
 REASONS = ("not_msgpack", "schema_version", "message_type", "malformed", "not_finite", "out_of_range",
            "too_many_boxes", "box_outside_image", "bad_quaternion", "bad_jpeg", "image_size",
            "frame_window", "wrong_flight", "other_drone", "drone_mismatch", "camera_changed")

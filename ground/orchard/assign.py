@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pomar.layout import LayoutRow, tree_positions
+from pomar.layout import LayoutRow, row_ends_enu, tree_positions
 
 #: The row number of an apple that lies in no row's strip.
 OUTSIDE = 0
@@ -21,7 +21,7 @@ def _lines(layout: list[LayoutRow], origin) -> list[dict]:
     """Each row's line in ENU (metres about ``origin``): start, unit direction, normal, length, its trees."""
     out = []
     for r in layout:
-        a, b = (np.asarray(origin.to_enu(lat, lon, origin.alt), float)[:2] for lat, lon in (r.start, r.end))
+        a, b = row_ends_enu(r, origin)
         length = float(np.linalg.norm(b - a))
         u = (b - a) / length
         trees = tree_positions(r, origin)

@@ -31,7 +31,7 @@ class CalibrationError(InputError, ValueError):
     """Hand counts that cannot calibrate the model (too few trees): the message says how many it needs."""
 
 
-def _design(trees: list[dict], model: str) -> np.ndarray:
+def regressors(trees: list[dict], model: str) -> np.ndarray:
     """(T, p) each tree's regressors under ``model``."""
     count = np.array([t["count"] for t in trees], float)
     if model == "ratio":
@@ -75,13 +75,11 @@ def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model:
     (load, lo, hi)}, "flight": {...}, "loo": {...}}."""
     from scipy.stats import t as student
 
-    Z = _design(trees, model)
+    Z = regressors(trees, model)
     p = Z.shape[1]
     key = [(int(t["row"]), int(t["tree"])) for t in trees]
     counted = np.array([k in samples for k in key])
-    if counted.sum() < p + 2:
-        raise CalibrationError(f"{int(counted.sum())} trees counted by hand: the {model!r} model needs at least "
-                               f"{p + 2} (count a few more trees)")
+    check_enough(int(counted.sum()), model)
     y = np.array([samples[k] for k in key if k in samples], float)
     beta, G, s2 = _fit(Z[counted], y)
     dof = len(y) - p
@@ -132,13 +130,10 @@ def apply_load(trees: list[dict], rows: list[dict], est: dict) -> dict:
     return {k: est[k] for k in ("model", "level", "coefficients", "residual_sd", "flight", "loo")}
 
 
-def check_samples(samples: dict[tuple[int, int], int], trees: set[tuple[int, int]], model: str, path) -> None:
-    """Hand counts fit to calibrate ``model`` on a map with these ``trees``: each a tree of the map, enough of them;
-    CalibrationError naming ``path`` otherwise."""
-    missing = [f"{r}:{k}" for r, k in samples if (r, k) not in trees]
-    if missing:
-        raise CalibrationError(f"{path}: the orchard has no tree {', '.join(missing[:5])} (row:tree)")
-    need = _design([{"count": 0, "coverage": 1.0}], model).shape[1] + 2
-    if len(samples) < need:
-        raise CalibrationError(f"{path}: {len(samples)} trees counted by hand: the {model!r} model needs at least "
-                               f"{need} (count a few more trees)")
+def check_enough(n: int, model: str, path=None) -> None:
+    """``n`` trees counted by hand calibrate ``model`` (its coefficients and two degrees of freedom for the
+    intervals); CalibrationError (naming ``path``, the counts' file) otherwise."""
+    need = regressors([{"count": 0, "coverage": 1.0}], model).shape[1] + 2
+    if n < need:
+        raise CalibrationError(f"{str(path) + ': ' if path else ''}{n} trees counted by hand: the {model!r} model needs "
+                               f"at least {need} (count a few more trees)")

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ground.orchard.calibration import _design
+from ground.orchard.calibration import regressors
 
 
 #: Of each stratum, the trees this near its median are the candidates; the one of the row least chosen so far wins.
@@ -25,7 +25,7 @@ def choose_trees(trees: list[dict], k: int = 10, model: str = "linear") -> list[
     """``k`` of ``trees`` (trees.csv's records with count and coverage) to count by hand, in row and tree order."""
     if k <= 0:
         raise ValueError(f"k must be at least 1, got {k}")
-    x = _design(trees, model)[:, -1]
+    x = regressors(trees, model)[:, -1]
     cov = np.array([t.get("coverage", np.nan) for t in trees], float)
     seen = np.nonzero(~np.isfinite(cov) | (cov > 0))[0]  # a tree the camera never saw tells nothing of its count
     pool = seen if len(seen) >= k else np.arange(len(trees))

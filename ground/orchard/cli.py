@@ -33,7 +33,7 @@ def _cmd_layout(args) -> int:
 
 
 def _cmd_load(args) -> int:
-    from ground.orchard.calibration import LOAD_COLUMNS, apply_load, check_samples, estimate_load
+    from ground.orchard.calibration import LOAD_COLUMNS, apply_load, check_enough, estimate_load
     from ground.orchard.size import row_kilograms
     from ground.outputs.tables import records_csv, write_atomic, write_json
     from pomar.sample_counts import read_sample_counts
@@ -46,7 +46,7 @@ def _cmd_load(args) -> int:
         rows = list(csv.DictReader(f))
     keys = {(t["row"], t["tree"]) for t in trees}
     samples = read_sample_counts(args.sample_counts, keys)
-    check_samples(samples, keys, args.load_model, args.sample_counts)
+    check_enough(len(samples), args.load_model, args.sample_counts)
     load = apply_load(trees, rows, estimate_load(trees, samples, args.load_model))
     row_kilograms(rows)
     fmt = {"load": ".1f", "load_lo": ".1f", "load_hi": ".1f", "kg": ".1f", "kg_lo": ".1f", "kg_hi": ".1f"}

@@ -179,6 +179,17 @@ def tree_coverage(trees: list[dict], rows: list[dict], apples: dict, cams: dict,
     return out
 
 
+def flight_coverage(trees: list[dict]) -> dict | None:
+    """The flight's coverage (report.json's ``orchard.coverage``): its trees' mean, how many were seen at all and on
+    both sides; None before any is known."""
+    c = np.array([t.get("coverage", np.nan) for t in trees], float)
+    if not np.isfinite(c).any():
+        return None
+    known = c[np.isfinite(c)]
+    return {"mean": float(known.mean()), "trees": int(len(known)), "trees_seen": int((known > 0).sum()),
+            "trees_both_sides": int(sum(t.get("sides_seen", 0) == 2 for t in trees))}
+
+
 def row_coverage(rows: list[dict], trees: list[dict]) -> None:
     """Each row's coverage (into its record): the mean of its trees' (NaN where none is known)."""
     for r in rows:

@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from ground.orchard.calibration import CalibrationError, check_samples
+from ground.orchard.calibration import CalibrationError, check_enough
 from pomar.layout import LayoutRow, layout_trees, read_layout
 from pomar.sample_counts import read_sample_counts
 
@@ -32,6 +32,6 @@ def read_orchard_files(orchard=None, sample_counts=None, load_model: str = "line
                                    "tree numbers they use; for a finished map, use `python -m ground load MAP`")
         trees = layout_trees(layout)
         samples = read_sample_counts(sample_counts, trees, f"the orchard layout {orchard}")
-        check_samples(samples, trees, load_model, sample_counts)
+        check_enough(len(samples), load_model, sample_counts)
     return OrchardFiles(layout, Path(orchard) if orchard else None, samples,
                         Path(sample_counts) if sample_counts else None)

@@ -26,12 +26,14 @@ def orchard_tables(table: dict, direction: float, snap, cams: dict, sight, growe
         info = {"numbering": "map", "layout": str(growers.layout_path) if layout is not None else None,
                 "note": ("the map's own: the layout is applied once the map is georeferenced" if layout is not None
                          else "the map's own (no orchard layout given)")}
+    info["coverage"] = None  # until the drone's camera is known
     if sight is not None and sight.camera is not None:
-        from ground.orchard.coverage import row_coverage, tree_coverage
+        from ground.orchard.coverage import flight_coverage, row_coverage, tree_coverage
 
         for t, c in zip(trees, tree_coverage(trees, rows, table, cams, sight)):
             t.update(c)
         row_coverage(rows, trees)
+        info["coverage"] = flight_coverage(trees)
     load = None
     if growers is not None and growers.samples and info["numbering"] == "layout":
         from ground.orchard.calibration import apply_load, estimate_load

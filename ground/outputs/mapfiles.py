@@ -32,16 +32,6 @@ class MapTables:
     #: The load estimated from the hand counts (report.json's ``load``); None without them.
     load: dict | None = None
 
-    def coverage(self) -> dict | None:
-        """The flight's coverage (report.json): its trees' mean, and how many were seen at all; None before it is
-        known."""
-        c = np.array([t.get("coverage", np.nan) for t in self.trees], float)
-        if not np.isfinite(c).any():
-            return None
-        c = c[np.isfinite(c)]
-        return {"mean": float(c.mean()), "trees": int(len(c)), "trees_seen": int((c > 0).sum()),
-                "trees_both_sides": int(sum(t.get("sides_seen", 0) == 2 for t in self.trees))}
-
     def drone_latlon(self) -> list[float] | None:
         return [self.cameras["lat"][-1], self.cameras["lon"][-1]] if len(self.cameras["frame"]) else None
 
