@@ -5,11 +5,17 @@ estimate given each tree's true seen share).
 
     python benchmarks/yield_flights.py out/yield/tune-1 out/yield/tune-2 --out out/yield/runs
     python benchmarks/yield_flights.py FLIGHTS... --count-error-cv 0.1 --reuse
+    python benchmarks/yield_flights.py FLIGHTS... --detector truth-replay --out out/yield/runs-truth
+    python benchmarks/yield_flights.py A B --pair A B      # a repeat pair: the same trees counted for each flight
 
 Prints, per flight and model: the median per-row load error (chosen trees, median of the random draws, oracle), the
 per-tree r (and the oracle's), the rows' interval coverage and median half-width, the median per-row diameter error
-against a constant median's, and the median kilogram error; writes them to OUT/NAME/yield.json. Lock-step replays
-(deterministic); timings are not its subject.
+against a constant median's, and the median kilogram error; the same over the rows the camera saw (coverage above 0)
+alone; writes them to OUT/NAME/yield.json. ``--detector truth-replay`` maps each flight from its truth's detections
+instead of the shipped detector's (what the detector costs). ``--pair A B`` (flight names): a repeat pair, the same
+orchard flown twice; the trees chosen on A's map are counted for each flight (their own counts: errors drawn apart)
+and each flight is calibrated by its own; printed: the share of rows whose loads lie within each other's 90 %
+intervals. Lock-step replays (deterministic); timings are not its subject.
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ground.evaluation.yield_score import oracle_trees, read_map, score_yield, seen_share, truth_of  # noqa: E402
-from ground.orchard.calibration import MODELS, apply_load, estimate_load  # noqa: E402
+from ground.orchard.calibration import DEFAULT_MODEL, MODELS, apply_load, estimate_load  # noqa: E402
 from ground.orchard.choose import choose_trees  # noqa: E402
 from ground.orchard.size import row_kilograms  # noqa: E402
 from pomar.flight import FlightDir  # noqa: E402
@@ -50,7 +56,18 @@ def estimate_and_score(trees, rows, samples, model, truth) -> dict:
     return {**score_yield(t, r, truth), "loo": est["loo"]["median_abs_pct"]}
 
 
-def flight_figures(flight: Path, out: Path, models, k: int, draws: int, cv: float, seed: int, reuse: bool) -> dict:
+def seen_rows(score: dict, trees: list[dict]) -> dict:
+    """The row figures of ``score`` over the rows the camera saw (a tree of the row with coverage above 0)."""
+    seen = {t["row"] for t in trees if np.isfinite(t["coverage"]) and t["coverage"] > 0}
+    rows = [r for r in score["rows"] if r["row"] in seen]
+    return {"rows": len(rows),
+            "row_load_error_median": float(np.median([abs(r["load_error"]) for r in rows])) if rows else None,
+            "coverage": float(np.mean([r["covered"] for r in rows])) if rows else None,
+            "half_width_median": float(np.median([r["half_width"] for r in rows])) if rows else None}
+
+
+def map_flight(flight: Path, out: Path, detector: str, reuse: bool) -> tuple[list[dict], list[dict]]:
+    """The flight replayed (lock-step) with its orchard's layout; its trees and rows."""
     fd = FlightDir(flight)
     out.mkdir(parents=True, exist_ok=True)
     layout = out / "orchard.csv"
@@ -58,11 +75,42 @@ def flight_figures(flight: Path, out: Path, models, k: int, draws: int, cv: floa
     mapped = out / "map"
     if not (reuse and (mapped / "trees.csv").is_file()):
         r = subprocess.run([sys.executable, "-m", "ground", "replay", str(flight), "--out", str(mapped), "--orchard",
-                            str(layout), "--quiet"], capture_output=True, text=True)
+                            str(layout), "--detector", detector, "--quiet"], capture_output=True, text=True)
         if r.returncode != 0:
             raise SystemExit(f"{flight}: the replay failed: {r.stderr.strip().splitlines()[-1:]}")
     trees, rows = read_map(mapped)
-    trees = numeric(trees)
+    return numeric(trees), rows
+
+
+def repeat_pair(a: Path, b: Path, out: Path, model: str, k: int, cv: float, seed: int) -> dict:
+    """Issue 59's repeatable goal on two flights of one orchard (already mapped under OUT/NAME/map): the trees chosen
+    on A's map counted for each flight (errors drawn apart), each flight's rows estimated from its own counts; per row
+    seen by both, whether each load lies within the other's interval."""
+    rng = np.random.default_rng(seed)
+    maps = [(FlightDir(f), *read_map(out / f.name / "map")) for f in (a, b)]
+    picked = [(t["row"], t["tree"]) for t in choose_trees(numeric(maps[0][1]), k, model)]
+    loads = []
+    for fd, trees, rows in maps:
+        trees = numeric(trees)
+        got = sample_counts(fd, picked, count_error_cv=cv, seed=int(rng.integers(1 << 30)))
+        r = copy.deepcopy(rows)
+        for x in r:
+            x["row"] = int(x["row"])
+        apply_load(trees, r, estimate_load(trees, {(c["row"], c["tree"]): c["apples"] for c in got}, model))
+        seen = {t["row"] for t in trees if np.isfinite(t["coverage"]) and t["coverage"] > 0}
+        loads.append({x["row"]: (float(x["load"]), float(x["load_lo"]), float(x["load_hi"])) for x in r
+                      if x["row"] in seen})
+    both = sorted(set(loads[0]) & set(loads[1]))
+    within = [bool(loads[1][r][1] <= loads[0][r][0] <= loads[1][r][2] and loads[0][r][1] <= loads[1][r][0] <= loads[0][r][2])
+              for r in both]
+    return {"rows": both, "within": within, "share": float(np.mean(within)) if within else None,
+            "loads": {str(r): [loads[0][r], loads[1][r]] for r in both}}
+
+
+def flight_figures(flight: Path, out: Path, models, k: int, draws: int, cv: float, seed: int, reuse: bool,
+                   detector: str = "onnx") -> dict:
+    fd = FlightDir(flight)
+    trees, rows = map_flight(flight, out, detector, reuse)
     truth, share = truth_of(fd), seen_share(fd)
     rng = np.random.default_rng(seed)
 
@@ -79,7 +127,8 @@ def flight_figures(flight: Path, out: Path, models, k: int, draws: int, cv: floa
         random = [estimate_and_score(trees, rows, counted([trees[i] for i in rng.choice(len(trees), k, replace=False)]),
                                      model, truth)["row_load_error_median"] for _ in range(draws)]
         oracle = estimate_and_score(oracle_trees(trees, share), rows, samples, "coverage", truth)
-        figures[model] = {"chosen": mine, "random_row_error_median": float(np.median(random)),
+        figures[model] = {"chosen": mine, "seen_rows": seen_rows(mine, trees),
+                          "random_row_error_median": float(np.median(random)),
                           "oracle": {"row_load_error_median": oracle["row_load_error_median"],
                                      "tree_r": oracle["trees"]["r"]}}
     (out / "yield.json").write_text(json.dumps(figures, indent=1, default=float) + "\n")
@@ -96,14 +145,22 @@ def main(argv=None) -> int:
     p.add_argument("--count-error-cv", type=float, default=0.0, help="the hand counts' error (0: exact)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--reuse", action="store_true", help="keep a flight's map where it is already made")
+    p.add_argument("--detector", choices=["onnx", "truth-replay"], default="onnx",
+                   help="the shipped detector (default) or the truth's detections")
+    p.add_argument("--pair", nargs=2, metavar=("A", "B"), action="append", default=[],
+                   help="two of FLIGHTS (by name) that fly one orchard: the repeat pair's figures")
     args = p.parse_args(argv)
+    by_name = {Path(f).name: Path(f) for f in args.flights}
+    for a, b in args.pair:
+        if a not in by_name or b not in by_name:
+            p.error(f"--pair {a} {b}: both must be among the flights given")
     head = (f"{'flight':<22} {'model':<9} {'row err':>7} {'random':>7} {'oracle':>7} {'tree r':>6} {'orac r':>6} "
             f"{'cover':>5} {'half-w':>6} {'diam mm':>7} {'const':>6} {'kg err':>6} {'LOO %':>6}")
     print(head)
     for i, flight in enumerate(args.flights):
         name = Path(flight).name
         figs = flight_figures(Path(flight), Path(args.out) / name, args.models, args.trees, args.draws,
-                              args.count_error_cv, args.seed + i, args.reuse)
+                              args.count_error_cv, args.seed + i, args.reuse, args.detector)
         for model, f in figs.items():
             c = f["chosen"]
             d = [r["diameter_error_mm"] for r in c["rows"] if np.isfinite(r["diameter_error_mm"])]
@@ -114,6 +171,15 @@ def main(argv=None) -> int:
                   f"{f['oracle']['tree_r'] or float('nan'):>6.2f} {c['coverage']:>5.2f} {c['half_width_median']:>6.2f} "
                   f"{np.median(np.abs(d)) if d else float('nan'):>7.1f} {np.median(np.abs(g)) if g else float('nan'):>6.1f} "
                   f"{np.median(kg) if kg else float('nan'):>6.3f} {c['loo']:>6.1f}")
+            v = f["seen_rows"]
+            if v["rows"]:
+                print(f"{'':<22} {'seen':<9} {v['row_load_error_median']:>7.3f} {'':>7} {'':>7} {'':>6} {'':>6} "
+                      f"{v['coverage']:>5.2f} {v['half_width_median']:>6.2f}   ({v['rows']} rows seen)")
+    for a, b in args.pair:
+        rp = repeat_pair(by_name[a], by_name[b], Path(args.out), DEFAULT_MODEL, args.trees, args.count_error_cv, args.seed)
+        (Path(args.out) / f"pair-{a}-{b}.json").write_text(json.dumps(rp, indent=1) + "\n")
+        print(f"repeat pair {a} / {b} ({DEFAULT_MODEL}): rows seen by both {len(rp['rows'])}, loads within each other's 90 % "
+              f"intervals {sum(rp['within'])}/{len(rp['within'])}")
     return 0
 
 

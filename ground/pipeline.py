@@ -28,6 +28,7 @@ from ground.apples.counting import CountingSettings
 from ground.apples.landmarks import SIGMA as APPLES_SIGMA
 from ground.apples.stage import AppleStage
 from ground.link.arrivals import Arrivals
+from ground.orchard.calibration import DEFAULT_MODEL, MODELS
 from ground.poses.stage import PoseStage, Pose
 from ground.poses.mapper_process import MappingWorker
 from ground.poses.registration import RegistrationSettings
@@ -71,7 +72,7 @@ class GroundSettings:
     tree_spacing_m: float = 1.0
     #: How each tree's load is estimated from the hand counts (--sample-counts): ratio, linear or coverage
     #: (ground.orchard.calibration).
-    load_model: str = field(default="linear", metadata={"choices": ("ratio", "linear", "coverage")})
+    load_model: str = field(default=DEFAULT_MODEL, metadata={"choices": MODELS})
     #: Live (mapping in its own process), pose corrections run at most this often (s); the keyframes the mapper moves
     #: meanwhile add up, and one round corrects them all. Lock-step corrects after every keyframe (deterministic).
     correction_every_s: float = 2.0

@@ -206,6 +206,34 @@ def test_size_check_leaves_out_apples_too_small_to_be_whole():
     assert len(count.counted_ids()) == 37
 
 
+def test_an_apples_fruit_size_comes_from_its_least_hidden_views_its_size_check_from_all():
+    """Leaves only shrink a box: the fruit's radius is the median of the largest third of its views' radii (boxes x
+    depth / focal length), the size check's the median of all; one loose box sets neither."""
+    from ground.apples.association import Apple, Detection
+    from ground.apples.counting import Counting, CountingSettings
+    from ground.apples.frames import AssociationFrames
+    from ground.poses.georeference import Pose
+    from pomar.camera import Camera
+
+    frames = AssociationFrames()
+    count = Counting(CountingSettings(), frames, reach=100)
+    count.camera = Camera.from_fov(640, 360, 60.0)
+    fx = count.camera.fx
+    P = count.camera.K_opencv @ np.hstack([np.eye(3), np.zeros((3, 1))])
+    for f in range(12):
+        frames.add(f, Pose(f, np.eye(3), np.zeros(3), "registered", 0.0, 0.0), P)
+    # an apple of radius 0.04 m at 10 m: 8 views half hidden (box 0.75 of its radius), 3 whole, 1 loose box (1.6)
+    scale = [0.75] * 8 + [1.0] * 3 + [1.6]
+    views = [Detection(f, 0, (320 - s * r, 180 - s * r, 320 + s * r, 180 + s * r), 0.95)
+             for f, s, r in zip(range(12), scale, [fx * 0.04 / 10.0] * 12)]
+    median, size = count.radius_of(Apple(1, np.array([0.0, 0.0, 10.0]), views, 0.5))
+    assert median == pytest.approx(0.75 * 0.04)
+    assert size == pytest.approx(0.04)
+    no_pose = Counting(CountingSettings(), AssociationFrames(), reach=100)
+    no_pose.camera = count.camera
+    assert np.isnan(no_pose.radius_of(Apple(2, np.array([0.0, 0.0, 10.0]), views[:3], 0.5))).all()
+
+
 def test_expected_views_leave_out_apples_seen_in_few_of_the_frames_they_lie_in():
     from ground.apples.association import Apple
     from ground.apples.counting import Counting, CountingSettings

@@ -61,6 +61,7 @@ class Counting:
         self.camera = None  # pomar.camera.Camera, once known: the expected views need its size and focal length
         self.apples: dict[int, Apple] = {}  # confirmed apples, by id
         self.radius: dict[int, float] = {}  # apple id -> radius from its boxes and depths (map frame's unit)
+        self.size: dict[int, float] = {}  # apple id -> the fruit's radius, from its least hidden views (map's unit)
         self.strong: dict[int, int] = {}  # apple id -> views scored confirm_score or more
         self.size_rejected = 0  # confirmed apples left out of the map by the size check (counted_ids)
         self.views_rejected = 0  # ... by the expected views
@@ -85,9 +86,9 @@ class Counting:
             strong = self.strong[a.id] = max(strong, self.strong.get(a.id, 0))
             if strong >= need:
                 self.apples[a.id] = a
-                r = self.radius_of(a)
+                r, size = self.radius_of(a)
                 if np.isfinite(r):
-                    self.radius[a.id] = r
+                    self.radius[a.id], self.size[a.id] = r, size
                 out.append(a)
         return out
 
@@ -96,6 +97,7 @@ class Counting:
         self.strong[into] = max(self.strong.get(into, 0), self.strong.pop(gone, 0))
         self.apples.pop(gone, None)
         self.radius.pop(gone, None)
+        self.size.pop(gone, None)
 
     def in_reach(self, a: Apple) -> list[Detection]:
         """The apple's views within the association's reach (``reach`` frames back from the newest): the ones its
@@ -103,9 +105,12 @@ class Counting:
         oldest = self.frames.newest - self.reach
         return [o for o in a.observations if o.frame > oldest]
 
-    def radius_of(self, a: Apple) -> float:
-        """The apple's radius in the map frame's unit: the median over its views of the box's half-size
-        times depth over focal length (compared with the others' median)."""
+    def radius_of(self, a: Apple) -> tuple[float, float]:
+        """The apple's radius in the map frame's unit from its views' boxes (half-size times depth over focal length):
+        the median over its views (how whole it usually looked: the size check compares it with the others'), and the
+        fruit's size, the median of the largest third. Leaves only ever shrink a box (a box of an apple half hidden is
+        0.8 of its radius, of one wholly seen 1.0, on the tuning flights), so the least hidden views give its size;
+        their median, not their maximum, keeps one loose box from setting it. NaN, NaN without a posed view."""
         r = []
         for o in self.in_reach(a):
             pose = self.frames.pose_at(o.frame)
@@ -115,7 +120,10 @@ class Counting:
             x0, y0, x1, y1 = o.box
             if depth > 0:
                 r.append((x1 - x0 + y1 - y0) / 4 * depth / self.camera.fx)
-        return float(np.median(r)) if r else float("nan")
+        if not r:
+            return float("nan"), float("nan")
+        r = np.sort(r)
+        return float(np.median(r)), float(np.median(r[-max(1, len(r) // 3):]))
 
     def expected_views(self, a: Apple, proj: np.ndarray | None = None) -> int:
         """Mapped frames around the apple's track whose camera sees it (in front, inside the image by a margin), in the

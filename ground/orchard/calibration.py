@@ -23,6 +23,8 @@ import numpy as np
 from pomar.cli import InputError
 
 MODELS = ("ratio", "linear", "coverage")
+#: The model used unless asked for another: chosen on issue 59's tuning flights (docs/design.md).
+DEFAULT_MODEL = "linear"
 #: Columns added to trees.csv and (load, load_lo, load_hi) to rows.csv: empty where there are no hand counts.
 LOAD_COLUMNS = ["hand_count", "load", "load_lo", "load_hi"]
 
@@ -68,7 +70,7 @@ def leave_one_out(Z: np.ndarray, y: np.ndarray) -> np.ndarray:
     return out
 
 
-def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model: str = "linear",
+def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model: str = DEFAULT_MODEL,
                   level: float = 0.9) -> dict:
     """The load of every tree of ``trees`` (trees.csv's records, with ``count`` and ``coverage``), of each row and of
     the flight, from the hand ``samples`` ((row, tree) -> apples): {"trees": LOAD_COLUMNS per tree, "rows": {row:

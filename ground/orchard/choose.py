@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ground.orchard.calibration import regressors
+from ground.orchard.calibration import DEFAULT_MODEL, regressors
 
 
 #: Of each stratum, the trees this near its median are the candidates; the one of the row least chosen so far wins.
@@ -21,7 +21,7 @@ from ground.orchard.calibration import regressors
 NEAREST = 1
 
 
-def choose_trees(trees: list[dict], k: int = 10, model: str = "linear") -> list[dict]:
+def choose_trees(trees: list[dict], k: int = 10, model: str = DEFAULT_MODEL) -> list[dict]:
     """``k`` of ``trees`` (trees.csv's records with count and coverage) to count by hand, in row and tree order."""
     if k <= 0:
         raise ValueError(f"k must be at least 1, got {k}")

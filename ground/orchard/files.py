@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from ground.orchard.calibration import CalibrationError, check_enough
+from ground.orchard.calibration import DEFAULT_MODEL, CalibrationError, check_enough
 from pomar.layout import LayoutRow, layout_trees, read_layout
 from pomar.sample_counts import read_sample_counts
 
@@ -21,7 +21,7 @@ class OrchardFiles:
     samples_path: Path | None = None
 
 
-def read_orchard_files(orchard=None, sample_counts=None, load_model: str = "linear") -> OrchardFiles:
+def read_orchard_files(orchard=None, sample_counts=None, load_model: str = DEFAULT_MODEL) -> OrchardFiles:
     """The layout and the hand counts, checked: each counted tree one of the layout's, enough of them for the model.
     Hand counts need a layout (the map's own tree numbers move as the map grows)."""
     layout = read_layout(orchard) if orchard else None

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ground.orchard.calibration import DEFAULT_MODEL
 from ground.orchard.tables import orchard_tables
 from ground.outputs.snapshot import MapSnapshot
 from ground.outputs.tables import (apple_table, candidate_table, candidates_csv, pose_table, poses_csv, rescue_folder,
@@ -43,7 +44,7 @@ class MapTables:
 class MapFiles:
     """The map files of one flight in ``out``; ``failed`` says why the last refresh could not write them."""
 
-    def __init__(self, out: Path, tree_spacing_m: float, growers=None, load_model: str = "linear"):
+    def __init__(self, out: Path, tree_spacing_m: float, growers=None, load_model: str = DEFAULT_MODEL):
         self.out = Path(out)
         self.tree_spacing_m = tree_spacing_m
         self.growers = growers  # the grower's layout and hand counts (ground.orchard.files.OrchardFiles)

@@ -18,8 +18,9 @@ class MapSnapshot:
     #: Every apple the count holds, by id (ground.apples.association.Apple), and the ids counted.
     apples: dict
     counted_ids: list[int]
-    #: Each apple's radius (association units) where known.
-    radius: dict[int, float]
+    #: Each apple's fruit radius (association units) where known: its least hidden views' (apples.csv's radius_m;
+    #: candidates.csv gives the radius the size check compared, its views' median, from ``checks``).
+    size: dict[int, float]
     #: Map frame index -> frame number.
     frame_of: list[int]
     #: Frame number -> its pose (ground.poses.georeference.Pose, map frame).
@@ -51,7 +52,8 @@ def snapshot(pipe, final: bool = False) -> MapSnapshot:
         posed = np.array(sorted(frames.poses), int)
         corr = (posed, *pipe.poses.correction(posed, pipe.s.drift_sigma_s * (pipe.fps or 0.0)))
     count = pipe.apples.count
-    return MapSnapshot(apples=count.apples, counted_ids=count.counted_ids(), radius=count.radius, frame_of=frames.frame,
+    return MapSnapshot(apples=count.apples, counted_ids=count.counted_ids(), size=count.size,
+                       frame_of=frames.frame,
                        poses=frames.poses, to_enu=pipe.poses.map_to_enu() if pipe.poses is not None else None,
                        corrections=corr, origin=pipe.poses.origin if pipe.poses is not None else None,
                        frame_times=pipe.arrivals.frame_times, metres_per_unit=pipe.metres_per_unit(),

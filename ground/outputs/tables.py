@@ -1,8 +1,8 @@
 """The apple map's files, written atomically (write to a temporary name, then rename).
 
 - ``apples.csv``: id, x, y, z (ENU m), lat, lon, alt (WGS84), row (1..N, or the orchard layout's number, 0 outside
-  its rows: ground.orchard.assign), radius (m, from the boxes and
-  depths), observations, reprojection error, first and last frame;
+  its rows: ground.orchard.assign), radius (m, the fruit's: its least hidden views' boxes times depth,
+  ground.apples.counting), observations, reprojection error, first and last frame;
 - ``apples.geojson``: a FeatureCollection of WGS84 points (lon, lat, alt) with the same properties;
   alt is empty (NaN in the CSVs, 2-D points in GeoJSON) where the drone's log gives no altitude above sea level;
 - ``apples.ply``: ASCII point cloud in ENU, coloured by row;
@@ -12,7 +12,7 @@
   row's start), the segment's centre (ENU and WGS84), and its count: each row's line cut into segments one tree
   spacing long (with an orchard layout: its trees, where they stand, each apple to its row's nearest tree);
 - ``candidates.csv`` (at the end): every apple the count was chosen from, counted or not: id, x, y, z (ENU m),
-  lat, lon, alt, radius (m), observations, strong views, expected views, first and last frame, and ``left_out``
+  lat, lon, alt, radius (m, its views' median box: what the size check compared), observations, strong views, expected views, first and last frame, and ``left_out``
   (empty when counted, else the check that left it out: ``small``, ``narrow`` or ``few_views``);
 - ``poses.csv``: every mapped frame's camera (centre in ENU and WGS84, rotation, pose source);
 - ``report.json``: counts, settings, timings (written by the caller through :func:`write_json`).
@@ -82,7 +82,7 @@ def apple_table(snap) -> tuple[dict[str, np.ndarray], float]:
     return {"id": np.array(ids, int), "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
             "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
             "row": np.asarray(rows, int) + 1,
-            "radius_m": np.array([snap.radius.get(i, np.nan) for i in ids], float) * snap.metres_per_unit,
+            "radius_m": np.array([snap.size.get(i, np.nan) for i in ids], float) * snap.metres_per_unit,
             "observations": np.array([a.n_observations for a in A], int),
             "reprojection_error_px": np.array([a.reprojection_error for a in A], float),
             "first_frame": np.array([snap.frame_of[a.first_frame] for a in A], int),
