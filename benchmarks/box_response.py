@@ -1,0 +1,89 @@
+"""How the detector's boxes answer an apple's size (issue 59's fruit sizes): each detection of a replay matched to the
+apple it lies on (its centre within the truth's radius), its box's half-size against the apple's true radius, both in
+the pixels the detector saw (the frame's detector scale), by the apple's true radius and by its visible share; and the
+line box = slope x radius + intercept through the wholly seen ones (visible share above 0.9).
+
+    python benchmarks/box_response.py out/yield/tune-1 out/yield/runs/tune-1/map out/yield/tune-2 out/yield/runs/tune-2/map
+
+Arguments come in pairs: a simulated flight and the folder of its replay (whose journal.bin holds the detections the
+drone sent). A slope under 1 means the boxes pull sizes towards a middle one: small apples read large, large ones
+small, and a row's fruit size reads by how far it was from the camera, not only by its fruit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from ground.link.journal import read_journal  # noqa: E402
+from pomar import wire  # noqa: E402
+from pomar.flight import FlightDir  # noqa: E402
+
+#: Detections scored at least this are matched (the onboard node's publishing threshold is lower).
+SCORE = 0.5
+#: Apples at least this visible are "wholly seen" for the line.
+WHOLE = 0.9
+
+
+def matched_boxes(flight: Path, replay: Path) -> np.ndarray:
+    """(n, 3): per detection on an apple, the apple's true radius and the box's half-size (detector px), and the
+    apple's visible share."""
+    from scipy.spatial import cKDTree
+
+    d = FlightDir(flight).truth_detections()
+    frame = np.asarray(d["frame"]).astype(int)
+    out = []
+    for payload in read_journal(replay / "journal.bin"):
+        m = wire.decode(payload)
+        if not isinstance(m, wire.FrameMessage):
+            continue
+        b = np.asarray(m.boxes, float).reshape(-1, 4)[np.asarray(m.scores, float).reshape(-1) >= SCORE]
+        sel = frame == m.frame
+        if not sel.any() or not len(b):
+            continue
+        s = float(m.scale or 1.0)
+        u, v, r, vis = (np.asarray(d[k], float)[sel] for k in ("u", "v", "r_px", "visible_fraction"))
+        dist, k = cKDTree(np.c_[u, v]).query(np.c_[(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2])
+        on = dist < r[k]
+        half = (b[:, 2] - b[:, 0] + b[:, 3] - b[:, 1]) / 4
+        out.append(np.c_[r[k[on]] * s, half[on] * s, vis[k[on]]])
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("pairs", nargs="+", help="FLIGHT REPLAY_OUT [FLIGHT REPLAY_OUT ...]")
+    args = p.parse_args(argv)
+    if len(args.pairs) % 2:
+        p.error("give each flight with its replay's folder (pairs)")
+    a = np.concatenate([matched_boxes(Path(f), Path(o)) for f, o in zip(args.pairs[::2], args.pairs[1::2])])
+    if not len(a):
+        print("no detection lies on an apple")
+        return 1
+    print(f"{len(a)} detections on apples; box half-size over the true radius (detector px), median:")
+    print(f"{'true radius px':>15} {'n':>6} {'box / r':>8} {'wholly seen':>12}")
+    for lo in range(1, 12):
+        s = (a[:, 0] >= lo) & (a[:, 0] < lo + 1)
+        w = s & (a[:, 2] > WHOLE)
+        if s.sum() >= 10:
+            print(f"{f'{lo}-{lo + 1}':>15} {int(s.sum()):>6} {np.median(a[s, 1] / a[s, 0]):>8.3f} "
+                  f"{np.median(a[w, 1] / a[w, 0]) if w.sum() >= 5 else float('nan'):>12.3f}")
+    print(f"{'visible share':>15} {'n':>6} {'box / r':>8}")
+    for lo, hi in ((0.0, 0.3), (0.3, 0.5), (0.5, 0.7), (0.7, 0.9), (0.9, 1.01)):
+        s = (a[:, 2] >= lo) & (a[:, 2] < hi)
+        if s.sum():
+            print(f"{f'{lo:.1f}-{min(hi, 1.0):.1f}':>15} {int(s.sum()):>6} {np.median(a[s, 1] / a[s, 0]):>8.3f}")
+    w = a[:, 2] > WHOLE
+    if w.sum() >= 10:
+        slope, icpt = np.polyfit(a[w, 0], a[w, 1], 1)
+        print(f"wholly seen (visible > {WHOLE}, n {int(w.sum())}): box = {slope:.3f} x radius + {icpt:.3f} px")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
