@@ -4,15 +4,19 @@ the pixels the detector saw (the frame's detector scale), by the apple's true ra
 line box = slope x radius + intercept through the wholly seen ones (visible share above 0.9).
 
     python benchmarks/box_response.py out/yield/tune-1 out/yield/runs/tune-1/map out/yield/tune-2 out/yield/runs/tune-2/map
+    python benchmarks/box_response.py ... --write onboard/models/apple-detector.json   # the model's box_response
 
 Arguments come in pairs: a simulated flight and the folder of its replay (whose journal.bin holds the detections the
 drone sent). A slope under 1 means the boxes pull sizes towards a middle one: small apples read large, large ones
-small, and a row's fruit size reads by how far it was from the camera, not only by its fruit.
+small, and a row's fruit size reads by how far it was from the camera, not only by its fruit. ``--write`` stores the
+line in the model's metadata (``box_response``): the drone sends it, and the ground takes its fruit sizes back through
+it (ground/apples/counting.py). Measure it again for every model shipped, on tuning flights.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -58,6 +62,7 @@ def matched_boxes(flight: Path, replay: Path) -> np.ndarray:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("pairs", nargs="+", help="FLIGHT REPLAY_OUT [FLIGHT REPLAY_OUT ...]")
+    p.add_argument("--write", metavar="MODEL_JSON", help="store the line as this model metadata's box_response")
     args = p.parse_args(argv)
     if len(args.pairs) % 2:
         p.error("give each flight with its replay's folder (pairs)")
@@ -82,6 +87,13 @@ def main(argv=None) -> int:
     if w.sum() >= 10:
         slope, icpt = np.polyfit(a[w, 0], a[w, 1], 1)
         print(f"wholly seen (visible > {WHOLE}, n {int(w.sum())}): box = {slope:.3f} x radius + {icpt:.3f} px")
+        if args.write:
+            meta = json.loads(Path(args.write).read_text())
+            meta["box_response"] = {"slope": round(float(slope), 3), "intercept_px": round(float(icpt), 3),
+                                    "measured": f"benchmarks/box_response.py, {int(w.sum())} boxes of wholly seen "
+                                                f"apples on {', '.join(Path(f).name for f in args.pairs[::2])}"}
+            Path(args.write).write_text(json.dumps(meta, indent=1) + "\n")
+            print(f"written to {args.write}")
     return 0
 
 

@@ -188,6 +188,7 @@ class GroundPipeline:
             # the poses are made in step(), once the first keyframe tells the keyframes' width (or, if the frames
             # cannot wait for it, from what the camera message says)
             self.camera = self.apples.camera = camera
+            self.apples.box_response = msg.box_response
         return self.step() if step else []
 
     def feed(self, msg: wire.FrameMessage | wire.KeyframeMessage | wire.StatusMessage,

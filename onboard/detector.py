@@ -143,6 +143,16 @@ class OnnxDetector:
         self.apple_radius_px = self.meta.get("apple_radius_px")
         #: the smallest apple radius (px, as the model sees it) it finds reliably: its envelope (None: not said)
         self.min_apple_radius_px = self.meta.get("min_apple_radius_px")
+        #: how its boxes answer an apple's size: (slope, intercept px) of box half-size against the true radius, as the
+        #: model sees them (benchmarks/box_response.py; None: not said)
+        r = self.meta.get("box_response")
+        try:
+            self.box_response = (float(r["slope"]), float(r["intercept_px"])) if r is not None else None
+            if r is not None and not (0.2 <= self.box_response[0] <= 5.0 and abs(self.box_response[1]) <= 20.0):
+                raise ValueError
+        except (KeyError, TypeError, ValueError):
+            raise ModelError(f"{Path(self.path).with_suffix('.json')}: box_response must be "
+                             f"{{\"slope\": 0.2-5, \"intercept_px\": -20-20}}, got {r!r:.60}") from None
         if self.overlap * 2 >= self.tile_size:
             raise ValueError("overlap must be less than half the tile size")
 

@@ -410,6 +410,9 @@ class CameraMessage:
     #: What the frames' altitudes are measured from (one of ALTITUDE_REFERENCES); None: not said (a node before it;
     #: taken as sea level, as a MAVLink position's).
     altitude_reference: str | None = None
+    #: How the detector's boxes answer an apple's size: box half-size = slope x radius + intercept (px, as the
+    #: detector sees them), from its model's metadata; None: not said (boxes taken as the apples' size, as the truth's).
+    box_response: tuple[float, float] | None = None
 
     def encode(self) -> bytes:
         return msgpack.packb({"v": SCHEMA_VERSION, "type": "camera", "flight": self.flight_id, "drone": self.drone_id,
@@ -418,7 +421,8 @@ class CameraMessage:
                               **({} if self.paced is None else {"paced": bool(self.paced)}),
                               **({"minr": float(self.min_apple_radius_px)} if self.min_apple_radius_px else {}),
                               **({} if self.score_thresh is None else {"pubs": float(self.score_thresh)}),
-                              **({} if self.altitude_reference is None else {"altref": self.altitude_reference})},
+                              **({} if self.altitude_reference is None else {"altref": self.altitude_reference}),
+                              **({} if self.box_response is None else {"boxr": [float(v) for v in self.box_response]})},
                              use_bin_type=True)
 
     @property
@@ -459,7 +463,17 @@ class CameraMessage:
                    _int("camera message: keyframe width", d.get("kfw", 0), 0, MAX_IMAGE_SIDE), paced,
                    _float("camera message: min apple radius", d.get("minr", 0.0), 0.0, 1000.0),
                    None if d.get("pubs") is None else _float("camera message: published score", d["pubs"], 0.0, 1.0),
-                   ref)
+                   ref, _box_response(d.get("boxr")))
+
+
+def _box_response(x) -> tuple[float, float] | None:
+    """A camera message's box response (slope, intercept px), checked: a slope of 0.2-5, an intercept within 20 px."""
+    if x is None:
+        return None
+    if not isinstance(x, (list, tuple)) or len(x) != 2:
+        raise WireError(f"camera message: box response must be [slope, intercept], got {x!r:.40}", "malformed")
+    return (_float("camera message: box response slope", x[0], 0.2, 5.0),
+            _float("camera message: box response intercept", x[1], -20.0, 20.0))
 
 
 _TYPES = {"frame": FrameMessage, "keyframe": KeyframeMessage, "status": StatusMessage, "camera": CameraMessage}

@@ -123,3 +123,18 @@ def test_missing_and_corrupt_model_files_are_clear_errors(tmp_path):
     shutil.copy(DEFAULT_MODEL.with_suffix(".json"), tmp_path / "bad.json")
     with pytest.raises(ModelError, match="bad.onnx.*onnxruntime cannot load"):
         OnnxDetector(bad)
+
+
+def test_the_models_box_response_is_read_and_a_bad_one_named(tmp_path, detector):
+    """The shipped model says how its boxes answer an apple's size (benchmarks/box_response.py); a malformed one stops
+    the node with its file named."""
+    import json
+
+    slope, icpt = detector.box_response
+    assert 0.5 < slope < 1.5 and abs(icpt) < 3
+    shutil.copy(DEFAULT_MODEL, tmp_path / "m.onnx")
+    meta = json.loads(DEFAULT_MODEL.with_suffix(".json").read_text())
+    for bad in ({"slope": 0.84}, {"slope": "x", "intercept_px": 0.9}, {"slope": 9.0, "intercept_px": 0.9}):
+        (tmp_path / "m.json").write_text(json.dumps({**meta, "box_response": bad}))
+        with pytest.raises(ModelError, match="m.json: box_response"):
+            OnnxDetector(tmp_path / "m.onnx")

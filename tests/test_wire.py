@@ -362,6 +362,20 @@ def test_a_camera_message_carries_the_detectors_smallest_reliable_apple():
         wire.CameraMessage.decode(msgpack.packb(d))
 
 
+def test_a_camera_message_carries_the_detectors_box_response():
+    cam = {"model": "PINHOLE", "width": 8, "height": 6, "params": [1, 1, 4, 3]}
+    assert wire.CameraMessage.decode(wire.CameraMessage("f", "d", cam, 10.0, box_response=(0.84, 0.9)).encode()
+                                     ).box_response == pytest.approx((0.84, 0.9))
+    assert wire.CameraMessage.decode(wire.CameraMessage("f", "d", cam, 10.0).encode()).box_response is None
+    import msgpack
+
+    for bad, why in (([0.0, 0.9], "slope"), ([0.84], "slope, intercept"), ([0.84, float("nan")], "intercept")):
+        d = msgpack.unpackb(wire.CameraMessage("f", "d", cam, 10.0, box_response=(0.84, 0.9)).encode())
+        d["boxr"] = bad
+        with pytest.raises(wire.WireError, match=why):
+            wire.CameraMessage.decode(msgpack.packb(d))
+
+
 def test_a_camera_message_carries_the_score_the_drone_publishes_from():
     cam = {"model": "PINHOLE", "width": 8, "height": 6, "params": [1, 1, 4, 3]}
     assert wire.CameraMessage.decode(wire.CameraMessage("f", "d", cam, 10.0, score_thresh=0.7).encode()

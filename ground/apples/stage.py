@@ -39,6 +39,16 @@ class AppleStage:
     def camera(self, camera) -> None:
         self.count.camera = camera
 
+    @property
+    def box_response(self) -> tuple[float, float] | None:
+        """How the drone's detector's boxes answer an apple's size (the camera message's): the counting's fruit sizes
+        take it back."""
+        return self.count.box_response
+
+    @box_response.setter
+    def box_response(self, response) -> None:
+        self.count.box_response = response
+
     def take_frame(self, msg: wire.FrameMessage, pose, steps, metres_per_unit: float) -> list[Apple]:
         """A posed frame's detections (``steps``: the frame-index steps between the last frames released); returns
         the apples it confirmed."""
@@ -48,7 +58,7 @@ class AppleStage:
         P = self.camera.projection_matrix(pose.R, pose.t)
         # The association's window is the next k frames *of the stream*: a real-time onboard node
         # that drops frames sends indices with gaps, so the association counts frames, not indices.
-        seq = self.frames.add(msg.frame, pose, P)
+        seq = self.frames.add(msg.frame, pose, P, msg.scale)
         self.assoc.metres_per_unit = metres_per_unit
         fd = FrameDetections(seq, P, xy, np.asarray(msg.boxes, float).reshape(-1, 4)[keep],
                              np.asarray(msg.scores)[keep])
