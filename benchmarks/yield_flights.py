@@ -130,9 +130,42 @@ def flight_figures(flight: Path, out: Path, models, k: int, draws: int, cv: floa
         figures[model] = {"chosen": mine, "seen_rows": seen_rows(mine, trees),
                           "random_row_error_median": float(np.median(random)),
                           "oracle": {"row_load_error_median": oracle["row_load_error_median"],
-                                     "tree_r": oracle["trees"]["r"]}}
+                                     "tree_r": oracle["trees"]["r"],
+                                     "row_errors": [abs(x["load_error"]) for x in oracle["rows"]]}}
     (out / "yield.json").write_text(json.dumps(figures, indent=1, default=float) + "\n")
     return figures
+
+
+def goals(figs: dict[str, dict], pairs: dict[str, dict], model: str) -> list[str]:
+    """Issue 59's goals over every flight given (``figs``: flight name -> flight_figures' output; ``pairs``: name ->
+    repeat_pair's), for ``model``: lines to print."""
+    rows = [x for f in figs.values() for x in f[model]["chosen"]["rows"]]
+    oracle = [e for f in figs.values() for e in f[model]["oracle"]["row_errors"]]
+    err = float(np.median([abs(x["load_error"]) for x in rows]))
+    orc = float(np.median(oracle))
+    sized = [x for x in rows if np.isfinite(x["diameter_error_mm"])]
+    d = float(np.median([abs(x["diameter_error_mm"]) for x in sized])) if sized else float("nan")
+    c = float(np.median([abs(x["constant_error_mm"]) for x in sized])) if sized else float("nan")
+    kg = [x for x in rows if np.isfinite(x["kg_error"])]
+    out = [f"goals ({model}, {len(figs)} flights, {len(rows)} rows):",
+           f"  rows' 90 % intervals hold the true load: {np.mean([x['covered'] for x in rows]):.2f} (goal 0.80-0.95); "
+           f"median half-width {np.median([x['half_width'] for x in rows]):.2f}",
+           f"  median row error {err:.3f}, the oracle's {orc:.3f}: {err / orc:.2f} times (goal <= 1.25)"]
+    for name, f in figs.items():
+        m = f[model]
+        r_, o = m["chosen"]["trees"]["r"], m["oracle"]["tree_r"]
+        out.append(f"  {name}: tree r {r_ if r_ is None else round(r_, 2)} against the oracle's "
+                   f"{o if o is None else round(o, 2)} (goal: no more than 0.05 below it); chosen trees' row error "
+                   f"{m['chosen']['row_load_error_median']:.3f} against random draws' median "
+                   f"{m['random_row_error_median']:.3f} (goal no larger)")
+    for name, rp in pairs.items():
+        out.append(f"  repeat pair {name}: row loads within each other's intervals {sum(rp['within'])}/{len(rp['within'])}")
+    out.append(f"  diameter per row: median error {d:.1f} mm, rows within 2 mm {np.mean([abs(x['diameter_error_mm']) <= 2 for x in sized]) if sized else float('nan'):.2f}, "
+               f"a constant median's {c:.1f} mm (goal within 2 mm and at most half the constant's)")
+    out.append(f"  kilograms per row within the load interval's relative half-width + 3 %: "
+               f"{np.mean([abs(x['kg_error']) <= x['half_width'] + 0.03 for x in kg]) if kg else float('nan'):.2f} of "
+               f"{len(kg)} rows; median kg error {np.median([abs(x['kg_error']) for x in kg]) if kg else float('nan'):.3f}")
+    return out
 
 
 def main(argv=None) -> int:
@@ -157,9 +190,10 @@ def main(argv=None) -> int:
     head = (f"{'flight':<22} {'model':<9} {'row err':>7} {'random':>7} {'oracle':>7} {'tree r':>6} {'orac r':>6} "
             f"{'cover':>5} {'half-w':>6} {'diam mm':>7} {'const':>6} {'kg err':>6} {'LOO %':>6}")
     print(head)
+    every = {}
     for i, flight in enumerate(args.flights):
         name = Path(flight).name
-        figs = flight_figures(Path(flight), Path(args.out) / name, args.models, args.trees, args.draws,
+        figs = every[name] = flight_figures(Path(flight), Path(args.out) / name, args.models, args.trees, args.draws,
                               args.count_error_cv, args.seed + i, args.reuse, args.detector)
         for model, f in figs.items():
             c = f["chosen"]
@@ -175,11 +209,15 @@ def main(argv=None) -> int:
             if v["rows"]:
                 print(f"{'':<22} {'seen':<9} {v['row_load_error_median']:>7.3f} {'':>7} {'':>7} {'':>6} {'':>6} "
                       f"{v['coverage']:>5.2f} {v['half_width_median']:>6.2f}   ({v['rows']} rows seen)")
+    pairs = {}
     for a, b in args.pair:
-        rp = repeat_pair(by_name[a], by_name[b], Path(args.out), DEFAULT_MODEL, args.trees, args.count_error_cv, args.seed)
+        rp = pairs[f"{a}/{b}"] = repeat_pair(by_name[a], by_name[b], Path(args.out), DEFAULT_MODEL, args.trees,
+                                             args.count_error_cv, args.seed)
         (Path(args.out) / f"pair-{a}-{b}.json").write_text(json.dumps(rp, indent=1) + "\n")
         print(f"repeat pair {a} / {b} ({DEFAULT_MODEL}): rows seen by both {len(rp['rows'])}, loads within each other's 90 % "
               f"intervals {sum(rp['within'])}/{len(rp['within'])}")
+    if DEFAULT_MODEL in args.models:
+        print("\n".join(goals(every, pairs, DEFAULT_MODEL)))
     return 0
 
 
