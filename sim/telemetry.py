@@ -84,7 +84,7 @@ def write_tlog(cfg: SimConfig, traj: Trajectory, origin: Origin, start_unix: flo
     err_p = gps_error(ts_pos, 0.15)
     if tel.height_source == "baro":  # the EKF's height from the barometer; its own stream, the others' unchanged
         err_p[:, 2] = smooth_noise(np.random.default_rng([cfg.seed, 38]), len(ts_pos), 20.0, BARO_DRIFT_M,
-                                   rate_hz=tel.position_rate_hz)
+                                   rate_hz=tel.position_rate_hz, by_gain=True)
     geo_p = origin.to_geodetic(sp["centre"] + err_p)
     vned = np.column_stack([sp["velocity"][:, 1], sp["velocity"][:, 0], -sp["velocity"][:, 2]])
     for i, tt in enumerate(ts_pos):

@@ -21,12 +21,22 @@ RATE_HZ = 200.0  # dense sampling of the true trajectory
 MARGIN_S = 3.0  # the trajectory extends this long before the video starts and after it ends
 
 
-def smooth_noise(rng: np.random.Generator, n: int, corr_s: float, sigma: float, rate_hz: float = RATE_HZ) -> np.ndarray:
-    """n samples at rate_hz of a zero-mean Gaussian process of standard deviation sigma, correlation time corr_s."""
+def smooth_noise(rng: np.random.Generator, n: int, corr_s: float, sigma: float, rate_hz: float = RATE_HZ,
+                 by_gain: bool = False) -> np.ndarray:
+    """n samples at rate_hz of a zero-mean Gaussian process of standard deviation sigma, correlation time corr_s.
+    ``by_gain``: normalised by the filter's own gain (the spread its kernel leaves of unit white noise), so that the
+    process has sigma whatever its length; else by the spread of the whole process drawn, which for a flight of a few
+    correlation times holds few independent values and comes out larger (a 12-s flight's 20-s process: its offset
+    0.16 where 0.1 was asked). The latter stays where flights rendered before must come out byte for byte (their
+    trajectories, GPS errors); the barometer, whose offset over a short flight is the map's scale, takes the gain."""
     if sigma == 0 or n == 0:
         return np.zeros(n)
     white = rng.normal(size=n + int(8 * corr_s * rate_hz))
-    x = gaussian_filter1d(white, corr_s * rate_hz, mode="wrap")
+    s = corr_s * rate_hz
+    x = gaussian_filter1d(white, s, mode="wrap")
+    if by_gain:
+        k = np.exp(-0.5 * (np.arange(-int(4 * s + 0.5), int(4 * s + 0.5) + 1) / max(s, 1e-9)) ** 2)
+        return sigma * x[:n] / float(np.sqrt(((k / k.sum()) ** 2).sum()))
     return sigma * x[:n] / max(x.std(), 1e-12)  # normalised over the whole process, not the slice
 
 

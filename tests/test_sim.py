@@ -243,6 +243,20 @@ def test_an_autopilot_that_takes_its_height_from_the_barometer(bundled_flight, t
     np.testing.assert_allclose(h_srt, s_baro["height"][:len(h_srt)], atol=0.002)
 
 
+def test_a_barometers_drift_over_a_short_flight_is_as_large_as_said():
+    """The barometer's offset over a 12-s flight (its 20-s process at 5 Hz) has the spread BARO_DRIFT_M says, not the
+    1.6 times of a process normalised by its own short sample's spread (which the other processes keep, so that flights
+    rendered before regenerate byte for byte)."""
+    from sim.telemetry import BARO_DRIFT_M
+    from sim.trajectory import smooth_noise
+
+    def offsets(by_gain):
+        return np.array([smooth_noise(np.random.default_rng([s, 38]), 60, 20.0, BARO_DRIFT_M, rate_hz=5.0,
+                                      by_gain=by_gain).mean() for s in range(600)])
+
+    assert 0.85 * BARO_DRIFT_M < offsets(True).std() < 1.15 * BARO_DRIFT_M < offsets(False).std()
+
+
 def test_the_truth_holds_every_trees_full_load_and_each_apples_mass(bundled_flight, small_flight):
     """Every tree's full load (the apples it carries, seen or not) and every apple's tree and mass, for scoring yield
     (issue 59), drawn without a draw from the generator (a flight rendered before comes out the same apple for apple:
