@@ -133,15 +133,19 @@ def test_each_rows_fruit_size_and_kilograms_follow_its_apples_diameters():
     radius = d / 2
     radius[[0, 250]] = np.nan
     table = {"id": np.arange(400), "row": row, "radius_m": radius}
-    rows = [{"row": 3, "load": 1000.0, "load_lo": 900.0, "load_hi": 1100.0}, {"row": 4}]
+    rows = [{"row": 3, "load": 1000.0, "load_lo": 900.0, "load_hi": 1100.0}, {"row": 4},
+            {"row": 5, "load": 500.0, "load_lo": 400.0, "load_hi": 600.0}]  # row 5: no apple measured
     flight = row_sizes(table, rows, {3: "Fuji"})
-    a, b = rows
+    a, b, c = rows
     assert abs(a["diameter_mm"] - 65) < 1 and abs(b["diameter_mm"] - 80) < 1
     assert a["share_60_70"] == 1.0 and a["share_lt60"] == a["share_70_80"] == a["share_gt80"] == 0
     assert 0.4 < b["share_70_80"] < 0.6 and abs(b["share_70_80"] + b["share_gt80"] - 1) < 1e-9
     assert np.isclose(a["apple_kg"], apple_mass_kg(d[1:200], "Fuji").mean())
     assert np.isclose(a["kg"], 1000 * a["apple_kg"]) and np.isclose(a["kg_hi"], 1100 * a["apple_kg"])
     assert np.isnan(b["kg"]) and np.isnan(flight["kg"])  # no load, no kilograms
+    # a row whose fruit the camera never measured: no size, its kilograms from the flight's apples
+    assert np.isnan(c["diameter_mm"]) and np.isclose(c["apple_kg"], apple_mass_kg(d[np.isfinite(radius)]).mean())
+    assert np.isclose(c["kg"], 500 * c["apple_kg"])
     assert flight["apples_measured"] == 398 and 70 < flight["diameter_mm"] < 76
 
 

@@ -1,6 +1,7 @@
 """The fruit's size per row, and the load in kilograms (issue 59): each counted apple's diameter from its 3-D fit
 (apples.csv's radius_m), the row's median and its share in each size class, and the row's load (apples, from the
-hand counts) times the mean mass of its measured apples (pomar.fruit, by the row's cultivar where the layout says it).
+hand counts) times the mean mass of its measured apples (pomar.fruit, by the row's cultivar where the layout says it),
+or of the flight's where the camera measured none of the row's (its diameter_mm empty).
 """
 
 from __future__ import annotations
@@ -37,8 +38,12 @@ def row_sizes(table: dict, rows: list[dict], cultivars: dict[int, str] | None = 
     cultivars = cultivars or {}
     diameter = 2.0 * np.asarray(table["radius_m"], float) if len(table["id"]) else np.zeros(0)
     row_of = np.asarray(table["row"])
+    measured = diameter[np.isfinite(diameter) & (diameter > 0)]
     for r in rows:
-        r.update(size_figures(diameter[row_of == r["row"]], cultivars.get(r["row"], "")))
+        cultivar = cultivars.get(r["row"], "")
+        r.update(size_figures(diameter[row_of == r["row"]], cultivar))
+        if not np.isfinite(r["apple_kg"]) and len(measured):  # a row the camera measured no apple of: the flight's
+            r["apple_kg"] = float(apple_mass_kg(measured, cultivar).mean())
         r.update({k: r.get(k, np.nan) for k in ("load", "load_lo", "load_hi")})
     row_kilograms(rows)
     out = size_figures(diameter)
