@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pomar import wire
 from pomar.cli import InputError
 
 log = logging.getLogger(__name__)
@@ -146,13 +147,13 @@ class OnnxDetector:
         #: how its boxes answer an apple's size: (slope, intercept px) of box half-size against the true radius, as the
         #: model sees them (benchmarks/box_response.py; None: not said)
         r = self.meta.get("box_response")
-        try:
-            self.box_response = (float(r["slope"]), float(r["intercept_px"])) if r is not None else None
-            if r is not None and not (0.2 <= self.box_response[0] <= 5.0 and abs(self.box_response[1]) <= 20.0):
-                raise ValueError
-        except (KeyError, TypeError, ValueError):
-            raise ModelError(f"{Path(self.path).with_suffix('.json')}: box_response must be "
-                             f"{{\"slope\": 0.2-5, \"intercept_px\": -20-20}}, got {r!r:.60}") from None
+        try:  # the limits the camera message that carries it checks (pomar.wire)
+            self.box_response = None if r is None else wire.box_response_of([r["slope"], r["intercept_px"]],
+                                                                             "box_response")
+        except (KeyError, TypeError, wire.WireError) as exc:
+            why = exc if isinstance(exc, wire.WireError) else \
+                f'box_response must be {{"slope": number, "intercept_px": number}}, got {r!r:.60}'
+            raise ModelError(f"{Path(self.path).with_suffix('.json')}: {why}") from None
         if self.overlap * 2 >= self.tile_size:
             raise ValueError("overlap must be less than half the tile size")
 

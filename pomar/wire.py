@@ -463,17 +463,17 @@ class CameraMessage:
                    _int("camera message: keyframe width", d.get("kfw", 0), 0, MAX_IMAGE_SIDE), paced,
                    _float("camera message: min apple radius", d.get("minr", 0.0), 0.0, 1000.0),
                    None if d.get("pubs") is None else _float("camera message: published score", d["pubs"], 0.0, 1.0),
-                   ref, _box_response(d.get("boxr")))
+                   ref, box_response_of(d.get("boxr")))
 
 
-def _box_response(x) -> tuple[float, float] | None:
-    """A camera message's box response (slope, intercept px), checked: a slope of 0.2-5, an intercept within 20 px."""
+def box_response_of(x, name: str = "camera message: box response") -> tuple[float, float] | None:
+    """A detector's box response [slope, intercept px], checked (a slope of 0.2-5, an intercept within 20 px): the
+    camera message's, and the model metadata's the drone reads it from (``name`` says which); WireError otherwise."""
     if x is None:
         return None
     if not isinstance(x, (list, tuple)) or len(x) != 2:
-        raise WireError(f"camera message: box response must be [slope, intercept], got {x!r:.40}", "malformed")
-    return (_float("camera message: box response slope", x[0], 0.2, 5.0),
-            _float("camera message: box response intercept", x[1], -20.0, 20.0))
+        raise WireError(f"{name} must be [slope, intercept], got {x!r:.40}", "malformed")
+    return _float(f"{name} slope", x[0], 0.2, 5.0), _float(f"{name} intercept", x[1], -20.0, 20.0)
 
 
 _TYPES = {"frame": FrameMessage, "keyframe": KeyframeMessage, "status": StatusMessage, "camera": CameraMessage}
