@@ -1,11 +1,13 @@
 """Which trees the grower should count by hand (issue 59): k trees spread over the rows and over what the map knows of
 each tree, so that the calibration (ground.orchard.calibration) sees the whole range it predicts over.
 
-The trees the map saw are ordered by the model's regressor (the count; the count over the coverage for ``coverage``)
-and cut into k strata of equal size; from each, of the NEAREST trees nearest the stratum's median, the one of the
-row with the fewest trees chosen so far. The sample so spans the regressor and is balanced on it (its mean near the
-orchard's), where a random handful may bunch together; spreading over rows keeps a row's own effects (vigour, variety)
-in it.
+First every row gets a tree (where k allows; else k rows spread evenly over the layout): the count says nothing of a
+row the camera never saw, or saw from afar, and only a hand count there tells its level (rows differ in vigour, variety
+and crop). In a row the camera saw, its seen tree whose regressor (the count; the count over the coverage for
+``coverage``) is nearest the row's median; in a row it never saw, its middle tree. The rest are stratified on the
+regressor over the trees the camera saw: ordered by it and cut into strata of equal size, from each the tree nearest
+the stratum's median, so that the sample spans the regressor and is balanced on it where a random handful may bunch
+together.
 """
 
 from __future__ import annotations
@@ -15,10 +17,25 @@ import numpy as np
 from ground.orchard.calibration import DEFAULT_MODEL, regressors
 
 
-#: Of each stratum, the trees this near its median are the candidates; the one of the row least chosen so far wins.
-#: 1: the nearest, whatever its row (on made-up orchards, tests/test_orchard_calibration.py, preferring rows among the
-#: 3 nearest gave the linear model larger row errors than random draws).
-NEAREST = 1
+def _seen(trees: list[dict]) -> np.ndarray:
+    """Whether the camera saw each tree (a coverage above 0, or none known)."""
+    cov = np.array([t.get("coverage", np.nan) for t in trees], float)
+    return ~np.isfinite(cov) | (cov > 0)
+
+
+def _one_per_row(trees: list[dict], x: np.ndarray, seen: np.ndarray, k: int) -> list[int]:
+    """A tree of each row (of k rows spread evenly where there are more): the seen tree nearest the row's median
+    regressor, else the row's middle tree."""
+    rows = sorted({t["row"] for t in trees})
+    if k < len(rows):
+        rows = [rows[int(i)] for i in np.round(np.linspace(0, len(rows) - 1, k))]
+    out = []
+    for r in rows:
+        idx = np.array([i for i, t in enumerate(trees) if t["row"] == r])
+        pool = idx[seen[idx]] if seen[idx].any() else idx
+        mid_x, mid_tree = np.median(x[pool]), np.median([trees[i]["tree"] for i in pool])
+        out.append(int(min(pool, key=lambda i: (abs(x[i] - mid_x), abs(trees[i]["tree"] - mid_tree), i))))
+    return out
 
 
 def choose_trees(trees: list[dict], k: int = 10, model: str = DEFAULT_MODEL) -> list[dict]:
@@ -26,29 +43,15 @@ def choose_trees(trees: list[dict], k: int = 10, model: str = DEFAULT_MODEL) -> 
     if k <= 0:
         raise ValueError(f"k must be at least 1, got {k}")
     x = regressors(trees, model)[:, -1]
-    cov = np.array([t.get("coverage", np.nan) for t in trees], float)
-    seen = np.nonzero(~np.isfinite(cov) | (cov > 0))[0]  # a tree the camera never saw tells nothing of its count
-    pool = seen if len(seen) >= k else np.arange(len(trees))
-    order = pool[np.argsort(x[pool], kind="stable")]
-    strata = np.array_split(order, min(k, len(order)))
-    chosen: list[int] = []
-    per_row: dict[int, int] = {}
-    for s in strata:
-        mid = np.median(x[s])
-        near = sorted(s, key=lambda i: (abs(x[i] - mid), i))[:NEAREST]
-        best = min(near, key=lambda i: (per_row.get(trees[i]["row"], 0), abs(x[i] - mid), i))
-        chosen.append(int(best))
-        per_row[trees[best]["row"]] = per_row.get(trees[best]["row"], 0) + 1
-    # every row at least once where k allows: a row left out takes the stratum whose pick it can replace most closely
-    # (of those picked from a row chosen twice or more)
-    rows = sorted({trees[i]["row"] for i in pool})
-    for r in rows:
-        if per_row.get(r, 0) or len(per_row) >= len(strata):
-            continue
-        swaps = [(abs(x[i] - np.median(x[s])), j, i) for j, s in enumerate(strata)
-                 if per_row[trees[chosen[j]]["row"]] >= 2 for i in s if trees[i]["row"] == r]
-        if swaps:
-            _, j, i = min(swaps)
-            per_row[trees[chosen[j]]["row"]] -= 1
-            chosen[j], per_row[r] = int(i), 1
+    seen = _seen(trees)
+    chosen = _one_per_row(trees, x, seen, min(k, len(trees)))
+    left = np.setdiff1d(np.nonzero(seen)[0], chosen)
+    if len(left) < k - len(chosen):  # too few seen trees: any tree not chosen yet
+        left = np.setdiff1d(np.arange(len(trees)), chosen)
+    strata = min(k - len(chosen), len(left))
+    if strata > 0:
+        order = left[np.argsort(x[left], kind="stable")]
+        for s in np.array_split(order, strata):
+            mid = np.median(x[s])
+            chosen.append(int(min(s, key=lambda i: (abs(x[i] - mid), i))))
     return [trees[i] for i in sorted(chosen, key=lambda i: (trees[i]["row"], trees[i]["tree"]))]

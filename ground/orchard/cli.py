@@ -121,8 +121,9 @@ def add_orchard_commands(sub) -> None:
                                                             "the map's trees.csv)")
     add_options(ld, GroundSettings(), ["load_model"])
     ld.set_defaults(func=_cmd_load)
-    ch = sub.add_parser("choose-trees", help="name the trees to count by hand, from a finished map: spread over the "
-                                             "rows and what the map saw of them (writes the sample-count file to fill)")
+    ch = sub.add_parser("choose-trees", help="name the trees to count by hand, from a finished map: one in every row, "
+                                             "the rest spread over what the map saw (writes the sample-count file to "
+                                             "fill)")
     ch.add_argument("map", help="a finished map's folder (its trees.csv; mapped with --orchard, so that the trees' "
                                 "numbers are yours)")
     ch.add_argument("--trees", type=int, default=10, help="how many trees (default 10)")
