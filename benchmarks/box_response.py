@@ -11,6 +11,11 @@ drone sent). A slope under 1 means the boxes pull sizes towards a middle one: sm
 small, and a row's fruit size reads by how far it was from the camera, not only by its fruit. ``--write`` stores the
 line in the model's metadata (``box_response``): the drone sends it, and the ground takes its fruit sizes back through
 it (ground/apples/counting.py). Measure it again for every model shipped, on tuning flights.
+
+Beside it: the line through the views the ground sizes each apple from (its largest tenth by size), and the fruit-size
+estimate over the true size (median over apples) under no line, the wholly seen one and that one, by flight and by the
+apple's radius in the detector's pixels: how far the estimate still depends on the flight (its light, its frames) and on
+the range.
 """
 
 from __future__ import annotations
@@ -32,11 +37,13 @@ from pomar.flight import FlightDir  # noqa: E402
 SCORE = 0.5
 #: Apples at least this visible are "wholly seen" for the line.
 WHOLE = 0.9
+#: Apples with fewer matched views are left out of the estimator's line (the ground sizes an apple it has confirmed).
+MIN_VIEWS = 5
 
 
 def matched_boxes(flight: Path, replay: Path) -> np.ndarray:
-    """(n, 3): per detection on an apple, the apple's true radius and the box's half-size (detector px), and the
-    apple's visible share."""
+    """(n, 4): per detection on an apple, the apple's true radius and the box's half-size (detector px), the apple's
+    visible share and its id (made unique across flights by the caller)."""
     from scipy.spatial import cKDTree
 
     d = FlightDir(flight).truth_detections()
@@ -51,12 +58,49 @@ def matched_boxes(flight: Path, replay: Path) -> np.ndarray:
         if not sel.any() or not len(b):
             continue
         s = float(m.scale or 1.0)
-        u, v, r, vis = (np.asarray(d[k], float)[sel] for k in ("u", "v", "r_px", "visible_fraction"))
+        u, v, r, vis, ids = (np.asarray(d[k], float)[sel] for k in ("u", "v", "r_px", "visible_fraction", "apple_id"))
         dist, k = cKDTree(np.c_[u, v]).query(np.c_[(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2])
         on = dist < r[k]
         half = (b[:, 2] - b[:, 0] + b[:, 3] - b[:, 1]) / 4
-        out.append(np.c_[r[k[on]] * s, half[on] * s, vis[k[on]]])
-    return np.concatenate(out) if out else np.zeros((0, 3))
+        out.append(np.c_[r[k[on]] * s, half[on] * s, vis[k[on]], ids[k[on]]])
+    return np.concatenate(out) if out else np.zeros((0, 4))
+
+
+def top_views(a: np.ndarray, slope: float, icpt: float) -> np.ndarray:
+    """The rows of ``a`` (matched_boxes') that the ground sizes each apple from: of an apple's views (MIN_VIEWS or
+    more), its largest tenth by size, each box taken back through the line (ground/apples/counting.py; ranking by
+    the size over the true radius in the detector's pixels is its ranking by size in metres)."""
+    keep = []
+    order = np.argsort(a[:, 3], kind="stable")
+    for idx in np.split(order, np.nonzero(np.diff(a[order, 3]))[0] + 1):
+        if len(idx) < MIN_VIEWS:
+            continue
+        size = np.maximum(a[idx, 1] - icpt, 0.0) / slope / a[idx, 0]
+        keep.append(idx[np.argsort(size)[-max(1, len(idx) // 10):]])
+    return np.concatenate(keep) if keep else np.zeros(0, int)
+
+
+def estimator_line(a: np.ndarray, slope: float, icpt: float, rounds: int = 5) -> tuple[float, float, int]:
+    """The line through the views the ground sizes apples from (top_views), refitted until the views it picks stay:
+    what the fruit-size estimate answers, where the wholly seen boxes' line is what one box answers (a tenth picked
+    by size also picks the boxes that came out large)."""
+    for _ in range(rounds):
+        top = top_views(a, slope, icpt)
+        if len(top) < 10:
+            break
+        slope, icpt = np.polyfit(a[top, 0], a[top, 1], 1)
+    return float(slope), float(icpt), int(len(top))
+
+
+def estimate_ratio(a: np.ndarray, slope: float, icpt: float) -> float:
+    """The median over apples of the size estimate (the median of its top tenth) over the true size, under a line."""
+    out = []
+    order = np.argsort(a[:, 3], kind="stable")
+    for idx in np.split(order, np.nonzero(np.diff(a[order, 3]))[0] + 1):
+        if len(idx) >= MIN_VIEWS:
+            size = np.sort(np.maximum(a[idx, 1] - icpt, 0.0) / slope / a[idx, 0])
+            out.append(np.median(size[-max(1, len(idx) // 10):]))
+    return float(np.median(out)) if out else float("nan")
 
 
 def main(argv=None) -> int:
@@ -66,7 +110,11 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if len(args.pairs) % 2:
         p.error("give each flight with its replay's folder (pairs)")
-    a = np.concatenate([matched_boxes(Path(f), Path(o)) for f, o in zip(args.pairs[::2], args.pairs[1::2])])
+    flights = [(Path(f), Path(o)) for f, o in zip(args.pairs[::2], args.pairs[1::2])]
+    parts = [matched_boxes(f, o) for f, o in flights]
+    for k, part in enumerate(parts):
+        part[:, 3] += k * 10_000_000  # apple ids unique across flights
+    a = np.concatenate(parts)
     if not len(a):
         print("no detection lies on an apple")
         return 1
@@ -84,16 +132,33 @@ def main(argv=None) -> int:
         if s.sum():
             print(f"{f'{lo:.1f}-{min(hi, 1.0):.1f}':>15} {int(s.sum()):>6} {np.median(a[s, 1] / a[s, 0]):>8.3f}")
     w = a[:, 2] > WHOLE
-    if w.sum() >= 10:
-        slope, icpt = np.polyfit(a[w, 0], a[w, 1], 1)
-        print(f"wholly seen (visible > {WHOLE}, n {int(w.sum())}): box = {slope:.3f} x radius + {icpt:.3f} px")
-        if args.write:
-            meta = json.loads(Path(args.write).read_text())
-            meta["box_response"] = {"slope": round(float(slope), 3), "intercept_px": round(float(icpt), 3),
-                                    "measured": f"benchmarks/box_response.py, {int(w.sum())} boxes of wholly seen "
-                                                f"apples on {', '.join(Path(f).name for f in args.pairs[::2])}"}
-            Path(args.write).write_text(json.dumps(meta, indent=1) + "\n")
-            print(f"written to {args.write}")
+    if w.sum() < 10:
+        print("too few wholly seen apples for a line")
+        return 1
+    slope, icpt = np.polyfit(a[w, 0], a[w, 1], 1)
+    print(f"wholly seen (visible > {WHOLE}, n {int(w.sum())}): box = {slope:.3f} x radius + {icpt:.3f} px")
+    e_slope, e_icpt, n_top = estimator_line(a, slope, icpt)
+    print(f"the views the ground sizes apples from (each apple's largest tenth, {n_top} views): box = {e_slope:.3f} x "
+          f"radius + {e_icpt:.3f} px")
+    lines = {"identity": (1.0, 0.0), "wholly seen": (slope, icpt), "estimator": (e_slope, e_icpt)}
+    print("the fruit-size estimate over the true size (median over apples), by flight and by the apple's median radius:")
+    print(f"{'':>22}" + "".join(f"{k:>13}" for k in lines))
+    for (f, _), part in zip(flights, parts):
+        print(f"{f.name:>22}" + "".join(f"{estimate_ratio(part, *ln):>13.3f}" for ln in lines.values()))
+    order = np.argsort(a[:, 3], kind="stable")
+    groups = np.split(order, np.nonzero(np.diff(a[order, 3]))[0] + 1)
+    px = {int(a[g[0], 3]): float(np.median(a[g, 0])) for g in groups}
+    for lo in range(2, 10):
+        keep = np.isin(a[:, 3], [i for i, r in px.items() if lo <= r < lo + 1])
+        if np.unique(a[keep, 3]).size >= 10:
+            print(f"{f'{lo}-{lo + 1} px':>22}" + "".join(f"{estimate_ratio(a[keep], *ln):>13.3f}" for ln in lines.values()))
+    if args.write:
+        meta = json.loads(Path(args.write).read_text())
+        meta["box_response"] = {"slope": round(float(slope), 3), "intercept_px": round(float(icpt), 3),
+                                "measured": f"benchmarks/box_response.py, {int(w.sum())} boxes of wholly seen "
+                                            f"apples on {', '.join(f.name for f, _ in flights)}"}
+        Path(args.write).write_text(json.dumps(meta, indent=1) + "\n")
+        print(f"written to {args.write}")
     return 0
 
 
