@@ -122,9 +122,9 @@ def test_the_chosen_trees_span_the_counts_and_rows_and_estimate_no_worse_than_ra
 
 
 def test_every_row_gets_a_tree_to_count_the_unseen_ones_their_middle_tree():
-    """8 rows of 25 trees, the camera saw rows 4 and 5 only: of 10 trees, one in each row (a row never seen: its middle
-    tree, the count says nothing there), the other two among the trees the camera saw; of 4 trees, 4 rows spread over
-    the 8."""
+    """8 rows of 25 trees, the camera saw rows 4 and 5 only: of 10 trees, one in each row (the rows never seen: trees
+    placed systematically along them, the count says nothing there), the other two among the trees the camera saw; of 4
+    trees, 4 rows spread over the 8."""
     from ground.orchard.choose import choose_trees
 
     rng = np.random.default_rng(5)
@@ -134,7 +134,8 @@ def test_every_row_gets_a_tree_to_count_the_unseen_ones_their_middle_tree():
             t.update(count=0, coverage=0.0)
     chosen = choose_trees(trees, 10)
     assert sorted({t["row"] for t in chosen}) == list(range(1, 9)) and len(chosen) == 10
-    assert all(t["tree"] == 13 for t in chosen if t["row"] not in (4, 5))
+    # the six unseen rows' trees at 1/12, 3/12, ... 11/12 of their rows (25 trees): one of each place
+    assert sorted(t["tree"] for t in chosen if t["row"] not in (4, 5)) == [3, 7, 11, 15, 19, 23]
     assert sum(t["row"] in (4, 5) for t in chosen) == 4
     assert [t["row"] for t in choose_trees(trees, 4)] == [1, 3, 6, 8]
 

@@ -4,7 +4,7 @@ each tree, so that the calibration (ground.orchard.calibration) sees the whole r
 First every row gets a tree (where k allows; else k rows spread evenly over the layout): the count says nothing of a
 row the camera never saw, or saw from afar, and only a hand count there tells its level (rows differ in vigour, variety
 and crop). In a row the camera saw, its seen tree whose regressor (the count; the count over the coverage for
-``coverage``) is nearest the row's median; in a row it never saw, its middle tree. The rest are stratified on the
+``coverage``) is nearest the row's median; in a row it never saw, a tree placed systematically along the rows. The rest are stratified on the
 regressor over the trees the camera saw: ordered by it and cut into strata of equal size, from each the tree nearest
 the stratum's median, so that the sample spans the regressor and is balanced on it where a random handful may bunch
 together.
@@ -25,14 +25,22 @@ def _seen(trees: list[dict]) -> np.ndarray:
 
 def _one_per_row(trees: list[dict], x: np.ndarray, seen: np.ndarray, k: int) -> list[int]:
     """A tree of each row (of k rows spread evenly where there are more): the seen tree nearest the row's median
-    regressor, else the row's middle tree."""
+    regressor; in a row the camera never saw, a tree placed systematically along it, the m such rows' trees at 1/2m,
+    3/2m, ... of their rows' lengths, so that a gradient along the rows (a slope, the irrigation, the headland) does
+    not put every such tree on the same side of it."""
     rows = sorted({t["row"] for t in trees})
     if k < len(rows):
         rows = [rows[int(i)] for i in np.round(np.linspace(0, len(rows) - 1, k))]
+    of_row = {r: np.array([i for i, t in enumerate(trees) if t["row"] == r]) for r in rows}
+    unseen = [r for r in rows if not seen[of_row[r]].any()]
     out = []
     for r in rows:
-        idx = np.array([i for i, t in enumerate(trees) if t["row"] == r])
-        pool = idx[seen[idx]] if seen[idx].any() else idx
+        idx = of_row[r]
+        if r in unseen:
+            place = (unseen.index(r) + 0.5) / len(unseen)
+            out.append(int(idx[np.argsort([trees[i]["tree"] for i in idx], kind="stable")][int(place * len(idx))]))
+            continue
+        pool = idx[seen[idx]]
         mid_x, mid_tree = np.median(x[pool]), np.median([trees[i]["tree"] for i in pool])
         out.append(int(min(pool, key=lambda i: (abs(x[i] - mid_x), abs(trees[i]["tree"] - mid_tree), i))))
     return out
