@@ -204,8 +204,11 @@ def test_readmes_yield_commands_as_written(replayed_test_flight, tmp_path):
     sized = [x for x in plot_rows if x["diameter_mm"] != "nan"]
     assert sized and all(50 < float(x["diameter_mm"]) < 100 for x in sized)  # the truth's apples: 60-90 mm
     assert all(abs(float(x["kg"]) - float(x["load"]) * float(x["apple_kg"])) < 0.1 for x in sized)
-    report = json.loads((got / "report.json").read_text())
+    report = json.loads((got / "report.json").read_text(), parse_constant=lambda c: pytest.fail(f"{c} in report.json"))
     assert report["load"]["model"] == "linear" and report["load"]["loo"]["trees"] == len(hand)
+    # report.json's rows say what rows.csv says
+    assert {x["row"]: (round(x["load"], 1), x["kg"] if x["kg"] is None else round(x["kg"], 1)) for x in report["rows"]} \
+        == {int(x["row"]): (float(x["load"]), None if x["kg"] == "nan" else float(x["kg"])) for x in plot_rows}
     assert abs(report["load"]["flight"]["load"] - sum(float(x["load"]) for x in plot_rows)) < 1.0
     # the same loads live, from the recorded stream with the counts
     live = replay_cmd.replace("out/plot", "out/live") + " --sample-counts counts.csv"

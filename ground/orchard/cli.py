@@ -55,6 +55,11 @@ def _cmd_load(args) -> int:
     write_atomic(folder / "rows.csv", records_csv(rows, [c for c in rows[0] if c not in fmt] + list(fmt), fmt))
     report_path = folder / "report.json"
     report = json.loads(report_path.read_text()) if report_path.is_file() else {}
+    by_row = {int(r["row"]): r for r in rows}
+    for r in report.get("rows", []):  # each row's load and kilograms, as rows.csv now gives them (NaN: null)
+        mine = by_row.get(int(r.get("row", -1)))
+        if mine is not None:
+            r.update({k: (None if v != v else float(v)) for k, v in ((k, float(mine[k])) for k in fmt)})
     write_json(report_path, {**report, "load": load})
     fl, loo = load["flight"], load["loo"]
     print(f"load: {fl['load']:.0f} apples ({load['level']:.0%} interval {fl['load_lo']:.0f}-{fl['load_hi']:.0f}) on "
@@ -62,7 +67,8 @@ def _cmd_load(args) -> int:
           f"{loo['median_abs_pct']:.0f} % (median), model {load['model']}")
     for r in rows:
         print(f"  row {r['row']}: {r['load']:.0f} ({r['load_lo']:.0f}-{r['load_hi']:.0f})")
-    print(f"trees.csv and rows.csv in {folder}/ now give each tree's and row's load; report.json its 'load'")
+    print(f"trees.csv and rows.csv in {folder}/ now give each tree's and row's load; report.json its 'load' and each "
+          "row's")
     return 0
 
 
@@ -96,7 +102,8 @@ def _cmd_choose(args) -> int:
     for t in chosen:
         t["apples"] = ""
     write_atomic(Path(args.out), records_csv(chosen, ["row", "tree", "apples", "lat", "lon", "count", "coverage"], {}))
-    print(f"wrote {args.out}: {len(chosen)} trees to count by hand, spread over the rows and what the map saw of them; "
+    print(f"wrote {args.out}: {len(chosen)} trees to count by hand, one in every row and the rest spread over what the "
+          "map saw; "
           "count every apple on each, write it in the apples column, then give the file as --sample-counts")
     for t in chosen:
         print(f"  row {t['row']} tree {t['tree']} at {t['lat']}, {t['lon']}")
