@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ground.orchard.calibration import DEFAULT_MODEL, regressors
+from ground.orchard.calibration import DEFAULT_MODEL, regressor
 
 
 def _seen(trees: list[dict]) -> np.ndarray:
@@ -50,7 +50,7 @@ def choose_trees(trees: list[dict], k: int = 10, model: str = DEFAULT_MODEL) -> 
     """``k`` of ``trees`` (trees.csv's records with count and coverage) to count by hand, in row and tree order."""
     if k <= 0:
         raise ValueError(f"k must be at least 1, got {k}")
-    x = regressors(trees, model)[:, -1]
+    x = regressor(trees, model)
     seen = _seen(trees)
     chosen = _one_per_row(trees, x, seen, min(k, len(trees)))
     left = np.setdiff1d(np.nonzero(seen)[0], chosen)
