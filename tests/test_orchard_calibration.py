@@ -148,7 +148,7 @@ def test_the_chosen_trees_span_the_counts_and_rows_and_estimate_no_worse_than_ra
     assert got <= 1.05 * random and worst > 1.5 * random, (got, random, worst)
 
 
-def test_every_row_gets_a_tree_to_count_the_unseen_ones_their_middle_tree():
+def test_every_row_gets_a_tree_to_count_the_unseen_ones_placed_along_them():
     """8 rows of 25 trees, the camera saw rows 4 and 5 only: of 10 trees, one in each row (the rows never seen: trees
     placed systematically along them, the count says nothing there), the other two among the trees the camera saw; of 4
     trees, 4 rows spread over the 8."""
