@@ -66,26 +66,30 @@ def matched_boxes(flight: Path, replay: Path) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros((0, 4))
 
 
-def top_views(a: np.ndarray, slope: float, icpt: float) -> np.ndarray:
-    """The rows of ``a`` (matched_boxes') that the ground sizes each apple from: of an apple's views (MIN_VIEWS or
-    more), its largest tenth by size, each box taken back through the line (ground/apples/counting.py; ranking by
-    the size over the true radius in the detector's pixels is its ranking by size in metres)."""
-    keep = []
+def by_apple(a: np.ndarray, min_views: int = MIN_VIEWS) -> list[np.ndarray]:
+    """The rows of ``a`` (matched_boxes') of each apple with ``min_views`` views or more (the ground sizes an apple it
+    has confirmed)."""
     order = np.argsort(a[:, 3], kind="stable")
-    for idx in np.split(order, np.nonzero(np.diff(a[order, 3]))[0] + 1):
-        if len(idx) < MIN_VIEWS:
-            continue
-        size = np.maximum(a[idx, 1] - icpt, 0.0) / slope / a[idx, 0]
-        keep.append(idx[np.argsort(size)[-max(1, len(idx) // 10):]])
-    return np.concatenate(keep) if keep else np.zeros(0, int)
+    return [idx for idx in np.split(order, np.nonzero(np.diff(a[order, 3]))[0] + 1) if len(idx) >= min_views]
+
+
+def top_tenth(a: np.ndarray, idx: np.ndarray, slope: float, icpt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Of one apple's views (rows ``idx``), the largest tenth by size, each box taken back through the line as
+    ground/apples/counting.py does (ranking by the size over the true radius in the detector's pixels is its ranking
+    by size in metres): (those rows, their sizes over the true radius)."""
+    size = np.maximum(a[idx, 1] - icpt, 0.0) / slope / a[idx, 0]
+    top = np.argsort(size)[-max(1, len(idx) // 10):]
+    return idx[top], size[top]
 
 
 def estimator_line(a: np.ndarray, slope: float, icpt: float, rounds: int = 5) -> tuple[float, float, int]:
-    """The line through the views the ground sizes apples from (top_views), refitted until the views it picks stay:
-    what the fruit-size estimate answers, where the wholly seen boxes' line is what one box answers (a tenth picked
-    by size also picks the boxes that came out large)."""
+    """The line through the views the ground sizes apples from (each apple's top tenth), refitted until the views it
+    picks stay: what the fruit-size estimate answers, where the wholly seen boxes' line is what one box answers (a
+    tenth picked by size also picks the boxes that came out large)."""
+    groups = by_apple(a)
+    top = np.zeros(0, int)
     for _ in range(rounds):
-        top = top_views(a, slope, icpt)
+        top = np.concatenate([top_tenth(a, g, slope, icpt)[0] for g in groups]) if groups else np.zeros(0, int)
         if len(top) < 10:
             break
         slope, icpt = np.polyfit(a[top, 0], a[top, 1], 1)
@@ -94,12 +98,7 @@ def estimator_line(a: np.ndarray, slope: float, icpt: float, rounds: int = 5) ->
 
 def estimate_ratio(a: np.ndarray, slope: float, icpt: float) -> float:
     """The median over apples of the size estimate (the median of its top tenth) over the true size, under a line."""
-    out = []
-    order = np.argsort(a[:, 3], kind="stable")
-    for idx in np.split(order, np.nonzero(np.diff(a[order, 3]))[0] + 1):
-        if len(idx) >= MIN_VIEWS:
-            size = np.sort(np.maximum(a[idx, 1] - icpt, 0.0) / slope / a[idx, 0])
-            out.append(np.median(size[-max(1, len(idx) // 10):]))
+    out = [np.median(top_tenth(a, g, slope, icpt)[1]) for g in by_apple(a)]
     return float(np.median(out)) if out else float("nan")
 
 
@@ -145,9 +144,7 @@ def main(argv=None) -> int:
     print(f"{'':>22}" + "".join(f"{k:>13}" for k in lines))
     for (f, _), part in zip(flights, parts):
         print(f"{f.name:>22}" + "".join(f"{estimate_ratio(part, *ln):>13.3f}" for ln in lines.values()))
-    order = np.argsort(a[:, 3], kind="stable")
-    groups = np.split(order, np.nonzero(np.diff(a[order, 3]))[0] + 1)
-    px = {int(a[g[0], 3]): float(np.median(a[g, 0])) for g in groups}
+    px = {int(a[g[0], 3]): float(np.median(a[g, 0])) for g in by_apple(a, 1)}
     for lo in range(2, 10):
         keep = np.isin(a[:, 3], [i for i, r in px.items() if lo <= r < lo + 1])
         if np.unique(a[keep, 3]).size >= 10:

@@ -14,13 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ground.orchard.calibration import DEFAULT_MODEL, regressor
-
-
-def _seen(trees: list[dict]) -> np.ndarray:
-    """Whether the camera saw each tree (a coverage above 0, or none known)."""
-    cov = np.array([t.get("coverage", np.nan) for t in trees], float)
-    return ~np.isfinite(cov) | (cov > 0)
+from ground.orchard.calibration import DEFAULT_MODEL, never_seen, regressor
 
 
 def _one_per_row(trees: list[dict], x: np.ndarray, seen: np.ndarray, k: int) -> list[int]:
@@ -51,7 +45,7 @@ def choose_trees(trees: list[dict], k: int = 10, model: str = DEFAULT_MODEL) -> 
     if k <= 0:
         raise ValueError(f"k must be at least 1, got {k}")
     x = regressor(trees, model)
-    seen = _seen(trees)
+    seen = ~never_seen(trees)
     chosen = _one_per_row(trees, x, seen, min(k, len(trees)))
     left = np.setdiff1d(np.nonzero(seen)[0], chosen)
     if len(left) < k - len(chosen):  # too few seen trees: any tree not chosen yet

@@ -10,6 +10,8 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from ground.pipeline import GroundSettings
 from pomar.settings import add_options
 
@@ -59,7 +61,7 @@ def _cmd_load(args) -> int:
     for r in report.get("rows", []):  # each row's load and kilograms, as rows.csv now gives them (NaN: null)
         mine = by_row.get(int(r.get("row", -1)))
         if mine is not None:
-            r.update({k: (None if v != v else float(v)) for k, v in ((k, float(mine[k])) for k in fmt)})
+            r.update({k: float(mine[k]) if np.isfinite(mine[k]) else None for k in fmt})
     write_json(report_path, {**report, "load": load})
     fl, loo = load["flight"], load["loo"]
     print(f"load: {fl['load']:.0f} apples ({load['level']:.0%} interval {fl['load_lo']:.0f}-{fl['load_hi']:.0f}) on "
