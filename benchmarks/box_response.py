@@ -1,7 +1,10 @@
 """How the detector's boxes answer an apple's size (issue 59's fruit sizes): each detection of a replay matched to the
 apple it lies on (its centre within the truth's radius), its box's half-size against the apple's true radius, both in
 the pixels the detector saw (the frame's detector scale), by the apple's true radius and by its visible share; and the
-line box = slope x radius + intercept through the wholly seen ones (visible share above 0.9).
+line box = slope x radius + intercept through the wholly seen ones (visible share above 0.9), with its margin in the
+detector's pixels, and with it in the frame's own pixels (box = slope x radius + frame intercept x scale: the margin
+of a box is the frame's blur, which the detector sees shrunk on a 4K frame it takes at 0.65 and grown on a 720p one it
+takes at 1.4).
 
     python benchmarks/box_response.py out/yield/tune-1 out/yield/runs/tune-1/map out/yield/tune-2 out/yield/runs/tune-2/map
     python benchmarks/box_response.py ... --write onboard/models/apple-detector.json   # the model's box_response
@@ -9,8 +12,9 @@ line box = slope x radius + intercept through the wholly seen ones (visible shar
 Arguments come in pairs: a simulated flight and the folder of its replay (whose journal.bin holds the detections the
 drone sent). A slope under 1 means the boxes pull sizes towards a middle one: small apples read large, large ones
 small, and a row's fruit size reads by how far it was from the camera, not only by its fruit. ``--write`` stores the
-line in the model's metadata (``box_response``): the drone sends it, and the ground takes its fruit sizes back through
-it (ground/apples/counting.py). Measure it again for every model shipped, on tuning flights.
+line with its margin in the frame's pixels in the model's metadata (``box_response``): the drone sends it, and the
+ground takes its fruit sizes back through it (ground/apples/counting.py). Measure it again for every model shipped,
+on tuning flights of each resolution.
 
 Beside it: the line through the views the ground sizes each apple from (its largest tenth by size), and the fruit-size
 estimate over the true size (median over apples) under no line, the wholly seen one and that one, by flight and by the
@@ -42,8 +46,8 @@ MIN_VIEWS = 5
 
 
 def matched_boxes(flight: Path, replay: Path) -> np.ndarray:
-    """(n, 4): per detection on an apple, the apple's true radius and the box's half-size (detector px), the apple's
-    visible share and its id (made unique across flights by the caller)."""
+    """(n, 5): per detection on an apple, the apple's true radius and the box's half-size (detector px), the apple's
+    visible share, its id (made unique across flights by the caller) and the frame's detector scale."""
     from scipy.spatial import cKDTree
 
     d = FlightDir(flight).truth_detections()
@@ -62,8 +66,8 @@ def matched_boxes(flight: Path, replay: Path) -> np.ndarray:
         dist, k = cKDTree(np.c_[u, v]).query(np.c_[(b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2])
         on = dist < r[k]
         half = (b[:, 2] - b[:, 0] + b[:, 3] - b[:, 1]) / 4
-        out.append(np.c_[r[k[on]] * s, half[on] * s, vis[k[on]], ids[k[on]]])
-    return np.concatenate(out) if out else np.zeros((0, 4))
+        out.append(np.c_[r[k[on]] * s, half[on] * s, vis[k[on]], ids[k[on]], np.full(int(on.sum()), s)])
+    return np.concatenate(out) if out else np.zeros((0, 5))
 
 
 def by_apple(a: np.ndarray, min_views: int = MIN_VIEWS) -> list[np.ndarray]:
@@ -73,11 +77,12 @@ def by_apple(a: np.ndarray, min_views: int = MIN_VIEWS) -> list[np.ndarray]:
     return [idx for idx in np.split(order, np.nonzero(np.diff(a[order, 3]))[0] + 1) if len(idx) >= min_views]
 
 
-def top_tenth(a: np.ndarray, idx: np.ndarray, slope: float, icpt: float) -> tuple[np.ndarray, np.ndarray]:
+def top_tenth(a: np.ndarray, idx: np.ndarray, slope: float, icpt: float,
+              frame_icpt: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Of one apple's views (rows ``idx``), the largest tenth by size, each box taken back through the line as
     ground/apples/counting.py does (ranking by the size over the true radius in the detector's pixels is its ranking
     by size in metres): (those rows, their sizes over the true radius)."""
-    size = np.maximum(a[idx, 1] - icpt, 0.0) / slope / a[idx, 0]
+    size = np.maximum(a[idx, 1] - icpt - frame_icpt * a[idx, 4], 0.0) / slope / a[idx, 0]
     top = np.argsort(size)[-max(1, len(idx) // 10):]
     return idx[top], size[top]
 
@@ -96,9 +101,9 @@ def estimator_line(a: np.ndarray, slope: float, icpt: float, rounds: int = 5) ->
     return float(slope), float(icpt), int(len(top))
 
 
-def estimate_ratio(a: np.ndarray, slope: float, icpt: float) -> float:
+def estimate_ratio(a: np.ndarray, slope: float, icpt: float, frame_icpt: float = 0.0) -> float:
     """The median over apples of the size estimate (the median of its top tenth) over the true size, under a line."""
-    out = [np.median(top_tenth(a, g, slope, icpt)[1]) for g in by_apple(a)]
+    out = [np.median(top_tenth(a, g, slope, icpt, frame_icpt)[1]) for g in by_apple(a)]
     return float(np.median(out)) if out else float("nan")
 
 
@@ -135,11 +140,16 @@ def main(argv=None) -> int:
         print("too few wholly seen apples for a line")
         return 1
     slope, icpt = np.polyfit(a[w, 0], a[w, 1], 1)
-    print(f"wholly seen (visible > {WHOLE}, n {int(w.sum())}): box = {slope:.3f} x radius + {icpt:.3f} px")
+    print(f"wholly seen (visible > {WHOLE}, n {int(w.sum())}): box = {slope:.3f} x radius + {icpt:.3f} px "
+          f"(rms {np.sqrt(np.mean((slope * a[w, 0] + icpt - a[w, 1]) ** 2)):.3f})")
+    (f_slope, f_icpt), *_ = np.linalg.lstsq(np.c_[a[w, 0], a[w, 4]], a[w, 1], rcond=None)
+    print(f"the same, its margin in the frame's pixels: box = {f_slope:.3f} x radius + {f_icpt:.3f} px x scale "
+          f"(rms {np.sqrt(np.mean((f_slope * a[w, 0] + f_icpt * a[w, 4] - a[w, 1]) ** 2)):.3f})")
     e_slope, e_icpt, n_top = estimator_line(a, slope, icpt)
     print(f"the views the ground sizes apples from (each apple's largest tenth, {n_top} views): box = {e_slope:.3f} x "
           f"radius + {e_icpt:.3f} px")
-    lines = {"identity": (1.0, 0.0), "wholly seen": (slope, icpt), "estimator": (e_slope, e_icpt)}
+    lines = {"identity": (1.0, 0.0, 0.0), "wholly seen": (slope, icpt, 0.0), "frame margin": (f_slope, 0.0, f_icpt),
+             "estimator": (e_slope, e_icpt, 0.0)}
     print("the fruit-size estimate over the true size (median over apples), by flight and by the apple's median radius:")
     print(f"{'':>22}" + "".join(f"{k:>13}" for k in lines))
     for (f, _), part in zip(flights, parts):
@@ -151,9 +161,11 @@ def main(argv=None) -> int:
             print(f"{f'{lo}-{lo + 1} px':>22}" + "".join(f"{estimate_ratio(a[keep], *ln):>13.3f}" for ln in lines.values()))
     if args.write:
         meta = json.loads(Path(args.write).read_text())
-        meta["box_response"] = {"slope": round(float(slope), 3), "intercept_px": round(float(icpt), 3),
+        meta["box_response"] = {"slope": round(float(f_slope), 3), "intercept_px": 0.0,
+                                "frame_intercept_px": round(float(f_icpt), 3),
                                 "measured": f"benchmarks/box_response.py, {int(w.sum())} boxes of wholly seen "
-                                            f"apples on {', '.join(f.name for f, _ in flights)}"}
+                                            f"apples on {', '.join(f.name for f, _ in flights)}, the margin in the "
+                                            f"frame's pixels"}
         Path(args.write).write_text(json.dumps(meta, indent=1) + "\n")
         print(f"written to {args.write}")
     return 0
