@@ -115,9 +115,8 @@ class Counting:
         hidden views give its size; on a long track their median, not the maximum, keeps one loose box from setting it
         (on issue 59's tuning flights: 1 % small, where the largest third read 4 % small). The boxes are first taken back
         through the detector's box response (at the scale it saw each frame), which pulls sizes towards a middle one:
-        else a row's fruit would read by its distance from the camera. Its margin is in the frame's own pixels (their
-        blur), not the detector's: a 4K frame the detector saw at 0.65 and a 720p one at 1.4 read alike through it.
-        NaN, NaN without a posed view."""
+        else a row's fruit would read by its distance from the camera (its margin in the detector's pixels, and in
+        the frame's own where the model says so: ``frame_intercept_px``). NaN, NaN without a posed view."""
         r, size = [], []
         slope, icpt, frame_icpt = self.box_response or (1.0, 0.0, 0.0)
         for o in self.in_reach(a):
