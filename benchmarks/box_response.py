@@ -12,11 +12,11 @@ takes at 1.4).
 Arguments come in pairs: a simulated flight and the folder of its replay (whose journal.bin holds the detections the
 drone sent). A slope under 1 means the boxes pull sizes towards a middle one: small apples read large, large ones
 small, and a row's fruit size reads by how far it was from the camera, not only by its fruit. ``--write`` stores the
-wholly seen line in the model's metadata (``box_response``; with ``--frame-margin``, the one with its margin in the
-frame's pixels): the drone sends it, and the ground takes its fruit sizes back through it
-(ground/apples/counting.py). Measure it again for every model shipped, on tuning flights of each resolution. (The
-frame-margin line evens the flights out, but on the tuning flights and the spent fourth evaluation set its rows'
-diameters came out no better, and 0.7 mm worse on the latter: docs/benchmarks.md, twenty-first session.)
+wholly seen line in the model's metadata (``box_response``): the drone sends it, and the ground takes its fruit sizes
+back through it (ground/apples/counting.py). Measure it again for every model shipped, on tuning flights of each
+resolution. The frame-margin line is printed for comparison only: it evens the flights out, but on the tuning flights
+and the spent fourth evaluation set its rows' diameters came out no better, and 0.7 mm worse on the latter
+(docs/benchmarks.md, twenty-first session), so no model carries it.
 
 Beside it: the line through the views the ground sizes each apple from (its largest tenth by size), and the fruit-size
 estimate over the true size (median over apples) under no line, the wholly seen one and that one, by flight and by the
@@ -113,8 +113,6 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("pairs", nargs="+", help="FLIGHT REPLAY_OUT [FLIGHT REPLAY_OUT ...]")
     p.add_argument("--write", metavar="MODEL_JSON", help="store the line as this model metadata's box_response")
-    p.add_argument("--frame-margin", action="store_true",
-                   help="store the line with its margin in the frame's pixels (frame_intercept_px) instead")
     args = p.parse_args(argv)
     if len(args.pairs) % 2:
         p.error("give each flight with its replay's folder (pairs)")
@@ -165,13 +163,9 @@ def main(argv=None) -> int:
             print(f"{f'{lo}-{lo + 1} px':>22}" + "".join(f"{estimate_ratio(a[keep], *ln):>13.3f}" for ln in lines.values()))
     if args.write:
         meta = json.loads(Path(args.write).read_text())
-        if args.frame_margin:
-            line = {"slope": round(float(f_slope), 3), "intercept_px": 0.0, "frame_intercept_px": round(float(f_icpt), 3)}
-        else:
-            line = {"slope": round(float(slope), 3), "intercept_px": round(float(icpt), 3)}
-        meta["box_response"] = {**line, "measured": f"benchmarks/box_response.py, {int(w.sum())} boxes of wholly seen "
-                                                    f"apples on {', '.join(f.name for f, _ in flights)}"
-                                                    f"{', the margin in the frame pixels' if args.frame_margin else ''}"}
+        meta["box_response"] = {"slope": round(float(slope), 3), "intercept_px": round(float(icpt), 3),
+                                "measured": f"benchmarks/box_response.py, {int(w.sum())} boxes of wholly seen "
+                                            f"apples on {', '.join(f.name for f, _ in flights)}"}
         Path(args.write).write_text(json.dumps(meta, indent=1) + "\n")
         print(f"written to {args.write}")
     return 0

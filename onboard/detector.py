@@ -144,17 +144,15 @@ class OnnxDetector:
         self.apple_radius_px = self.meta.get("apple_radius_px")
         #: the smallest apple radius (px, as the model sees it) it finds reliably: its envelope (None: not said)
         self.min_apple_radius_px = self.meta.get("min_apple_radius_px")
-        #: how its boxes answer an apple's size: (slope, intercept px, frame intercept px) of box half-size against the
-        #: true radius, as the model sees them, the frame intercept a margin in the frame's own pixels
-        #: (benchmarks/box_response.py; None: not said)
+        #: how its boxes answer an apple's size: (slope, intercept px) of box half-size against the true radius, as the
+        #: model sees them (benchmarks/box_response.py; None: not said)
         r = self.meta.get("box_response")
         try:  # the limits the camera message that carries it checks (pomar.wire)
-            self.box_response = None if r is None else wire.box_response_of(
-                [r["slope"], r["intercept_px"], r.get("frame_intercept_px", 0.0)], "box_response")
-        except (KeyError, TypeError, AttributeError, wire.WireError) as exc:
+            self.box_response = None if r is None else wire.box_response_of([r["slope"], r["intercept_px"]],
+                                                                             "box_response")
+        except (KeyError, TypeError, wire.WireError) as exc:
             why = exc if isinstance(exc, wire.WireError) else \
-                (f'box_response must be {{"slope": number, "intercept_px": number[, "frame_intercept_px": number]}}, '
-                 f'got {r!r:.60}')
+                f'box_response must be {{"slope": number, "intercept_px": number}}, got {r!r:.60}'
             raise ModelError(f"{Path(self.path).with_suffix('.json')}: {why}") from None
         if self.overlap * 2 >= self.tile_size:
             raise ValueError("overlap must be less than half the tile size")

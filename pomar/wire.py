@@ -410,10 +410,9 @@ class CameraMessage:
     #: What the frames' altitudes are measured from (one of ALTITUDE_REFERENCES); None: not said (a node before it;
     #: taken as sea level, as a MAVLink position's).
     altitude_reference: str | None = None
-    #: How the detector's boxes answer an apple's size: box half-size = slope x radius + intercept + frame intercept x
-    #: scale (px as the detector sees them at the frame's detector scale; the frame intercept is a margin in the frame's
-    #: own pixels: its blur), from its model's metadata; None: not said (boxes taken as the apples' size, as the truth's).
-    box_response: tuple[float, float, float] | None = None
+    #: How the detector's boxes answer an apple's size: box half-size = slope x radius + intercept (px, as the
+    #: detector sees them), from its model's metadata; None: not said (boxes taken as the apples' size, as the truth's).
+    box_response: tuple[float, float] | None = None
 
     def encode(self) -> bytes:
         return msgpack.packb({"v": SCHEMA_VERSION, "type": "camera", "flight": self.flight_id, "drone": self.drone_id,
@@ -467,16 +466,14 @@ class CameraMessage:
                    ref, box_response_of(d.get("boxr")))
 
 
-def box_response_of(x, name: str = "camera message: box response") -> tuple[float, float, float] | None:
-    """A detector's box response [slope, intercept px, frame intercept px] (the last may be left out: 0, as a node
-    before it sent), checked (a slope of 0.2-5, intercepts within 20 px): the camera message's, and the model
-    metadata's the drone reads it from (``name`` says which); WireError otherwise."""
+def box_response_of(x, name: str = "camera message: box response") -> tuple[float, float] | None:
+    """A detector's box response [slope, intercept px], checked (a slope of 0.2-5, an intercept within 20 px): the
+    camera message's, and the model metadata's the drone reads it from (``name`` says which); WireError otherwise."""
     if x is None:
         return None
-    if not isinstance(x, (list, tuple)) or len(x) not in (2, 3):
-        raise WireError(f"{name} must be [slope, intercept, frame intercept], got {x!r:.40}", "malformed")
-    return (_float(f"{name} slope", x[0], 0.2, 5.0), _float(f"{name} intercept", x[1], -20.0, 20.0),
-            _float(f"{name} frame intercept", x[2], -20.0, 20.0) if len(x) == 3 else 0.0)
+    if not isinstance(x, (list, tuple)) or len(x) != 2:
+        raise WireError(f"{name} must be [slope, intercept], got {x!r:.40}", "malformed")
+    return _float(f"{name} slope", x[0], 0.2, 5.0), _float(f"{name} intercept", x[1], -20.0, 20.0)
 
 
 _TYPES = {"frame": FrameMessage, "keyframe": KeyframeMessage, "status": StatusMessage, "camera": CameraMessage}

@@ -40,7 +40,7 @@ class AppleStage:
         self.count.camera = camera
 
     @property
-    def box_response(self) -> tuple[float, float, float] | None:
+    def box_response(self) -> tuple[float, float] | None:
         """How the drone's detector's boxes answer an apple's size (the camera message's): the counting's fruit sizes
         take it back."""
         return self.count.box_response
