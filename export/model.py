@@ -144,11 +144,47 @@ def make(config: dict, imagenet: bool = False) -> FasterRCNN:
     return model
 
 
-def load_checkpoint(path, map_location="cpu") -> tuple[FasterRCNN, dict]:
-    """A ``.pt`` of ``export train``, or a folder of fp16 parts (``export.parts``)."""
-    from export.parts import is_parts, load_parts
+def freeze_stages(model: FasterRCNN, stages: int) -> int:
+    """Keep the body's first ``stages`` pyramid stages (strides 4, 8, 16, 32), and the stem before them, as they are
+    (no gradient); returns the number of parameters frozen. The early stages hold few weights but run at the highest
+    resolutions, so their backward pass is a large share of an iteration."""
+    if not stages:
+        return 0
+    layers = BACKBONES[model_config(model)["backbone"]][2]
+    last = layers[min(stages, len(layers)) - 1]
+    n = 0
+    for name, child in model.backbone.body.named_children():
+        for p in child.parameters():
+            n += p.numel() if p.requires_grad else 0
+            p.requires_grad_(False)
+        if name == last:
+            break
+    return n
 
-    ckpt = load_parts(path) if is_parts(path) else torch.load(path, map_location=map_location, weights_only=False)
-    model = make(ckpt["config"])
-    model.load_state_dict(ckpt["model"])
+
+def load_checkpoint(path, map_location="cpu") -> tuple[FasterRCNN, dict]:
+    """A ``.pt`` of ``export train``, a folder of fp16 parts or a kept training state (``export.parts``); one that is
+    torn or of another network: CheckpointError naming it."""
+    from export.parts import CheckpointError, is_parts, is_state, load_parts, load_state
+
+    if is_state(path):
+        ckpt = load_state(path)
+    elif is_parts(path):
+        ckpt = load_parts(path)
+    else:
+        try:
+            ckpt = torch.load(path, map_location=map_location, weights_only=False)
+        except FileNotFoundError:
+            raise CheckpointError(f"{path}: no such checkpoint (a .pt, or a folder of parts or of a training state)")\
+                from None
+        except (RuntimeError, EOFError, ValueError, OSError) as e:
+            raise CheckpointError(f"{path}: not a readable checkpoint, perhaps torn ({str(e).splitlines()[0][:80]})")\
+                from None
+    try:
+        model = make(ckpt["config"])
+        model.load_state_dict(ckpt["model"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        cfg = ckpt.get("config") if isinstance(ckpt, dict) else None
+        raise CheckpointError(f"{path}: its weights do not fit the network it names ({cfg}): "
+                              f"{str(e).splitlines()[0][:100]}") from None
     return model, ckpt

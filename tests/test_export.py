@@ -254,6 +254,76 @@ def test_training_runs_with_mixed_precision_on_the_cpu_from_a_pack_and_continues
     assert len(r.stderr.strip().splitlines()) == 1
 
 
+def test_a_stopped_training_resumes_bit_for_bit_from_its_kept_state_on_a_new_machine(tmp_path):
+    """A run stopped mid-epoch (``--stop-after``), its out folder gone (another machine), goes on from the state kept
+    with ``--keep`` (the committed folder) and stopped again at an epoch's end, then to the end, taking back its own
+    settings: its weights, momenta and per-epoch validation are an unbroken run's, bit for bit. A damaged part, or a
+    resume asking for another network, is one line naming the file, and the kept state stays."""
+    import subprocess
+    import sys
+
+    from export.data import load_sim_frames, save_pack
+    from export.parts import STATE_MANIFEST, load_state
+    from tests.conftest import BUNDLED
+
+    frames = load_sim_frames(BUNDLED, every=40)
+    add = _add256_like(tmp_path / "add256", frames, n_train=4)
+    bbch = _applebbch76_like(tmp_path / "applebbch76", frames[2:])
+    pack = save_pack(frames[:2], tmp_path / "sim.npz")
+    data = ["--add256", str(add), "--sim-flight", str(pack), "--applebbch76", str(bbch), "--val-flight", str(pack),
+            "--threads", "1"]
+    run = ["--backbone", "mobilenet_v2", "--freeze-stages", "1", "--fpn-channels", "16", "--head-width", "32",
+           "--epochs", "2", "--batch", "2", "--sim-crops", "2", "--bbch-tiles", "1", "--seed", "3", "--lr", "0.005"]
+
+    def train(out, *extra):
+        cmd = [sys.executable, "-m", "export", "train", "--out", str(out), *data, *extra]
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+
+    r = train(tmp_path / "whole", *run)  # epochs of 3 ADD256 + 2 simulated + 1 AppleBBCH76 items: 3 iterations each
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "1 threads" in r.stderr and " it/s ETA " in r.stderr and "CPU-hours" in r.stderr
+    assert "the stem and the first 1 pyramid stage(s) stay as they are" in r.stderr
+    whole = torch.load(tmp_path / "whole" / "last.pt", weights_only=False)
+    assert whole["iteration"] == 6 and len(whole["history"]) == 2
+
+    keep = tmp_path / "kept"
+    r = train(tmp_path / "a", *run, "--keep", str(keep), "--stop-after", "2")
+    assert r.returncode == 0 and "stopped after 2 iterations (--stop-after) at iteration 2/6" in r.stderr, r.stderr[-2000:]
+    assert load_state(keep)["iteration"] == 2
+    # another machine: nothing but the kept folder, and no run settings given
+    r = train(tmp_path / "b", "--keep", str(keep), "--resume", "--stop-after", "1")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "at iteration 2/6 (epoch 1 of 2)" in r.stderr and "not bit for bit" not in r.stderr
+    assert load_state(keep)["iteration"] == 3 and len(load_state(keep)["history"]) == 1  # an epoch's end
+    r = train(tmp_path / "c", "--keep", str(keep), "--resume")
+    assert r.returncode == 0, r.stderr[-2000:]
+    resumed = torch.load(tmp_path / "c" / "last.pt", weights_only=False)
+    assert resumed["iteration"] == 6
+    for k, v in whole["model"].items():
+        assert torch.equal(resumed["model"][k], v), k
+    momenta = [(a["momentum_buffer"], b["momentum_buffer"]) for a, b in
+               zip(whole["optimizer"]["state"].values(), resumed["optimizer"]["state"].values())]
+    assert len(momenta) == len(whole["optimizer"]["state"]) > 0 and all(torch.equal(a, b) for a, b in momenta)
+    drop = ("minutes", "cpu_hours")
+    assert [{k: v for k, v in h.items() if k not in drop} for h in resumed["history"]] == \
+        [{k: v for k, v in h.items() if k not in drop} for h in whole["history"]]
+    assert resumed["cpu_s"] > 0 and resumed["history"][-1]["cpu_hours"] > 0
+    assert load_state(keep)["iteration"] == 6
+
+    r = train(tmp_path / "d", "--keep", str(keep), "--resume", "--backbone", "resnet18")
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        f"error: {keep}: this run trains with --backbone mobilenet_v2, not resnet18: resume it without --backbone, "
+        "or start a new run in another --out"]
+    manifest = json.loads((keep / STATE_MANIFEST).read_text())
+    part = keep / manifest["parts"][0]["file"]
+    good = part.read_bytes()
+    part.write_bytes(good[: len(good) // 2])  # torn
+    r = train(tmp_path / "e", "--keep", str(keep), "--resume")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines()[-1] == f"error: {part}: checksum differs from {STATE_MANIFEST} (a part is damaged or torn)"
+    assert not (tmp_path / "e" / "last.pt").exists()
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
 def test_training_on_cuda_without_cuda_is_a_one_line_error(tmp_path):
     import subprocess
