@@ -89,6 +89,55 @@ def test_trees_the_camera_never_saw_take_the_level_of_those_counted_among_them()
     assert abs(bias) < 0.05 and error < 0.15 and np.mean(held) >= 0.7, (bias, error, np.mean(held))
 
 
+def test_a_load_never_falls_as_the_count_rises_and_says_so():
+    """Ten counted trees whose loads happen to fall as their counts rise (issue 71's held-out flight: load = 9.0 - 0.78
+    x count): the slope is held at 0, every other tree takes the sample's level (a tree with 5 apples seen is not
+    estimated below one with none), and the report says which coefficient was held and what the sample alone gave."""
+    from ground.orchard.calibration import apply_load
+
+    trees = [{"row": 1 + k // 10, "tree": 1 + k % 10, "count": k % 6, "coverage": 0.5} for k in range(30)]
+    samples = {(1, 1 + k): int(round(9.0 - 0.78 * (k % 6))) + (k % 2) for k in range(10)}
+    est = estimate_load(trees, samples, "linear")
+    assert est["coefficients"][1] == 0.0 and est["constraints"]["held_at_0"] == ["slope (count)"]
+    assert "the sample alone gives -0." in est["constraints"]["why"]
+    free = [e for k, e in enumerate(est["trees"]) if k >= 10]
+    mean = np.mean(list(samples.values()))
+    assert all(e["load"] == pytest.approx(mean) and e["load_lo"] < mean < e["load_hi"] for e in free)
+    report = apply_load(trees, [{"row": 1}, {"row": 2}, {"row": 3}], est)
+    assert report["constraints"]["held_at_0"] == ["slope (count)"]
+    # where the sample supports a slope, none is held
+    rising = {(1, 1 + k): 3 + 2 * (k % 6) + (k % 2) for k in range(10)}
+    est = estimate_load(trees, rising, "linear")
+    assert est["constraints"]["held_at_0"] == [] and est["coefficients"][1] > 0
+
+
+def test_trees_never_seen_none_of_them_counted_take_the_samples_level_never_0():
+    """Rows whose first trees the camera never saw, none of those counted (issue 71's row 1, written as 0): each takes
+    the counted trees' level with an interval, never 0, over 100 orchards; their rows' intervals hold the true load
+    at least 80 % of the time. A tree with apples counted on it was seen, whatever its coverage says."""
+    from ground.orchard.calibration import never_seen
+
+    rng = np.random.default_rng(11)
+    held = []
+    for _ in range(100):
+        trees, load = _orchard(rng, rows=4, coverage=0.7)
+        for t in trees:
+            if t["tree"] <= 5:
+                t.update(count=0, coverage=0.0)
+        seen = [i for i, t in enumerate(trees) if t["coverage"] > 0]
+        pick = rng.choice(seen, 10, replace=False)
+        est = estimate_load(trees, {(trees[i]["row"], trees[i]["tree"]): int(load[i]) for i in pick}, "linear")
+        level = np.mean(load[pick])
+        for t, e in zip(trees, est["trees"]):
+            if t["coverage"] == 0:
+                assert e["load"] == pytest.approx(level) and 0 < e["load_lo"] < level < e["load_hi"]
+        for r, e in est["rows"].items():
+            held.append(e["load_lo"] <= load[[t["row"] == r for t in trees]].sum() <= e["load_hi"])
+    assert est["never_seen"]["trees"] == 20 and est["never_seen"]["estimated_by"].startswith("the sample's level")
+    assert np.mean(held) >= 0.8, np.mean(held)
+    assert list(never_seen([{"count": 2, "coverage": 0.0}, {"count": 0, "coverage": 0.0}])) == [False, True]
+
+
 def test_too_few_hand_counts_say_how_many_the_model_needs():
     trees, load = _orchard(np.random.default_rng(0), rows=1)
     with pytest.raises(CalibrationError, match="3 trees counted by hand: the 'linear' model needs at least 4"):

@@ -7,10 +7,14 @@ ground.orchard.coverage) relates to its load. One regression, fitted on the coun
 - ``ratio``:    load = b * count              (the field's practice: scale the camera's count);
 - ``linear``:   load = a + b * count;
 - ``coverage``: load = a + b * count / coverage (the count over the share of the canopy seen).
-In ``linear`` and ``coverage``, the trees the camera never saw (coverage 0) take a level of their own, fitted on the
-counted trees among them (``ground choose-trees`` names some in every row): a count of 0 there is nothing looked at,
-not an empty tree, and the line's intercept is an extrapolation from the trees seen least. Where no such tree was
-counted, they take the intercept.
+Every coefficient is at least 0 (issue 71): a load does not fall as the count rises, and no level is below 0. Where
+the counted trees alone would fit one below 0 it is held at 0 and the model falls to the better-constrained one (no
+slope: each tree the sample's level); ``constraints`` in report.json says which and why.
+In ``linear`` and ``coverage``, the trees the camera never saw (coverage 0, no apple counted) take a level of their
+own, fitted on the counted trees among them (``ground choose-trees`` names some in every row): a count of 0 there is
+nothing looked at, not an empty tree, and the line's intercept is an extrapolation from the trees seen least. Where
+none of them was counted, each takes the sample's level (its mean, with the interval of one more tree drawn from the
+sample), never 0.
 ``linear`` is the default, chosen on the tuning flights sim/configs/yield/tune-1 and tune-2 (docs/benchmarks.md).
 
 Its residuals give the intervals, as a regression's prediction intervals (Student's t, ``level``): a tree's from the
@@ -49,9 +53,11 @@ def regressor(trees: list[dict], model: str) -> np.ndarray:
 
 
 def never_seen(trees: list[dict]) -> np.ndarray:
-    """(T,) whether the camera never saw each tree (its coverage 0; a coverage not known counts as seen)."""
+    """(T,) whether the camera never saw each tree: its coverage 0 and no apple counted on it (a coverage not known
+    counts as seen; apples counted on a tree say the camera saw it, whatever the coverage's geometry gave)."""
     cov = np.array([t.get("coverage", np.nan) for t in trees], float)
-    return np.isfinite(cov) & (cov <= 0)
+    count = np.array([t.get("count", 0) for t in trees], float)
+    return np.isfinite(cov) & (cov <= 0) & ~(count > 0)
 
 
 def regressors(trees: list[dict], model: str) -> np.ndarray:
@@ -68,7 +74,7 @@ def regressors(trees: list[dict], model: str) -> np.ndarray:
     return np.column_stack([(~unseen).astype(float), np.where(unseen, 0.0, x), unseen.astype(float)])
 
 
-def _fit(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+def _ols(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """Least squares: (coefficients, (Z'Z)^-1, the residual variance of a tree not in the fit). The variance is the
     mean square of the leave-one-out (PRESS) residuals, e_i / (1 - h_i), less the fit's own share: where the model
     is wrong for some trees (a row more vigorous, trees the camera saw less), those residuals grow and widen the
@@ -80,12 +86,43 @@ def _fit(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     return beta, G, float((e ** 2).mean() / (1.0 + h.mean()))
 
 
+def _fit(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:
+    """Least squares with every coefficient at least 0: each is a level (a tree seen with nothing counted on it, a tree
+    never seen) or a slope (a load does not fall as the count rises), and none can be negative in an orchard. Where the
+    sample asks for one below 0 (ten trees whose loads happen to fall as their counts rise), it is held at 0 and the
+    others are fitted without it: the model falls to the better-constrained one (no slope: each tree the sample's
+    level). Returns the least squares' outputs on the free coefficients (G and the variance as ``_ols``'s, zero
+    for those held), the unconstrained coefficients and which are free."""
+    beta, G, s2 = _ols(Z, y)
+    if (beta >= 0).all():
+        return beta, G, s2, beta, np.ones(len(beta), bool)
+    from scipy.optimize import nnls
+
+    free = nnls(Z, y)[0] > 0
+    if not free.any():  # nothing but 0 fits: keep the level of the sample, whatever the model
+        free = np.zeros(Z.shape[1], bool)
+        free[0] = True
+    b, g, s2 = _ols(Z[:, free], y)
+    out, Gout = np.zeros(Z.shape[1]), np.zeros((Z.shape[1],) * 2)
+    out[free] = b
+    Gout[np.ix_(free, free)] = g
+    return out, Gout, s2, beta, free
+
+
+def coefficient_names(Z: np.ndarray, model: str) -> list[str]:
+    """What each of ``regressors``' columns multiplies, for report.json."""
+    x = "count / coverage" if model == "coverage" else "count"
+    if model == "ratio":
+        return [f"slope ({x})"]
+    return ["level (a tree seen)", f"slope ({x})", "level (a tree never seen)"][:Z.shape[1]]
+
+
 def leave_one_out(Z: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Each sample's prediction by the fit on the others."""
     out = np.empty(len(y))
     for j in range(len(y)):
         keep = np.arange(len(y)) != j
-        beta, _, _ = _fit(Z[keep], y[keep])
+        beta = _fit(Z[keep], y[keep])[0]
         out[j] = max(0.0, float(Z[j] @ beta))
     return out
 
@@ -102,11 +139,21 @@ def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model:
     counted = np.array([k in samples for k in key])
     check_enough(int(counted.sum()), model)
     y = np.array([samples[k] for k in key if k in samples], float)
-    beta, G, s2 = _fit(Z[counted], y)
-    dof = max(len(y) - int(np.linalg.matrix_rank(Z[counted])), 1)
+    beta, G, s2, free_beta, free = _fit(Z[counted], y)
+    names = coefficient_names(Z, model)
+    held = [n for n, f in zip(names, free) if not f]
+    dof = max(len(y) - int(np.linalg.matrix_rank(Z[counted][:, free])), 1)
     q = float(student.ppf(0.5 + level / 2, dof))
     pred = Z @ beta
     half = q * np.sqrt(s2 * (1.0 + np.einsum("ij,jk,ik->i", Z, G, Z)))
+    # Trees never seen, none of them counted: nothing relates them to the line, so each takes the sample's level, with
+    # the interval of one more tree drawn from the sample (its spread, and the uncertainty of its mean, shared).
+    guessed = never_seen(trees) & ~counted if model != "ratio" and not (never_seen(trees) & counted).any() else \
+        np.zeros(len(key), bool)
+    y_mean, y_sd = float(y.mean()), float(y.std(ddof=1)) if len(y) > 1 else 0.0
+    q_level = float(student.ppf(0.5 + level / 2, max(len(y) - 1, 1)))
+    pred[guessed] = y_mean
+    half[guessed] = q_level * y_sd * np.sqrt(1.0 + 1.0 / len(y))
     per_tree = []
     for i, k in enumerate(key):
         if counted[i]:
@@ -118,18 +165,29 @@ def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model:
 
     def total(sel: np.ndarray) -> dict:
         """A group's load: its counted trees as counted, the others predicted, one interval for the sum."""
-        u = sel & ~counted
+        u = sel & ~counted & ~guessed
+        g = int((sel & guessed).sum())
         known = float(sum(samples[key[i]] for i in np.nonzero(sel & counted)[0]))
         zu = Z[u].sum(0)
-        est = known + max(0.0, float(zu @ beta))
-        h = q * np.sqrt(s2 * (u.sum() + zu @ G @ zu))
+        est = known + max(0.0, float(zu @ beta)) + g * y_mean
+        # the line's trees: their own scatter and the fit's, shared; the guessed ones: theirs and the mean's, shared
+        h = np.sqrt(q ** 2 * s2 * (u.sum() + zu @ G @ zu) + q_level ** 2 * y_sd ** 2 * (g + g * g / len(y)))
         return {"load": est, "load_lo": max(known, est - h), "load_hi": est + h, "trees": int(sel.sum()),
                 "trees_counted": int((sel & counted).sum())}
 
     rows_of = np.array([k[0] for k in key])
     loo = leave_one_out(Z[counted], y)
     err = loo - y
+    why = ("; ".join(f"{n} held at 0 (the sample alone gives {f:.3g})" for n, f, ok in zip(names, free_beta, free)
+                     if not ok) + ": a load does not fall as the count rises, nor below 0") if held else \
+        "none held: the sample's own fit has every coefficient at least 0"
+    unseen = {"trees": int(never_seen(trees).sum()),
+              "estimated_by": ("the sample's level (no tree never seen was counted): mean "
+                               f"{y_mean:.1f}, sd {y_sd:.1f}" if guessed.any() else
+                               "their own level, fitted on the counted trees among them"
+                               if never_seen(trees).any() and model != "ratio" else "the model")}
     return {"model": model, "level": level, "coefficients": [float(b) for b in beta],
+            "coefficient_names": names, "constraints": {"held_at_0": held, "why": why}, "never_seen": unseen,
             "residual_sd": float(np.sqrt(s2)), "trees": per_tree,
             "rows": {int(r): total(rows_of == r) for r in np.unique(rows_of)},
             "flight": total(np.ones(len(key), bool)),
@@ -148,7 +206,8 @@ def apply_load(trees: list[dict], rows: list[dict], est: dict) -> dict:
         e = est["rows"].get(int(r["row"]))
         r.update({k: e[k] for k in ("load", "load_lo", "load_hi")} if e else
                  {"load": float("nan"), "load_lo": float("nan"), "load_hi": float("nan")})
-    return {k: est[k] for k in ("model", "level", "coefficients", "residual_sd", "flight", "loo")}
+    return {k: est[k] for k in ("model", "level", "coefficients", "coefficient_names", "constraints", "never_seen",
+                                "residual_sd", "flight", "loo")}
 
 
 def check_enough(n: int, model: str, path=None) -> None:
