@@ -138,6 +138,35 @@ def test_trees_never_seen_none_of_them_counted_take_the_samples_level_never_0():
     assert list(never_seen([{"count": 2, "coverage": 0.0}, {"count": 0, "coverage": 0.0}])) == [False, True]
 
 
+def test_a_rows_interval_carries_the_error_its_trees_share():
+    """Rows that differ in load (a lognormal level a row, sd 0.3) and are seen unequally (a lognormal visibility, sd
+    0.3: one seen nearer, another from its far side), heavy trees (120 apples), 20 trees counted as choose-trees names
+    them, 100 orchards: each row's trees share its error, which a sum of independent residuals averages away (its
+    rows' intervals held 0.54-0.57 of the true loads, its flights' 0.73-0.79); with the row's variance component the
+    rows' 90 % intervals hold 0.85-0.97 of them, and the flights' at least 0.85."""
+    from ground.orchard.choose import choose_trees
+
+    rng = np.random.default_rng(21)
+    rows_in, flight_in = [], []
+    for _ in range(100):
+        vis, level = rng.lognormal(0.0, 0.3, 6), 120.0 * rng.lognormal(0.0, 0.3, 6)
+        trees, load = [], []
+        for r in range(1, 7):
+            for k in range(1, 31):
+                n = rng.poisson(level[r - 1] * rng.gamma(16.0, 1 / 16.0))
+                cov = rng.uniform(0.25, 0.75)
+                trees.append({"row": r, "tree": k, "count": int(rng.binomial(n, min(1.0, 0.15 * vis[r - 1] * cov / 0.5))),
+                              "coverage": cov})
+                load.append(n)
+        load = np.array(load, float)
+        est = estimate_load(trees, {(t["row"], t["tree"]): int(load[(t["row"] - 1) * 30 + t["tree"] - 1])
+                                    for t in choose_trees(trees, 20)}, "linear")
+        for r, e in est["rows"].items():
+            rows_in.append(e["load_lo"] <= load[(r - 1) * 30:r * 30].sum() <= e["load_hi"])
+        flight_in.append(est["flight"]["load_lo"] <= load.sum() <= est["flight"]["load_hi"])
+    assert 0.85 <= np.mean(rows_in) <= 0.97 and np.mean(flight_in) >= 0.85, (np.mean(rows_in), np.mean(flight_in))
+
+
 def test_too_few_hand_counts_say_how_many_the_model_needs():
     trees, load = _orchard(np.random.default_rng(0), rows=1)
     with pytest.raises(CalibrationError, match="3 trees counted by hand: the 'linear' model needs at least 4"):

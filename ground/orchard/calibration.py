@@ -19,7 +19,9 @@ sample), never 0.
 
 Its residuals give the intervals, as a regression's prediction intervals (Student's t, ``level``): a tree's from the
 residual spread and the fit's own uncertainty there; a row's and the flight's from the sum over their trees not counted
-(their residuals independent, the fit's uncertainty shared), plus the hand counts themselves, taken as exact. The
+(their own scatter; each row's shared error, a variance component of the counted trees' leave-one-out residuals by row,
+once per tree of the row; the fit's uncertainty, shared by all), plus the hand counts themselves, taken as exact.
+``benchmarks/load_intervals.py`` checks them on made-up orchards. The
 leave-one-out error of the sample refits without each counted tree and predicts it.
 """
 
@@ -109,6 +111,25 @@ def _fit(Z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, n
     return out, Gout, s2, beta, free
 
 
+def row_variance(residuals: np.ndarray, rows: np.ndarray, tree_variance: float) -> float:
+    """The variance of a row's shared error (one-way random effects, method of moments): what the counted trees'
+    leave-one-out residuals have in common within a row beyond the trees' own scatter (a row seen nearer, or from
+    its other side, or more vigorous than its count says). Every tree of a row shares it, so a row's sum carries it
+    once per tree, not averaged away. Rows with one counted tree give no within-row spread: the trees' variance is
+    taken for it. 0 where fewer than two rows were counted."""
+    names, k = np.unique(rows, return_inverse=True)
+    if len(names) < 2:
+        return 0.0
+    n = np.bincount(k).astype(float)
+    means = np.bincount(k, residuals) / n
+    N = float(len(residuals))
+    msb = float((n * (means - residuals.mean()) ** 2).sum() / (len(names) - 1))
+    within = residuals - means[k]
+    msw = float((within ** 2).sum() / (N - len(names))) if N > len(names) else tree_variance
+    n0 = (N - (n ** 2).sum() / N) / (len(names) - 1)
+    return max(0.0, (msb - msw) / max(n0, 1.0))
+
+
 def coefficient_names(Z: np.ndarray, model: str) -> list[str]:
     """What each of ``regressors``' columns multiplies, for report.json."""
     x = "count / coverage" if model == "coverage" else "count"
@@ -163,6 +184,11 @@ def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model:
             per_tree.append({"hand_count": float("nan"), "load": max(0.0, pred[i]),
                              "load_lo": max(0.0, pred[i] - half[i]), "load_hi": max(0.0, pred[i] + half[i])})
 
+    rows_of = np.array([k[0] for k in key])
+    loo = leave_one_out(Z[counted], y)
+    err = loo - y
+    tau2 = row_variance(y - loo, rows_of[counted], s2)
+
     def total(sel: np.ndarray) -> dict:
         """A group's load: its counted trees as counted, the others predicted, one interval for the sum."""
         u = sel & ~counted & ~guessed
@@ -170,14 +196,14 @@ def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model:
         known = float(sum(samples[key[i]] for i in np.nonzero(sel & counted)[0]))
         zu = Z[u].sum(0)
         est = known + max(0.0, float(zu @ beta)) + g * y_mean
-        # the line's trees: their own scatter and the fit's, shared; the guessed ones: theirs and the mean's, shared
-        h = np.sqrt(q ** 2 * s2 * (u.sum() + zu @ G @ zu) + q_level ** 2 * y_sd ** 2 * (g + g * g / len(y)))
+        # the line's trees: their own scatter, each row's shared error (once per tree of it) and the fit's, shared;
+        # the guessed ones: their own scatter and the mean's, shared
+        per_row = np.bincount(np.unique(rows_of, return_inverse=True)[1][u], minlength=1).astype(float)
+        var = s2 * (u.sum() + zu @ G @ zu) + tau2 * float((per_row ** 2).sum())
+        h = np.sqrt(q ** 2 * var + q_level ** 2 * y_sd ** 2 * (g + g * g / len(y)))
         return {"load": est, "load_lo": max(known, est - h), "load_hi": est + h, "trees": int(sel.sum()),
                 "trees_counted": int((sel & counted).sum())}
 
-    rows_of = np.array([k[0] for k in key])
-    loo = leave_one_out(Z[counted], y)
-    err = loo - y
     why = ("; ".join(f"{n} held at 0 (the sample alone gives {f:.3g})" for n, f, ok in zip(names, free_beta, free)
                      if not ok) + ": a load does not fall as the count rises, nor below 0") if held else \
         "none held: the sample's own fit has every coefficient at least 0"
@@ -188,7 +214,7 @@ def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model:
                                if never_seen(trees).any() and model != "ratio" else "the model")}
     return {"model": model, "level": level, "coefficients": [float(b) for b in beta],
             "coefficient_names": names, "constraints": {"held_at_0": held, "why": why}, "never_seen": unseen,
-            "residual_sd": float(np.sqrt(s2)), "trees": per_tree,
+            "residual_sd": float(np.sqrt(s2)), "row_sd": float(np.sqrt(tau2)), "trees": per_tree,
             "rows": {int(r): total(rows_of == r) for r in np.unique(rows_of)},
             "flight": total(np.ones(len(key), bool)),
             "loo": {"trees": int(len(y)), "mean_abs_error": float(np.abs(err).mean()),
@@ -207,7 +233,7 @@ def apply_load(trees: list[dict], rows: list[dict], est: dict) -> dict:
         r.update({k: e[k] for k in ("load", "load_lo", "load_hi")} if e else
                  {"load": float("nan"), "load_lo": float("nan"), "load_hi": float("nan")})
     return {k: est[k] for k in ("model", "level", "coefficients", "coefficient_names", "constraints", "never_seen",
-                                "residual_sd", "flight", "loo")}
+                                "residual_sd", "row_sd", "flight", "loo")}
 
 
 def check_enough(n: int, model: str, path=None) -> None:

@@ -1,0 +1,82 @@
+"""Do the load's 90 % intervals hold on orchards whose loads are known, and do they narrow as the sample grows? (issue 71)
+
+Made-up orchards as ``benchmarks/choice_power.py`` makes them (ROWS rows of TREES trees; a tree's load Poisson about
+its row's mean, MEAN apples a tree times a lognormal row level of sd ROW_SD, times its own vigour; the camera sees each
+apple with the tree's seen share, SHARE times a lognormal row visibility of sd VIS_SD times its coverage over 0.5;
+--unseen rows never seen). On each: the trees ``ground choose-trees`` names, counted exactly, and the load
+(``ground.orchard.calibration``, ``linear``). Prints, per setting and sample size: the share of trees, rows and
+flights whose interval holds the true load (goal 0.85-0.95 for rows and flights), the median relative half-width of
+the rows' and the flight's intervals, and the share of fits that held a coefficient at 0.
+
+    python benchmarks/load_intervals.py --orchards 200 --mean 120 --k 5 10 20 40
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from choice_power import orchard  # noqa: E402
+
+from ground.orchard.calibration import estimate_load  # noqa: E402
+from ground.orchard.choose import choose_trees  # noqa: E402
+
+
+def one(trees, load, k: int, model: str) -> dict:
+    index = {(t["row"], t["tree"]): i for i, t in enumerate(trees)}
+    picked = [index[(t["row"], t["tree"])] for t in choose_trees(trees, k, model)]
+    est = estimate_load(trees, {(trees[i]["row"], trees[i]["tree"]): int(load[i]) for i in picked}, model)
+    rows = np.array([t["row"] for t in trees])
+    free = np.setdiff1d(np.arange(len(trees)), picked)
+    tree_in = [est["trees"][i]["load_lo"] <= load[i] <= est["trees"][i]["load_hi"] for i in free]
+    row_in, row_hw = [], []
+    for r, e in est["rows"].items():
+        truth = load[rows == r].sum()
+        row_in.append(e["load_lo"] <= truth <= e["load_hi"])
+        row_hw.append((e["load_hi"] - e["load_lo"]) / 2 / max(e["load"], 1.0))
+    f = est["flight"]
+    return {"trees": float(np.mean(tree_in)), "rows": row_in, "row_hw": row_hw,
+            "flight": f["load_lo"] <= load.sum() <= f["load_hi"],
+            "flight_hw": (f["load_hi"] - f["load_lo"]) / 2 / max(f["load"], 1.0),
+            "flight_err": (f["load"] - load.sum()) / load.sum(), "held": bool(est["constraints"]["held_at_0"])}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--orchards", type=int, default=200, help="orchards per setting (default 200)")
+    p.add_argument("--rows", type=int, default=6)
+    p.add_argument("--trees", type=int, default=30, help="trees a row (default 30)")
+    p.add_argument("--mean", type=float, default=120.0, help="apples a tree (default 120)")
+    p.add_argument("--share", type=float, default=0.15, help="the seen share of a tree half covered (default 0.15)")
+    p.add_argument("--k", type=int, nargs="+", default=[5, 10, 20, 40], help="trees counted by hand")
+    p.add_argument("--model", default="linear")
+    p.add_argument("--seed", type=int, default=0)
+    a = p.parse_args(argv)
+    print(f"{a.rows} rows of {a.trees} trees, {a.mean:g} apples a tree, seen share {a.share:g}, model {a.model}, "
+          f"{a.orchards} orchards a line")
+    print(f"{'unseen':>6} {'row sd':>6} {'vis sd':>6} {'k':>3} | {'trees':>5} {'rows':>5} {'flight':>6} | "
+          f"{'row hw':>6} {'flt hw':>6} {'|flt err|':>9} {'held 0':>6}")
+    for unseen, row_sd, vis_sd in itertools.product((0, 2), (0.1, 0.3), (0.0, 0.3)):
+        for k in a.k:
+            rng = np.random.default_rng(a.seed)
+            got = [one(*orchard(rng, a.rows, a.trees, a.mean, row_sd, vis_sd, a.share, unseen)[:2], k, a.model)
+                   for _ in range(a.orchards)]
+            rows = [x for g in got for x in g["rows"]]
+            print(f"{unseen:>6} {row_sd:>6.1f} {vis_sd:>6.1f} {k:>3} | {np.mean([g['trees'] for g in got]):>5.2f} "
+                  f"{np.mean(rows):>5.2f} {np.mean([g['flight'] for g in got]):>6.2f} | "
+                  f"{np.median([x for g in got for x in g['row_hw']]):>6.2f} "
+                  f"{np.median([g['flight_hw'] for g in got]):>6.2f} "
+                  f"{np.median([abs(g['flight_err']) for g in got]):>9.3f} "
+                  f"{np.mean([g['held'] for g in got]):>6.2f}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
