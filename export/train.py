@@ -200,22 +200,18 @@ def run_settings(s: TrainSettings, ckpt: dict, path) -> TrainSettings:
 
 
 def latest_checkpoint(out: Path, keep: Path | None) -> Path | None:
-    """Where a resumed run goes on from: ``out/last.pt`` or the kept state, whichever is further on."""
+    """Where a resumed run goes on from: ``out/last.pt`` or the kept state, whichever is further on (a torn
+    ``last.pt`` counts as not there)."""
     found = []
     if (out / "last.pt").is_file():
-        found.append((torch.load(out / "last.pt", map_location="cpu", weights_only=False)["iteration"]
-                      if _readable(out / "last.pt") else -1, 1, out / "last.pt"))
+        try:
+            found.append((torch.load(out / "last.pt", map_location="cpu", weights_only=False)["iteration"], 1,
+                          out / "last.pt"))
+        except Exception:  # torn or of another kind: load_checkpoint names it where nothing else is there
+            found.append((-1, 1, out / "last.pt"))
     if keep is not None and is_state(keep):
         found.append((state_manifest(keep)["iteration"], 0, Path(keep)))
     return max(found)[2] if found else None
-
-
-def _readable(path: Path) -> bool:
-    try:
-        torch.load(path, map_location="cpu", weights_only=False)
-        return True
-    except Exception:  # a torn file: the kept state, where there is one, is then the one to go on from
-        return False
 
 
 def data_fingerprint(*sets) -> str:
@@ -341,18 +337,13 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
     where = dict(threads=threads, device=dev.type, amp=s.amp)
     c0, w0 = time.process_time(), time.time()
 
-    def checkpoint():
-        nonlocal c0, w0
-        # the CPU time of this process's threads, added up over every call of the run
-        now_c, now_w = time.process_time(), time.time()
+    def save(*, keep: bool = False, best_too: bool = False):
+        """last.pt (and best.pt, and the kept state where asked): the CPU time is this process's threads', added up
+        over every call of the run."""
         ck = {"config": config, "model": model.state_dict(), "optimizer": opt.state_dict(), "iteration": it,
               "history": history, "best_ap50": best, "torch_rng": torch.get_rng_state(), "run": run_info,
               "settings": dict(run_settings_now, epochs=epochs), "data": fingerprint, "where": where,
-              "cpu_s": cpu_s + now_c - c0, "wall_s": wall_s + now_w - w0}
-        return ck
-
-    def save(*, keep: bool = False, best_too: bool = False):
-        ck = checkpoint()
+              "cpu_s": cpu_s + time.process_time() - c0, "wall_s": wall_s + time.time() - w0}
         save_atomic(ck, out / "last.pt")
         if best_too:
             save_atomic(ck, out / "best.pt")
