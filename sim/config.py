@@ -46,8 +46,23 @@ class Orchard:
     varieties: list[str] = field(default_factory=lambda: ["Gala", "Fuji"])
 
 
+#: Named sets of [apples] values (issue 71), under a config's own keys: ``[apples] preset = "tall-spindle"``.
+#: ``tall-spindle``: a mature high-density orchard as this project flies (trees 1 m apart in rows 4 m apart, about
+#: 2,500 a hectare, as the simulator's default orchard). Robinson et al. (Cornell, "A vision for apple orchard systems of
+#: the future", NY Fruit Quarterly) give the tall spindle at 1,000-1,200 trees an acre (2,500-3,000 a hectare) and
+#: mature yields of 1,500 bushels an acre (about 70 t/ha): 23-28 kg a tree, 110-140 fruit of 0.2 kg. Fruit of
+#: 150-265 g (the packers' counts of 72-125 fruit a 19.05-kg box; Marini et al., HortScience 54(11):1947, 2019) is
+#: 69-84 mm across at a whole apple's density (pomar.fruit). Tree-to-tree vigour: the CV of 0.3 the tuning flights
+#: used (no published figure found for it yet).
+APPLE_PRESETS = {
+    "tall-spindle": {"per_tree": 120.0, "diameter_min_m": 0.069, "diameter_max_m": 0.084, "tree_vigour_cv": 0.3},
+}
+
+
 @dataclass
 class Apples:
+    #: A named set of these values (APPLE_PRESETS), under the keys the config gives itself ("": none).
+    preset: str = ""
     per_tree: float = 8.0
     #: Each row's load as a factor of per_tree, cycled across the rows (empty: every row alike): a whole-plot flight
     #: whose rows differ in load, for the count against the load (the paper's per-row figure of merit).
@@ -250,6 +265,12 @@ def _get(cfg: SimConfig, dotted: str):
 
 
 def from_dict(data: dict, source: str = "<config>") -> SimConfig:
+    apples = data.get("apples")
+    if isinstance(apples, dict) and apples.get("preset"):
+        if apples["preset"] not in APPLE_PRESETS:
+            raise ConfigError(f"{source}: apples.preset {apples['preset']!r} is not one of "
+                              f"{', '.join(sorted(APPLE_PRESETS))}")
+        data = {**data, "apples": {**APPLE_PRESETS[apples["preset"]], **apples}}
     cfg = _build(SimConfig, data, "", source)
     for key, ok, msg in _CHECKS:
         value = _get(cfg, key)

@@ -310,6 +310,23 @@ def test_rows_of_other_fruit_sizes_and_trees_of_other_vigour_leave_a_plain_orcha
             config.from_dict({**base, "apples": bad})
 
 
+def test_the_tall_spindle_preset_gives_trees_as_heavy_as_real_ones_under_the_configs_own_keys():
+    """[apples] preset = "tall-spindle" (issue 71): a mature high-density orchard's trees, about 120 apples each
+    (published figures in sim.config), fruit 69-84 mm; the config's own keys win over the preset's; an unknown preset is
+    one line naming the file and the presets there are."""
+    from sim.orchard import build_scene
+
+    base = {"seed": 5, "orchard": {"rows": 3, "row_length_m": 12.0, "leaves_per_tree": 50}}
+    heavy = build_scene(config.from_dict({**base, "apples": {"preset": "tall-spindle"}}))
+    assert 100 <= heavy.trees["apples"].mean() <= 140
+    d = 2 * heavy.apples["radius_m"]
+    assert d.min() >= 0.069 and d.max() <= 0.084
+    own = config.from_dict({**base, "apples": {"preset": "tall-spindle", "per_tree": 60.0}})
+    assert own.apples.per_tree == 60.0 and own.apples.diameter_min_m == 0.069
+    with pytest.raises(config.ConfigError, match=r"^f.toml: apples.preset 'heavy' is not one of tall-spindle$"):
+        config.from_dict({**base, "apples": {"preset": "heavy"}}, "f.toml")
+
+
 def test_a_growers_hand_counts_come_from_the_trees_full_loads(small_flight, tmp_path):
     """`python -m sim counts`: the trees asked for, or K drawn at random, with their full loads (exact, or with a
     human's counting error); a tree the orchard lacks is one line naming it, exit 2."""
