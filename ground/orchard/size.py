@@ -38,6 +38,8 @@ def row_sizes(table: dict, rows: list[dict], cultivars: dict[int, str] | None = 
     cultivars = cultivars or {}
     diameter = 2.0 * np.asarray(table["radius_m"], float) if len(table["id"]) else np.zeros(0)
     row_of = np.asarray(table["row"])
+    far = far_out(diameter)
+    diameter = np.where(far, np.nan, diameter)  # a fit's failure, not a fruit: its mass (the cube) would swamp the mean
     measured = diameter[np.isfinite(diameter) & (diameter > 0)]
     for r in rows:
         cultivar = cultivars.get(r["row"], "")
@@ -50,7 +52,20 @@ def row_sizes(table: dict, rows: list[dict], cultivars: dict[int, str] | None = 
     kg = np.array([[r["kg"], r["kg_lo"], r["kg_hi"]] for r in rows], float).reshape(-1, 3)
     out["kg"] = float(kg[:, 0].sum()) if len(kg) and np.isfinite(kg[:, 0]).all() else float("nan")
     out["apples_measured"] = int(np.isfinite(diameter).sum())
+    out["apples_far_out"] = int(far.sum())
     return out
+
+
+def far_out(diameter: np.ndarray) -> np.ndarray:
+    """Which diameters lie beyond Tukey's far-out fences of the flight's measured ones (3 interquartile ranges past
+    the quartiles): fits that failed (an apple of 1.3 m on a heavy tuning flight made the flight's mean apple 1.44 kg,
+    seven times its rows'), left out of every size and mass."""
+    d = np.asarray(diameter, float)
+    ok = np.isfinite(d) & (d > 0)
+    if ok.sum() < 4:
+        return np.zeros(len(d), bool)
+    q1, q3 = np.percentile(d[ok], [25, 75])
+    return ok & ((d < q1 - 3 * (q3 - q1)) | (d > q3 + 3 * (q3 - q1)))
 
 
 def row_kilograms(rows: list[dict]) -> None:
