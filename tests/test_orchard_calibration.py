@@ -168,6 +168,8 @@ def test_too_few_hand_counts_say_how_many_the_model_needs():
     trees, load = _orchard(np.random.default_rng(0), rows=1)
     with pytest.raises(CalibrationError, match="3 trees counted by hand: the 'linear' model needs at least 4"):
         estimate_load(trees, {(1, k): int(load[k - 1]) for k in (1, 2, 3)}, "linear")
+    with pytest.raises(CalibrationError, match="every one of the 5 trees counted by hand holds 0 apples"):
+        estimate_load(trees, {(1, k): 0 for k in range(1, 6)}, "linear")
 
 
 @pytest.mark.parametrize("text,says", [

@@ -222,3 +222,11 @@ def test_readmes_yield_commands_as_written(replayed_test_flight, tmp_path):
     assert r.returncode == 2 and r.stderr.strip() == f"error: counts.csv:{len(hand) + 2}: no tree 999 in row " \
                                                      f"{rows[0].row} in the orchard layout orchard.csv", r.stderr
     assert not (tmp_path / "out" / "bad").exists()
+    # every counted tree empty: one line, exit 2, and the loads written before stay as they were
+    before = (got / "trees.csv").read_text()
+    counts.write_text("row,tree,apples\n" + "".join(f"{a},{b},0\n" for (a, b) in hand))
+    r = run(load_cmd, tmp_path)
+    assert r.returncode == 2 and r.stderr.strip() == (
+        f"error: counts.csv: every one of the {len(hand)} trees counted by hand holds 0 apples: nothing relates the "
+        "camera's count to a load (count trees that carry fruit)"), r.stderr
+    assert (got / "trees.csv").read_text() == before

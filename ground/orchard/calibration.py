@@ -159,7 +159,7 @@ def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model:
     Z = regressors(trees, model)
     key = [(int(t["row"]), int(t["tree"])) for t in trees]
     counted = np.array([k in samples for k in key])
-    check_enough(int(counted.sum()), model)
+    check_enough({k: samples[k] for k in key if k in samples}, model)
     y = np.array([samples[k] for k in key if k in samples], float)
     beta, G, s2, free_beta, free = _fit(Z[counted], y)
     names = coefficient_names(Z, model)
@@ -208,7 +208,7 @@ def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model:
     why = ("; ".join(f"{n} held at 0 (the sample alone gives {f:.3g})" for n, f, ok in zip(names, free_beta, free)
                      if not ok) + ": a load does not fall as the count rises, nor below 0") if held else \
         "none held: the sample's own fit has every coefficient at least 0"
-    unseen = {"trees": int(never_seen(trees).sum()),
+    unseen = {"trees": int(never_seen(trees).sum()), "counted": int((never_seen(trees) & counted).sum()),
               "estimated_by": ("the sample's level (no tree never seen was counted): mean "
                                f"{y_mean:.1f}, sd {y_sd:.1f}" if guessed.any() else
                                "their own level, fitted on the counted trees among them"
@@ -237,10 +237,16 @@ def apply_load(trees: list[dict], rows: list[dict], est: dict) -> dict:
                                 "residual_sd", "row_sd", "flight", "loo")}
 
 
-def check_enough(n: int, model: str, path=None) -> None:
-    """``n`` trees counted by hand calibrate ``model`` (its coefficients and two degrees of freedom for the
-    intervals); CalibrationError (naming ``path``, the counts' file) otherwise."""
+def check_enough(samples: dict, model: str, path=None) -> None:
+    """The hand ``samples`` ((row, tree) -> apples) calibrate ``model``: enough trees for its coefficients and two
+    degrees of freedom for the intervals, and not every one of them empty (0 apples on every counted tree says nothing
+    of how a count relates to a load); CalibrationError (naming ``path``, the counts' file) otherwise."""
+    where = f"{path}: " if path else ""
+    n = len(samples)
     need = regressors([{"count": 0, "coverage": 1.0}], model).shape[1] + 2
     if n < need:
-        raise CalibrationError(f"{str(path) + ': ' if path else ''}{n} trees counted by hand: the {model!r} model needs "
-                               f"at least {need} (count a few more trees)")
+        raise CalibrationError(f"{where}{n} trees counted by hand: the {model!r} model needs at least {need} (count a "
+                               f"few more trees)")
+    if not any(v > 0 for v in samples.values()):
+        raise CalibrationError(f"{where}every one of the {n} trees counted by hand holds 0 apples: nothing relates the "
+                               f"camera's count to a load (count trees that carry fruit)")

@@ -48,7 +48,7 @@ def _cmd_load(args) -> int:
         rows = list(csv.DictReader(f))
     keys = {(t["row"], t["tree"]) for t in trees}
     samples = read_sample_counts(args.sample_counts, keys)
-    check_enough(len(samples), args.load_model, args.sample_counts)
+    check_enough(samples, args.load_model, args.sample_counts)
     load = apply_load(trees, rows, estimate_load(trees, samples, args.load_model))
     row_kilograms(rows)
     fmt = {"load": ".1f", "load_lo": ".1f", "load_hi": ".1f", "kg": ".1f", "kg_lo": ".1f", "kg_hi": ".1f"}

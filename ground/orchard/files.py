@@ -32,6 +32,6 @@ def read_orchard_files(orchard=None, sample_counts=None, load_model: str = DEFAU
                                    "tree numbers they use; for a finished map, use `python -m ground load MAP`")
         trees = layout_trees(layout)
         samples = read_sample_counts(sample_counts, trees, f"the orchard layout {orchard}")
-        check_enough(len(samples), load_model, sample_counts)
+        check_enough(samples, load_model, sample_counts)
     return OrchardFiles(layout, Path(orchard) if orchard else None, samples,
                         Path(sample_counts) if sample_counts else None)
