@@ -177,9 +177,9 @@ def load_checkpoint(path, map_location="cpu") -> tuple[FasterRCNN, dict]:
         except FileNotFoundError:
             raise CheckpointError(f"{path}: no such checkpoint (a .pt, or a folder of parts or of a training state)")\
                 from None
-        except (RuntimeError, EOFError, ValueError, OSError) as e:
-            raise CheckpointError(f"{path}: not a readable checkpoint, perhaps torn ({str(e).splitlines()[0][:80]})")\
-                from None
+        except Exception as e:  # torch.load's many ways to fail on a torn or foreign file (pickle's among them)
+            first = (str(e).splitlines() or [type(e).__name__])[0][:80]
+            raise CheckpointError(f"{path}: not a readable checkpoint, perhaps torn ({first})") from None
     try:
         model = make(ckpt["config"])
         model.load_state_dict(ckpt["model"])

@@ -322,6 +322,11 @@ def test_a_stopped_training_resumes_bit_for_bit_from_its_kept_state_on_a_new_mac
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert r.stderr.strip().splitlines()[-1] == f"error: {part}: checksum differs from {STATE_MANIFEST} (a part is damaged or torn)"
     assert not (tmp_path / "e" / "last.pt").exists()
+    (tmp_path / "f").mkdir()
+    (tmp_path / "f" / "last.pt").write_bytes(good[:5000])  # a run's own last.pt, torn
+    r = train(tmp_path / "f", "--resume")
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr[-2000:]
+    assert r.stderr.startswith(f"error: {tmp_path / 'f' / 'last.pt'}: not a readable checkpoint, perhaps torn")
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")

@@ -67,6 +67,8 @@ def _cmd_load(args) -> int:
     print(f"load: {fl['load']:.0f} apples ({load['level']:.0%} interval {fl['load_lo']:.0f}-{fl['load_hi']:.0f}) on "
           f"{fl['trees']} trees, {fl['trees_counted']} counted by hand; the sample's leave-one-out error "
           f"{loo['median_abs_pct']:.0f} % (median), model {load['model']}")
+    if load["constraints"]["held_at_0"]:
+        print(f"  {load['constraints']['why']}")
     for r in rows:
         print(f"  row {r['row']}: {r['load']:.0f} ({r['load_lo']:.0f}-{r['load_hi']:.0f})")
     print(f"trees.csv and rows.csv in {folder}/ now give each tree's and row's load; report.json its 'load' and each "
