@@ -170,8 +170,8 @@ def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model:
     half = q * np.sqrt(s2 * (1.0 + np.einsum("ij,jk,ik->i", Z, G, Z)))
     # Trees never seen, none of them counted: nothing relates them to the line, so each takes the sample's level, with
     # the interval of one more tree drawn from the sample (its spread, and the uncertainty of its mean, shared).
-    guessed = never_seen(trees) & ~counted if model != "ratio" and not (never_seen(trees) & counted).any() else \
-        np.zeros(len(key), bool)
+    unseen = never_seen(trees)
+    guessed = unseen & ~counted & (model != "ratio") & (not (unseen & counted).any())
     y_mean, y_sd = float(y.mean()), float(y.std(ddof=1)) if len(y) > 1 else 0.0
     q_level = float(student.ppf(0.5 + level / 2, max(len(y) - 1, 1)))
     pred[guessed] = y_mean
@@ -186,6 +186,7 @@ def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model:
                              "load_lo": max(0.0, pred[i] - half[i]), "load_hi": max(0.0, pred[i] + half[i])})
 
     rows_of = np.array([k[0] for k in key])
+    row_index = np.unique(rows_of, return_inverse=True)[1]
     loo = leave_one_out(Z[counted], y)
     err = loo - y
     tau2 = row_variance(y - loo, rows_of[counted], s2)
@@ -199,7 +200,7 @@ def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model:
         est = known + max(0.0, float(zu @ beta)) + g * y_mean
         # the line's trees: their own scatter, each row's shared error (once per tree of it) and the fit's, shared;
         # the guessed ones: their own scatter and the mean's, shared
-        per_row = np.bincount(np.unique(rows_of, return_inverse=True)[1][u], minlength=1).astype(float)
+        per_row = np.bincount(row_index[u], minlength=1).astype(float)
         var = s2 * (u.sum() + zu @ G @ zu) + tau2 * float((per_row ** 2).sum())
         h = np.sqrt(q ** 2 * var + q_level ** 2 * y_sd ** 2 * (g + g * g / len(y)))
         return {"load": est, "load_lo": max(known, est - h), "load_hi": est + h, "trees": int(sel.sum()),
@@ -208,13 +209,13 @@ def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model:
     why = ("; ".join(f"{n} held at 0 (the sample alone gives {f:.3g})" for n, f, ok in zip(names, free_beta, free)
                      if not ok) + ": a load does not fall as the count rises, nor below 0") if held else \
         "none held: the sample's own fit has every coefficient at least 0"
-    unseen = {"trees": int(never_seen(trees).sum()), "counted": int((never_seen(trees) & counted).sum()),
-              "estimated_by": ("the sample's level (no tree never seen was counted): mean "
-                               f"{y_mean:.1f}, sd {y_sd:.1f}" if guessed.any() else
-                               "their own level, fitted on the counted trees among them"
-                               if never_seen(trees).any() and model != "ratio" else "the model")}
+    never = {"trees": int(unseen.sum()), "counted": int((unseen & counted).sum()),
+             "estimated_by": ("the sample's level (no tree never seen was counted): mean "
+                              f"{y_mean:.1f}, sd {y_sd:.1f}" if guessed.any() else
+                              "their own level, fitted on the counted trees among them"
+                              if unseen.any() and model != "ratio" else "the model")}
     return {"model": model, "level": level, "coefficients": [float(b) for b in beta],
-            "coefficient_names": names, "constraints": {"held_at_0": held, "why": why}, "never_seen": unseen,
+            "coefficient_names": names, "constraints": {"held_at_0": held, "why": why}, "never_seen": never,
             "residual_sd": float(np.sqrt(s2)), "row_sd": float(np.sqrt(tau2)), "trees": per_tree,
             "rows": {int(r): total(rows_of == r) for r in np.unique(rows_of)},
             "flight": total(np.ones(len(key), bool)),
