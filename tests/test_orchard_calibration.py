@@ -271,6 +271,14 @@ def test_each_rows_fruit_size_and_kilograms_follow_its_apples_diameters():
     assert np.isnan(c["diameter_mm"]) and np.isclose(c["apple_kg"], apple_mass_kg(d[np.isfinite(radius)]).mean())
     assert np.isclose(c["kg"], 500 * c["apple_kg"])
     assert flight["apples_measured"] == 398 and 70 < flight["diameter_mm"] < 76 and flight["apples_far_out"] == 2
+    # the median's 90 % interval from its apples; the map scale's uncertainty (2 %) widens it, and the kilograms' by
+    # three times as much (the cube)
+    assert 63 < a["diameter_mm_lo"] < a["diameter_mm"] < a["diameter_mm_hi"] < 67
+    wide = [{k: v for k, v in r.items() if k in ("row", "load", "load_lo", "load_hi")} for r in rows]
+    row_sizes(table, wide, {3: "Fuji"}, scale_sigma_rel=0.02)
+    w = wide[0]
+    assert np.isclose(w["diameter_mm_lo"], 65 * (1 - 1.6449 * 0.02), atol=0.6) and w["diameter_mm_hi"] > a["diameter_mm_hi"] + 1.5
+    assert np.isclose(w["kg"], a["kg"]) and np.isclose(w["kg_hi"] / w["kg"] - 1, np.hypot(0.1, 3 * 1.6449 * 0.02))
 
 
 def test_the_yield_score_compares_loads_intervals_sizes_and_kilograms_with_the_truth():

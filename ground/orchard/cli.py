@@ -50,13 +50,15 @@ def _cmd_load(args) -> int:
     samples = read_sample_counts(args.sample_counts, keys)
     check_enough(samples, args.load_model, args.sample_counts)
     load = apply_load(trees, rows, estimate_load(trees, samples, args.load_model))
-    row_kilograms(rows)
+    report_path = folder / "report.json"
+    report = json.loads(report_path.read_text()) if report_path.is_file() else {}
+    # the kilograms carry the map scale's uncertainty, as the replay's did (ground.poses.scale)
+    scale = (report.get("registration") or {}).get("georeference_scale") or {}
+    row_kilograms(rows, float(scale.get("sigma_pct") or "nan") / 100.0)
     fmt = {"load": ".1f", "load_lo": ".1f", "load_hi": ".1f", "kg": ".1f", "kg_lo": ".1f", "kg_hi": ".1f"}
     write_atomic(folder / "trees.csv", records_csv(trees, [c for c in trees[0] if c not in LOAD_COLUMNS] + LOAD_COLUMNS,
                                                    fmt))
     write_atomic(folder / "rows.csv", records_csv(rows, [c for c in rows[0] if c not in fmt] + list(fmt), fmt))
-    report_path = folder / "report.json"
-    report = json.loads(report_path.read_text()) if report_path.is_file() else {}
     by_row = {int(r["row"]): r for r in rows}
     for r in report.get("rows", []):  # each row's load and kilograms, as rows.csv now gives them (NaN: null)
         mine = by_row.get(int(r.get("row", -1)))

@@ -42,5 +42,5 @@ def orchard_tables(table: dict, direction: float, snap, cams: dict, sight, growe
     from ground.orchard.size import row_sizes
 
     cultivars = {r.row: r.cultivar for r in layout} if info["numbering"] == "layout" else {}
-    info["size"] = row_sizes(table, rows, cultivars)
+    info["size"] = row_sizes(table, rows, cultivars, snap.scale_sigma_rel)
     return rows, trees, info, load

@@ -37,6 +37,8 @@ class MapSnapshot:
     checks: dict | None = None
     #: What the frames' altitudes were measured from (pomar.wire.ALTITUDE_REFERENCES; None: not said, sea level).
     altitude_reference: str | None = None
+    #: The map scale's relative 1-sigma (ground.poses.scale), which every size carries; NaN where not known.
+    scale_sigma_rel: float = float("nan")
 
     @property
     def above_sea_level(self) -> bool:
@@ -58,4 +60,5 @@ def snapshot(pipe, final: bool = False) -> MapSnapshot:
                        corrections=corr, origin=pipe.poses.origin if pipe.poses is not None else None,
                        frame_times=pipe.arrivals.frame_times, metres_per_unit=pipe.metres_per_unit(),
                        checks=count.checks(all_expected=True) if final else None,
-                       altitude_reference=pipe.altitude_reference)
+                       altitude_reference=pipe.altitude_reference,
+                       scale_sigma_rel=pipe.poses.scale_sigma_rel() if pipe.poses is not None else float("nan"))

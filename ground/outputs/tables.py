@@ -131,7 +131,7 @@ APPLE_COLUMNS = ["id", "x", "y", "z", "lat", "lon", "alt", "row", "radius_m", "o
 ROW_COLUMNS = ["row", "count", "length_m", "apples_per_m", "start_x", "start_y", "end_x", "end_y",
                "start_lat", "start_lon", "end_lat", "end_lon", "coverage", "load", "load_lo", "load_hi",
                "diameter_mm", "share_lt60", "share_60_70", "share_70_80", "share_gt80", "apple_kg", "kg", "kg_lo",
-               "kg_hi"]
+               "kg_hi", "diameter_mm_lo", "diameter_mm_hi"]
 
 #: Row colours (RGB), cycled by row number; also used by the rerun log. Okabe & Ito's colour-blind-safe
 #: palette without its black: blue, orange, bluish green, vermillion, sky blue, reddish purple, yellow.
@@ -217,7 +217,8 @@ def apples_ply(table: dict) -> str:
 
 ROW_FORMATS = {"length_m": ".2f", "apples_per_m": ".2f", "coverage": ".3f", "load": ".0f", "load_lo": ".0f",
                "load_hi": ".0f", "diameter_mm": ".1f", "share_lt60": ".3f", "share_60_70": ".3f", "share_70_80": ".3f",
-               "share_gt80": ".3f", "apple_kg": ".4f", "kg": ".1f", "kg_lo": ".1f", "kg_hi": ".1f", "start_x": ".3f", "start_y": ".3f", "end_x": ".3f",
+               "share_gt80": ".3f", "apple_kg": ".4f", "kg": ".1f", "kg_lo": ".1f", "kg_hi": ".1f", "diameter_mm_lo": ".1f",
+               "diameter_mm_hi": ".1f", "start_x": ".3f", "start_y": ".3f", "end_x": ".3f",
                "end_y": ".3f", "start_lat": ".9f", "start_lon": ".9f", "end_lat": ".9f", "end_lon": ".9f"}
 
 

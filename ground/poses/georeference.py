@@ -226,7 +226,15 @@ def floor_plane(points: np.ndarray, min_cells: int = 6) -> FloorPlane | None:
         return None
     A = np.c_[samples[best, :2], np.ones(int(best.sum()))]
     coef = np.linalg.lstsq(A, samples[best, 2], rcond=None)[0]  # z = ax + by + c
+    sigma = float(np.std(samples[best, 2] - A @ coef))
+    # a cell's low tenth lies below its ground by about 1.3 times the points' roughness: the plane is then fitted
+    # through the points themselves within FLOOR_INLIER_M of it (twice, the band following the plane), not their
+    # percentiles, so that the cameras' heights above it are not that much too high
+    for _ in range(2):
+        near = np.abs(P[:, 2] - np.c_[P[:, :2], np.ones(len(P))] @ coef) < FLOOR_INLIER_M
+        if near.sum() < 3 * FLOOR_CELL_POINTS:
+            break
+        coef = np.linalg.lstsq(np.c_[P[near, :2], np.ones(int(near.sum()))], P[near, 2], rcond=None)[0]
     normal = np.array([-coef[0], -coef[1], 1.0])
     normal /= np.linalg.norm(normal)
-    sigma = float(np.std(samples[best, 2] - A @ coef))
     return FloorPlane(normal, np.array([0.0, 0.0, coef[2]]), max(sigma, 0.02))

@@ -17,12 +17,14 @@ import cv2
 import numpy as np
 
 from ground.poses.georeference import fit_similarity, floor_plane, georeference_poses
+from ground.poses.scale import ScaleEstimate, combine, heights_source, positions_source
 from ground.poses.registration import IncrementalRegistrar, RegistrationSettings, Submodel
 from ground.poses.telemetry_poses import KeyframeTelemetry
 from ground.poses.tracking import Reference
 from pomar.align import Similarity, compose
 from pomar.camera import Camera
 from pomar.rotations import camera_rotations
+from pomar.telemetry.base import UNSTATED_HEIGHT_ACC_M
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +61,9 @@ class Mapper:
         self.first_references: list[Reference] = []
         self._moved_all = (0, 0)  # the registrar's re-anchorings and global refinements, as last seen
         self.moved: set[int] = set()  # keyframes whose poses changed since take_moved
-        self.scale_source = "positions"  # what scales the georeference: the GPS positions, or the heights (_refit)
+        self.scale_source = "positions"  # the source that weighs most in the georeference's scale (_scale)
+        self.scale_estimate: ScaleEstimate | None = None  # the map's scale, its uncertainty and sources (_scale)
+        self._left_out_said: dict[str, str] = {}  # sources whose leaving out was logged, and why
 
     # -- inputs
     def busy(self) -> bool:
@@ -189,56 +193,62 @@ class Mapper:
         fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att, scale=1.0 if still else None, up_only=up_only)
         if not (np.isfinite(fit.similarity.scale) and fit.similarity.scale > 0):
             return None
-        k = self._height_scale(fit.similarity, frames, c_m, g, fit.position_rms_m, positions_scale=not still)
-        log.debug("georeference from %d keyframes: scale %.4f from %s (factor %s), GPS rms %.2f m", len(frames),
-                  fit.similarity.scale * (k or 1.0), self.scale_source, k, fit.position_rms_m)
-        if k is not None:
-            fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att, scale=fit.similarity.scale * k,
-                                 up_only=up_only)
+        est = self._scale(fit, frames, c_m, g, still)
+        if est is not None:
+            log.debug("georeference from %d keyframes: scale %.4f +- %.2f %% (%s), GPS rms %.2f m", len(frames),
+                      est.scale, 100 * est.sigma_rel, self.scale_source, fit.position_rms_m)
+            if est.scale != fit.similarity.scale:
+                fit = fit_similarity(c_m, g, sig, R_m, R_tel, self.sigma_att, scale=est.scale, up_only=up_only)
         elif still:
             return None
         return fit.similarity, fit.position_rms_m
 
-    def _height_scale(self, fit: Similarity, frames, c_m, g, residual_m: float,
-                      positions_scale: bool = True) -> float | None:
-        """The factor that brings the cameras' heights above the floor the map sees (a plane: floor_plane) to the log's
-        heights above the take-off point, where those tell the map's scale better than the positions do: positions
-        rounded coarsely (a Phantom 4 Pro's SRT: 4 decimals, 11 m) over a short flight scale it by tens of percent, the
-        heights (to 0.01 m) against the floor by about the floor's own spread over the height. None where the log gives
-        no heights, the map sees too little ground, or the positions know the scale better. Takes the take-off point to
-        be level with the orchard's floor (say how far it is not, and the scale is off by that over the height)."""
-        h = np.array([self.tel[f].height for f in frames], float)
-        h_sigma = np.array([self.tel[f].height_acc for f in frames], float)
-        ok = np.isfinite(h) & (h > 0) & np.isfinite(h_sigma)  # a height whose accuracy the log does not say: unused
-        self.scale_source = "positions"
-        if ok.sum() < 3:
-            return None
-        pts = [compose(fit, sm.to_first).apply(np.array([p.xyz for p in sm.rec.points3D.values()
-                                                          if p.track.length() >= 3 and p.error <= 2.0], float).reshape(-1, 3))
-               for sm in self.registrar.submodels[-2:] if sm.rec is not None and sm.to_first is not None]
-        P = np.concatenate(pts) if pts else np.zeros((0, 3))
-        floor = floor_plane(P) if len(P) >= 200 else None
-        if floor is None:
-            return None
-        floor_sigma = floor.sigma_m
-        h_map = (fit.apply(c_m)[ok] - floor.point) @ floor.normal  # the cameras' heights above the floor plane
-        if not np.median(h_map) > 0:
-            return None
-        # the scale's relative error from each: the positions' error over their spread, and the floor's spread with
-        # the heights' own accuracy, over the height. The positions' error: their scatter about the fit (measured,
-        # for the 7 degrees of freedom the fit took), and at least the accuracy the log states (a 4-decimal SRT's
-        # rounding, which a short flight's fit absorbs); not the 2 m assumed where it states none
-        n = len(g)
-        scatter = residual_m / np.sqrt(3.0) * np.sqrt(n / (n - 7)) if n > 7 else np.inf  # per axis
-        stated = np.array([self.tel[f].h_acc_stated for f in frames], float)
-        if np.isfinite(stated).any():
-            scatter = max(scatter, float(np.nanmedian(stated)))
-        rel_pos = scatter / max(float(np.sqrt(((g - g.mean(0)) ** 2).sum(1).sum())), 1e-9)
-        rel_height = float(np.hypot(floor_sigma, np.median(h_sigma[ok]))) / float(np.median(h[ok]))
-        if positions_scale and rel_height >= rel_pos:
-            return None
-        self.scale_source = "heights"
-        return float(np.median(h[ok]) / np.median(h_map))
+    def _scale(self, fit, frames, c_m, g, still: bool) -> ScaleEstimate | None:
+        """The map's scale from every source these keyframes give (ground.poses.scale), combined by their variances:
+        the positions' (unless they stand within their own accuracy of one another: a log's coarse rounding, a drone
+        standing), and the cameras' heights above the floor the map sees against the log's heights above take-off.
+        Takes the take-off point to be level with the orchard's floor (say how far it is not, and the heights' scale is
+        off by that over the height). Sets ``scale_source`` (the heaviest source) and ``scale_estimate``."""
+        sources = []
+        S = fit.similarity
+        tels = [self.tel[f] for f in frames]
+        stated = np.array([t.h_acc_stated for t in tels], float)
+        if not still:
+            # the capture times; where the log gives none, frames 0.1 s apart (the worst over the GPS error's
+            # correlation times hardly depends on it)
+            t = np.array([x.t for x in tels], float)
+            t = t if np.isfinite(t).all() else np.asarray(frames, float) * 0.1
+            # the positions' accuracy: the log's, at least their measured scatter about the fit (per axis, for the 7
+            # degrees of freedom the fit took)
+            n = len(g)
+            scatter = fit.position_rms_m / np.sqrt(3.0) * np.sqrt(n / (n - 7)) if n > 7 else np.inf
+            sigma = np.maximum(np.array([x.h_acc for x in tels], float), scatter)
+            sources.append(positions_source(S.scale, g, t, sigma, bool(np.isfinite(stated).all() and (stated > 0).all())))
+        h = np.array([x.height for x in tels], float)
+        h_sigma = np.array([x.height_acc for x in tels], float)
+        ok = np.isfinite(h) & (h > 0)
+        h_stated = bool(np.isfinite(h_sigma[ok]).all())
+        h_sigma = np.where(np.isfinite(h_sigma), h_sigma, UNSTATED_HEIGHT_ACC_M)
+        if ok.sum() >= 3:
+            pts = [compose(S, sm.to_first).apply(np.array([p.xyz for p in sm.rec.points3D.values()
+                                                            if p.track.length() >= 3 and p.error <= 2.0],
+                                                           float).reshape(-1, 3))
+                   for sm in self.registrar.submodels[-2:] if sm.rec is not None and sm.to_first is not None]
+            P = np.concatenate(pts) if pts else np.zeros((0, 3))
+            floor = floor_plane(P) if len(P) >= 200 else None
+            if floor is not None:
+                hs = heights_source(S.scale, h[ok], h_sigma[ok], S.apply(c_m)[ok], floor, h_stated)
+                if hs is not None:
+                    sources.append(hs)
+        est = combine(sources)
+        if est is not None:
+            self.scale_source = max(est.weights, key=est.weights.get)
+            self.scale_estimate = est
+            for name, why in est.left_out.items():
+                if self._left_out_said.get(name) != why.split(":")[0]:
+                    log.warning("map scale: the %s left out, %s", name, why)
+                    self._left_out_said[name] = why.split(":")[0]
+        return est
 
     # -- reading
     @property
@@ -258,6 +268,7 @@ class Mapper:
         return {"keyframes_processed": len(reg.seconds), "failed": len(reg.failed), "submodels": len(reg.submodels),
                 "revisits": reg.revisits, "reanchored": reg.reanchored, "rejoined": reg.rejoined,
                 "scale_from": self.scale_source,
+                "scale": self.scale_estimate.as_dict() if self.scale_estimate is not None else None,
                 "in_memory_from": reg.in_memory_from,
                 "seconds": list(reg.seconds),
                 "stage_seconds_median": dict(zip(("features", "matching", "mapping"),

@@ -54,7 +54,8 @@ def no_pose_figures() -> dict:
                              "revisits": 0, "reanchored": 0, "rejoined": 0, "drift_m": 0.0, "drift_corrected": False,
                              "bend_deg": 0.0, "bend_corrected": False, "seconds_per_keyframe_median": None,
                              "stage_seconds_median": None, "proposals_skipped": 0, "features_extracted_here": 0,
-                             "georeference_gps_rms_m": None, "georeference_scale_from": None, "origin": None},
+                             "georeference_gps_rms_m": None, "georeference_scale_from": None, "georeference_scale": None,
+                             "origin": None},
             "tracking": {"tracked": 0, "failed": 0, "retried_after_mapping": 0, "waits_for_mapper": 0,
                          "failed_frames": []},
             "timings": {"tracking_seconds": 0.0, "inline_mapping_seconds": 0.0, "mapping_seconds": 0.0}}
@@ -173,8 +174,11 @@ class PoseStage:
                 # keyframes before the first model whose SIFT features this process extracted, the mapper being busy
                 "features_extracted_here": m.early_extracted,
                 "georeference_gps_rms_m": self.fit_residual_m,
-                # what scales the map: the GPS positions, or the heights above take-off against the floor it sees
+                # what scales the map most: the GPS positions, or the heights above take-off against the floor it sees
                 "georeference_scale_from": reg.get("scale_from", "positions"),
+                # the map's scale (metres per model unit), its 1-sigma in %, and each source's estimate and weight
+                # (ground.poses.scale)
+                "georeference_scale": reg.get("scale"),
                 "origin": self.origin.as_dict() if self.origin else None,
             },
             "tracking": {"tracked": t.tracker.tracked,
@@ -190,9 +194,15 @@ class PoseStage:
                         "mapping_seconds": float(sum(reg["seconds"]))},
         }
 
+    def scale_sigma_rel(self) -> float:
+        """The map scale's relative 1-sigma (ground.poses.scale); NaN before the map is scaled."""
+        est = self.mapper.stats().get("scale")
+        return float(est["sigma_pct"]) / 100.0 if est else float("nan")
+
     # -- inputs
     def add_telemetry(self, frame: int, lat: float, lon: float, alt: float, q_gimbal, h_acc: float,
-                      height: float = float("nan"), height_acc: float = float("nan"), flags: int = 0) -> None:
+                      height: float = float("nan"), height_acc: float = float("nan"), flags: int = 0,
+                      t: float = float("nan")) -> None:
         """A frame's telemetry: its ENU position, gimbal attitude, horizontal accuracy (2 m where unknown), height
         above the take-off point and its accuracy (NaN where the log does not say), and its flags (a fixed mount
         without the vehicle's attitude: the camera's heading is only the track's)."""
@@ -202,12 +212,13 @@ class PoseStage:
                else np.full(3, np.nan))
         track_heading = int(Flags.FIXED_MOUNT | Flags.NO_ATTITUDE)
         self.tel[frame] = KeyframeTelemetry(enu, np.asarray(q_gimbal, float), float(h_acc), float(height),
-                                            float(height_acc), (int(flags) & track_heading) != track_heading)
+                                            float(height_acc), (int(flags) & track_heading) != track_heading, float(t))
 
     def add_frame(self, msg) -> None:
         """A frame message's telemetry (:class:`pomar.wire.FrameMessage`)."""
         t = msg.telemetry
-        self.add_telemetry(msg.frame, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc, t.height, t.height_acc, t.flags)
+        self.add_telemetry(msg.frame, t.lat, t.lon, t.alt, t.q_gimbal, t.h_acc, t.height, t.height_acc, t.flags,
+                           msg.t_capture)
 
     @staticmethod
     def keyframe_width(jpegs) -> int | None:

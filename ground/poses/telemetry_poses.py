@@ -27,6 +27,7 @@ class KeyframeTelemetry(NamedTuple):
     height: float = float("nan")  # above the take-off point (m)
     height_acc: float = float("nan")  # its accuracy (m)
     heading_known: bool = True  # False: the camera's heading is the track's (a fixed mount, no attitude in the log)
+    t: float = float("nan")  # capture time (unix s, the autopilot's clock)
 
     @property
     def h_acc(self) -> float:

@@ -62,6 +62,10 @@ TRACK_HEADING_S = 2.0
 #: The horizontal accuracy (m) taken for a position whose log states none (DJI's do not); the ground weighs such
 #: positions by it. A position rounded to D decimals is off by (111 km x 10^-D) / sqrt(12) besides.
 UNSTATED_H_ACC_M = 2.0
+#: The accuracy (m) taken for a height above take-off whose log states none (a tlog's EKF height may come from the
+#: GPS's vertical as well as from a barometer): a GPS's vertical error, so that such heights scale the map only where
+#: the positions know it worse (ground.poses.scale).
+UNSTATED_HEIGHT_ACC_M = 1.5
 
 
 class TelemetryError(InputError, ValueError):
