@@ -9,7 +9,8 @@ flight's truth; with ``--pair A B``, a repeat pair's per-row ratios of count to 
 
 Tune on the tuning flights (tune-*); the evaluation flights (eval-*) are replayed once, at the end. Each flight is
 replayed lock-step (`python -m ground replay`, the shipped detector, arguments after ``--`` passed on) into
-out/bench/generalisation/NAME/FLIGHT; ``--rescore`` scores outputs already there again. Per-row errors count rows
+out/bench/generalisation/NAME/FLIGHT; ``--rescore`` scores outputs already there again, ``--reuse`` replays only the
+flights not replayed there yet. Per-row errors count rows
 with at least 30 visible apples; per-tree correlation is over 1-m bins along those rows (ground/evaluation/evaluate.py).
 Accuracy only: the replays' times depend on what else runs.
 """
@@ -49,6 +50,8 @@ def main(argv=None) -> int:
     ap.add_argument("--name", default="default", help="the run's name (its output folder)")
     ap.add_argument("--out", type=Path, default=Path("out/bench/generalisation"))
     ap.add_argument("--rescore", action="store_true", help="score the replays already in the output folder again")
+    ap.add_argument("--reuse", action="store_true",
+                    help="replay only the flights whose output folder holds no finished replay (report.json)")
     ap.add_argument("--pair", nargs=2, action="append", default=[], metavar=("A", "B"),
                     help="two of the flights (folder names) that fly the same orchard: a repeat pair")
     a = ap.parse_args(argv)
@@ -58,7 +61,7 @@ def main(argv=None) -> int:
     for path in a.flights:
         flight = FlightDir(path)
         out = a.out / a.name / path.name
-        if not a.rescore:
+        if not (a.rescore or a.reuse and (out / "report.json").is_file()):
             print(f"{path.name}: replay ...", file=sys.stderr, flush=True)
             subprocess.run([sys.executable, "-m", "ground", "replay", str(path), "--out", str(out), "--quiet"] + extra,
                            check=True, stdout=subprocess.DEVNULL)

@@ -8,7 +8,8 @@ For each model (``--shipped``, default the shipped file, and ``--candidate``, ea
 - real photos: ``python -m export evaluate --model M`` (ADD256's test split and AppleBBCH76's held-out photos, at their
   own size, the model's own threshold);
 - the map: ``benchmarks/generalisation.py FLIGHTS -- --model M`` (each flight replayed lock-step from pixels, its 3-D
-  F1 and its count against the simulator's countable apples, reported beside, not a gate);
+  F1 and its count against the simulator's countable apples, reported beside, not a gate); a flight also given as a
+  yield flight is scored on that replay (lock-step too, with its layout) rather than replayed twice;
 - the count as growers use it: ``benchmarks/yield_flights.py YIELD_FLIGHTS --model M`` (each flight calibrated by 10
   hand-counted trees, exact counts): the median per-row load error over all rows, and the share of rows whose 90 %
   interval holds the true load.
@@ -51,17 +52,23 @@ def measure(name: str, model: Path, flights: list[Path], yield_flights: list[Pat
     det = here / "detector.json"
     if not (reuse and det.is_file()):
         run([py, "-m", "export", "evaluate", "--model", str(model), "--json", str(det)], here / "detector.log")
-    summary = out / name / "maps" / "summary.json"
-    if flights and not (reuse and summary.is_file()):
-        run([py, "benchmarks/generalisation.py", *map(str, flights), "--name", "maps", "--out", str(here), "--",
-             "--model", str(model)], here / "maps.log")
     figs = {}
+    ydir = here / "yield"
     if yield_flights:
-        ydir = here / "yield"
         if not (reuse and all((ydir / f.name / "yield.json").is_file() for f in yield_flights)):
             run([py, "benchmarks/yield_flights.py", *map(str, yield_flights), "--out", str(ydir), "--model", str(model)]
                 + (["--reuse"] if reuse else []), here / "yield.log")
         figs = {f.name: json.loads((ydir / f.name / "yield.json").read_text()) for f in yield_flights}
+    summary = out / name / "maps" / "summary.json"
+    if flights and not (reuse and summary.is_file()):
+        # a flight of both lists is scored on the yield workflow's own replay (lock-step, with its layout): one replay
+        (here / "maps").mkdir(parents=True, exist_ok=True)
+        for f in set(flights) & set(yield_flights):
+            link = here / "maps" / f.name
+            if not link.exists():
+                link.symlink_to((ydir / f.name / "map").resolve())
+        run([py, "benchmarks/generalisation.py", *map(str, flights), "--name", "maps", "--out", str(here), "--reuse",
+             "--", "--model", str(model)], here / "maps.log")
     d = json.loads(det.read_text())
     maps = [s for s in json.loads(summary.read_text()) if "f1" in s] if flights else []
     from ground.orchard.calibration import DEFAULT_MODEL
@@ -114,12 +121,16 @@ def main(argv=None) -> int:
                    help="simulated flights with trees' truth for the yield workflow's comparison")
     p.add_argument("--out", type=Path, default=Path("out/bench/ship"))
     p.add_argument("--reuse", action="store_true", help="keep what an earlier run in --out measured")
+    p.add_argument("--only", choices=["shipped", "candidate"],
+                   help="measure this model alone (the table comes from a later run with --reuse)")
     a = p.parse_args(argv)
     for m in (a.candidate, a.shipped):
         if not m.is_file() or not m.with_suffix(".json").is_file():
             p.error(f"{m}: needs the ONNX file and its .json beside it")
     res = {name: measure(name, m, a.flights, a.yield_flights, a.out, a.reuse)
-           for name, m in (("shipped", a.shipped), ("candidate", a.candidate))}
+           for name, m in (("shipped", a.shipped), ("candidate", a.candidate)) if a.only in (None, name)}
+    if a.only:
+        return 0
     lines, ok = table(res["shipped"], res["candidate"])
     print(f"shipped {a.shipped}, candidate {a.candidate}")
     print("\n".join(lines))
