@@ -3,7 +3,7 @@
 apple's box drawn green where a detection finds it (IoU 0.5), blue where none does, and red a detection that finds no
 labelled apple. The tiles of best and worst F1 go side by side on one sheet.
 
-    python benchmarks/detector_pictures.py [--model FILE.onnx] [--tiles 3] [--out docs/images/detector-real-photos.jpg]
+    python benchmarks/detector_pictures.py [--model FILE.onnx] [--tiles 3] [--out out/bench/detector-pictures.jpg]
 
 Accuracy only; prints each tile's F1 and counts.
 """
@@ -82,7 +82,7 @@ def main(argv=None) -> int:
               for f1, path, img, b, h, t, f in pick]
     rows = [np.hstack(panels[i:i + a.tiles]) for i in range(0, len(panels), a.tiles)]
     a.out.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(a.out), np.vstack(rows), [cv2.IMWRITE_JPEG_QUALITY, 80])
+    cv2.imwrite(str(a.out), np.vstack(rows), [cv2.IMWRITE_JPEG_QUALITY, 70])
     print(f"{a.out}: the {a.tiles} tiles of best F1 (top) and of worst (bottom) of {len(runs)}, model "
           f"{det.path.name} at its threshold {det.score_thresh}; green found, blue missed, red false")
     return 0

@@ -46,7 +46,8 @@ def run(cmd: list[str], log: Path) -> None:
         raise SystemExit(f"{log}: the command failed (exit {r.returncode}); its output is there")
 
 
-def measure(name: str, model: Path, flights: list[Path], yield_flights: list[Path], out: Path, reuse: bool) -> dict:
+def measure(name: str, model: Path, flights: list[Path], yield_flights: list[Path], out: Path, reuse: bool,
+            extra: list[str] = ()) -> dict:
     py = sys.executable
     here = out / name
     det = here / "detector.json"
@@ -57,7 +58,7 @@ def measure(name: str, model: Path, flights: list[Path], yield_flights: list[Pat
     if yield_flights:
         if not (reuse and all((ydir / f.name / "yield.json").is_file() for f in yield_flights)):
             run([py, "benchmarks/yield_flights.py", *map(str, yield_flights), "--out", str(ydir), "--model", str(model)]
-                + (["--reuse"] if reuse else []), here / "yield.log")
+                + (["--reuse"] if reuse else []) + (["--", *extra] if extra else []), here / "yield.log")
         figs = {f.name: json.loads((ydir / f.name / "yield.json").read_text()) for f in yield_flights}
     summary = out / name / "maps" / "summary.json"
     if flights and not (reuse and summary.is_file()):
@@ -68,7 +69,7 @@ def measure(name: str, model: Path, flights: list[Path], yield_flights: list[Pat
             if not link.exists():
                 link.symlink_to((ydir / f.name / "map").resolve())
         run([py, "benchmarks/generalisation.py", *map(str, flights), "--name", "maps", "--out", str(here), "--reuse",
-             "--", "--model", str(model)], here / "maps.log")
+             "--", "--model", str(model), *extra], here / "maps.log")
     d = json.loads(det.read_text())
     maps = [s for s in json.loads(summary.read_text()) if "f1" in s] if flights else []
     from ground.orchard.calibration import DEFAULT_MODEL
@@ -121,14 +122,18 @@ def main(argv=None) -> int:
                    help="simulated flights with trees' truth for the yield workflow's comparison")
     p.add_argument("--out", type=Path, default=Path("out/bench/ship"))
     p.add_argument("--reuse", action="store_true", help="keep what an earlier run in --out measured")
+    p.add_argument("--candidate-args", nargs="*", default=[],
+                   help="ground replay arguments for the candidate's replays (its own count settings: "
+                        "--candidate-args=--confirm-score=0.8)")
     p.add_argument("--only", choices=["shipped", "candidate"],
                    help="measure this model alone (the table comes from a later run with --reuse)")
     a = p.parse_args(argv)
     for m in (a.candidate, a.shipped):
         if not m.is_file() or not m.with_suffix(".json").is_file():
             p.error(f"{m}: needs the ONNX file and its .json beside it")
-    res = {name: measure(name, m, a.flights, a.yield_flights, a.out, a.reuse)
-           for name, m in (("shipped", a.shipped), ("candidate", a.candidate)) if a.only in (None, name)}
+    res = {name: measure(name, m, a.flights, a.yield_flights, a.out, a.reuse, args)
+           for name, m, args in (("shipped", a.shipped, []), ("candidate", a.candidate, a.candidate_args))
+           if a.only in (None, name)}
     if a.only:
         return 0
     lines, ok = table(res["shipped"], res["candidate"])

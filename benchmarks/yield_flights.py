@@ -8,6 +8,7 @@ estimate given each tree's true seen share).
     python benchmarks/yield_flights.py FLIGHTS... --detector truth-replay --out out/yield/runs-truth
     python benchmarks/yield_flights.py A B --pair A B      # a repeat pair: the same trees counted for each flight
     python benchmarks/yield_flights.py FLIGHTS... --model CANDIDATE.onnx --out out/yield/runs-candidate
+    python benchmarks/yield_flights.py FLIGHTS... -- --confirm-score 0.8     # arguments after -- go to each replay
 
 Prints, per flight and model: the median per-row load error (chosen trees, median of the random draws, oracle), the
 per-tree r (and the oracle's), the rows' interval coverage and median half-width, the median per-row diameter error
@@ -67,7 +68,8 @@ def seen_rows(score: dict, trees: list[dict]) -> dict:
             "half_width_median": float(np.median([r["half_width"] for r in rows])) if rows else None}
 
 
-def map_flight(flight: Path, out: Path, detector: str, reuse: bool, model: Path | None = None) -> tuple[list[dict], list[dict]]:
+def map_flight(flight: Path, out: Path, detector: str, reuse: bool, model: Path | None = None,
+               extra: tuple[str, ...] = ()) -> tuple[list[dict], list[dict]]:
     """The flight replayed (lock-step) with its orchard's layout (``model``: another ONNX detector than the shipped
     one); its trees and rows."""
     fd = FlightDir(flight)
@@ -77,7 +79,8 @@ def map_flight(flight: Path, out: Path, detector: str, reuse: bool, model: Path 
     mapped = out / "map"
     if not (reuse and (mapped / "trees.csv").is_file()):
         r = subprocess.run([sys.executable, "-m", "ground", "replay", str(flight), "--out", str(mapped), "--orchard",
-                            str(layout), "--detector", detector, "--quiet", *(["--model", str(model)] if model else [])],
+                            str(layout), "--detector", detector, "--quiet", *(["--model", str(model)] if model else []),
+                            *extra],
                            capture_output=True, text=True)
         if r.returncode != 0:
             raise SystemExit(f"{flight}: the replay failed: {r.stderr.strip().splitlines()[-1:]}")
@@ -111,9 +114,9 @@ def repeat_pair(a: Path, b: Path, out: Path, model: str, k: int, cv: float, seed
 
 
 def flight_figures(flight: Path, out: Path, models, k: int, draws: int, cv: float, seed: int, reuse: bool,
-                   detector: str = "onnx", onnx: Path | None = None) -> dict:
+                   detector: str = "onnx", onnx: Path | None = None, extra: tuple[str, ...] = ()) -> dict:
     fd = FlightDir(flight)
-    trees, rows = map_flight(flight, out, detector, reuse, onnx)
+    trees, rows = map_flight(flight, out, detector, reuse, onnx, extra)
     truth, share = truth_of(fd), seen_share(fd)
     rng = np.random.default_rng(seed)
 
@@ -186,7 +189,9 @@ def main(argv=None) -> int:
     p.add_argument("--model", type=Path, help="another ONNX detector than the shipped one (with its .json beside)")
     p.add_argument("--pair", nargs=2, metavar=("A", "B"), action="append", default=[],
                    help="two of FLIGHTS (by name) that fly one orchard: the repeat pair's figures")
-    args = p.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra = tuple(argv[argv.index("--") + 1:]) if "--" in argv else ()
+    args = p.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
     if args.model and args.detector != "onnx":
         p.error("--model is an ONNX detector: not with --detector truth-replay")
     by_name = {Path(f).name: Path(f) for f in args.flights}
@@ -200,7 +205,7 @@ def main(argv=None) -> int:
     for i, flight in enumerate(args.flights):
         name = Path(flight).name
         figs = every[name] = flight_figures(Path(flight), Path(args.out) / name, args.models, args.trees, args.draws,
-                              args.count_error_cv, args.seed + i, args.reuse, args.detector, args.model)
+                              args.count_error_cv, args.seed + i, args.reuse, args.detector, args.model, extra)
         for model, f in figs.items():
             c = f["chosen"]
             d = [r["diameter_error_mm"] for r in c["rows"] if np.isfinite(r["diameter_error_mm"])]
