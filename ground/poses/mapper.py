@@ -63,7 +63,7 @@ class Mapper:
         self.moved: set[int] = set()  # keyframes whose poses changed since take_moved
         self.scale_source = "positions"  # the source that weighs most in the georeference's scale (_scale)
         self.scale_estimate: ScaleEstimate | None = None  # the map's scale, its uncertainty and sources (_scale)
-        self._left_out_said: dict[str, str] = {}  # sources whose leaving out was logged, and why
+        self._left_out_said: dict[str, str] = {}  # sources left out now (logged once), and why
 
     # -- inputs
     def busy(self) -> bool:
@@ -244,10 +244,12 @@ class Mapper:
         if est is not None:
             self.scale_source = max(est.weights, key=est.weights.get)
             self.scale_estimate = est
-            for name, why in est.left_out.items():
-                if self._left_out_said.get(name) != why.split(":")[0]:
+            for name, why in est.left_out.items():  # said once while it stays out, again if it comes back and goes
+                if name not in self._left_out_said:
                     log.warning("map scale: the %s left out, %s", name, why)
-                    self._left_out_said[name] = why.split(":")[0]
+                self._left_out_said[name] = why
+            for name in set(self._left_out_said) - set(est.left_out):
+                del self._left_out_said[name]
         return est
 
     # -- reading
