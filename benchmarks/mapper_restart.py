@@ -70,7 +70,7 @@ def run(flight: Path, journal: Path, out: Path, kill_at: float | None) -> dict:
     ev = rep.get("evaluation") or {}
     restarts = rep["registration"].get("mapper_restarts") or []
     return {"f1": ev.get("f1"), "count": ev.get("count"), "killed_at_s": killed, "exit": p.returncode,
-            "restarts": len(restarts), "mapped_again": sum(r.get("resent", 0) for r in restarts)}
+            "restarts": len(restarts), "mapped_again": sum(r.get("keyframes_remapped", 0) for r in restarts)}
 
 
 def main(argv=None) -> int:

@@ -45,12 +45,13 @@ def summary_markdown(report: dict, live: dict) -> str:
                      f"left, or placed by telemetry; nothing more is mapped")
     for r in restarts:
         placed = r.get("placed")
-        how = (f"its new model joined the map by {placed['keyframes']} shared keyframes" if isinstance(placed, dict)
+        how = (f"its rebuilt model, placed by {placed['keyframes']} shared keyframes, became the map"
+               if isinstance(placed, dict)
                else "its new model never shared keyframes with the map: the frames since are tracked against the map"
                if placed is None else placed)
         lines.append(f"\n**The mapping process died** (exit code {r.get('exit_code')}) after "
                      f"{r.get('keyframes_mapped', 0)} keyframes, {r.get('keyframes_lost', 0)} lost; **restarted** "
-                     f"with the last {r.get('resent', 0)}: {how}")
+                     f"and given the map's {r.get('keyframes_remapped', r.get('resent', 0))} keyframes to map again: {how}")
     if reg.get("in_memory_from_keyframe") is not None:
         lines.append(f"\n**The mapping folder refused a write** (a full disk?) at keyframe "
                      f"{reg['in_memory_from_keyframe']}: mapping went on in memory; the model files mapped since are "
