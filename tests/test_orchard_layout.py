@@ -121,6 +121,51 @@ def test_apples_take_the_layouts_row_and_nearest_tree_and_those_off_every_row_ar
     assert abs(t1["lat"] - layout[0].start[0]) < 1e-5
 
 
+@pytest.mark.parametrize("sides", [2, 1])
+def test_a_map_lying_off_the_layout_across_the_rows_is_shifted_onto_it(sides):
+    """Five made-up rows 4 m apart; the apples lie on the canopy's faces (0.5 m off the line, +-0.2 m), each seen from
+    a camera 3 m out on its side; the map lies 1.6 m across and 0.6 m along the rows off the layout, as a one-pass
+    GPS track can. From both sides the shift is found to 5 cm and the face's offset with it; from one side the two
+    cannot be told apart, and the shift holds both (2.1 m: more than half the spacing, so nearer the next row's
+    line than the apples' own, which lies on the far side from the camera). Either way every apple then lies in its
+    own row's strip, where as mapped a quarter of the apples (two-sided) or most (one-sided) fell in the next row's."""
+    from ground.orchard.assign import orchard_rows
+    from ground.orchard.register import register_to_layout
+
+    origin = Origin(-28.516, -50.8811, 20.0)
+    layout, lines = _tilted_layout(origin, rows=(1, 2, 3, 4, 5), gap=4.0, length=30.0, spacing=1.0, first=0.5)
+    rng = np.random.default_rng(7)
+    pts, cams_at, want = [], [], []
+    for (s, u, n), r in zip(lines, layout):
+        for k in range(120):
+            side = 1.0 if sides == 1 or k % 2 else -1.0
+            across = side * (0.5 + rng.uniform(-0.2, 0.2))
+            p = s + rng.uniform(1.0, 29.0) * u + across * n  # along the rows nothing is shifted back
+            pts.append(p)
+            cams_at.append(p + 3.0 * side * n)
+            want.append(r.row)
+    s, u, n = lines[0]
+    off = 1.6 * n + 0.6 * u
+    P, C = np.array(pts) + off, np.array(cams_at) + off
+    N = len(P)
+    table = {"id": np.arange(N), "x": P[:, 0], "y": P[:, 1], "z": np.full(N, 2.0), "first_frame": np.arange(N),
+             "last_frame": np.arange(N)}
+    cams = {"frame": np.arange(N), "x": C[:, 0], "y": C[:, 1], "z": np.full(N, 14.0)}
+    as_mapped = orchard_rows(table, layout, origin)[0]
+    moved, moved_cams, shift = register_to_layout(table, cams, layout, origin)
+    got = orchard_rows(moved, layout, origin)[0]
+    found = np.array([shift["east_m"], shift["north_m"]])
+    expect = 1.6 if sides == 2 else 2.1
+    assert abs(found @ n - expect) < 0.05 and abs(found @ u) < 0.01, shift
+    assert (sides == 2) == (shift["face_m"] is not None), shift
+    if sides == 2:
+        assert abs(abs(shift["face_m"]) - 0.5) < 0.05, shift
+    assert np.mean(as_mapped != np.array(want)) > 0.2  # as mapped, apples fell in the next row's strip
+    assert list(got) == want
+    assert np.allclose(moved_cams["x"], C[:, 0] - shift["east_m"], atol=1e-3)
+    assert np.array_equal(table["x"], P[:, 0])  # the map's own positions are left as they are
+
+
 def test_readmes_yield_commands_as_written(replayed_test_flight, tmp_path):
     """README's "Yield" commands, as written, in a folder holding a finished map where they say (``out/demo``: the tiny
     flight's replay, its journal in it):

@@ -12,12 +12,16 @@ def orchard_tables(table: dict, direction: float, snap, cams: dict, sight, growe
     (ground.outputs.snapshot.MapSnapshot) with its cameras ``cams`` (pose_table's); ``sight``
     (ground.orchard.coverage.Sight, or None: no coverage), ``growers`` (ground.orchard.files.OrchardFiles, or None)."""
     layout = growers.layout if growers is not None else None
+    on_layout = table  # the apples, and the cameras, where the layout's rows are: the map shifted onto them
     if layout is not None and snap.to_enu is not None and snap.origin is not None:
         from ground.orchard.assign import OUTSIDE, orchard_rows
+        from ground.orchard.register import register_to_layout
 
-        table["row"], rows, trees = orchard_rows(table, layout, snap.origin)
+        on_layout, cams, shift = register_to_layout(table, cams, layout, snap.origin)
+        table["row"], rows, trees = orchard_rows(on_layout, layout, snap.origin)
+        on_layout["row"] = table["row"]
         info = {"numbering": "layout", "layout": str(growers.layout_path),
-                "apples_outside": int((table["row"] == OUTSIDE).sum())}
+                "apples_outside": int((table["row"] == OUTSIDE).sum()), "layout_shift": shift}
     else:
         from ground.orchard.map_rows import rows_summary, trees_summary
 
@@ -30,7 +34,7 @@ def orchard_tables(table: dict, direction: float, snap, cams: dict, sight, growe
     if sight is not None and sight.camera is not None:
         from ground.orchard.coverage import flight_coverage, row_coverage, tree_coverage
 
-        for t, c in zip(trees, tree_coverage(trees, rows, table, cams, sight)):
+        for t, c in zip(trees, tree_coverage(trees, rows, on_layout, cams, sight)):
             t.update(c)
         row_coverage(rows, trees)
         info["coverage"] = flight_coverage(trees)
