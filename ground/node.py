@@ -21,7 +21,7 @@ from pathlib import Path
 from ground.link.envelope import ApplesSeen
 from ground.link.journal import Journal, read_journal_report
 from ground.memory import malloc_trim, rss_mb
-from ground.orchard.coverage import Sight
+from pomar.coverage import Sight
 from ground.orchard.files import read_orchard_files
 from ground.outputs.mapfiles import MapFiles
 from ground.outputs.report import flight_report

@@ -3,6 +3,8 @@
   flight   build a flight directory from a video, the drone's log (.tlog, DataFlash .bin, PX4 .ulg, DJI .SRT) and
            a camera (a camera.json or a built-in camera); the onboard node and the ground read it as any other
   cameras  list the built-in cameras, with the focal length in pixels each gives at a video width
+  plan     a flight plan from the orchard's layout that films every tree from both sides, at the detector's apple
+           size, for the drone and camera given (plan.json, coverage.csv)
   scale    the apple radius in pixels a camera foresees from a height and a tilt, and the scale that brings it to
            a detector's size (what the onboard node's --detector-scale auto does on each frame)
 """
@@ -79,6 +81,55 @@ def _cmd_scale(args) -> int:
     return 0
 
 
+#: The shipped detector's metadata: the apple size a plan flies for.
+SHIPPED_DETECTOR = Path(__file__).resolve().parents[1] / "onboard" / "models" / "apple-detector.json"
+PLAN_OPTIONS = ["pitch_deg", "views", "blur_px", "shutter_s", "fps", "max_height_m", "rows"]
+
+
+def _cmd_plan(args) -> int:
+    from pomar.assemble import camera_for
+    from pomar.drones import load_drone
+    from pomar.layout import read_layout
+    from pomar.plan import PlanError, PlanSettings, make_plan, write_plan
+    from pomar.settings import from_options
+
+    layout = read_layout(args.orchard)
+    drone = load_drone(args.drone)
+    name = args.camera or drone.camera
+    camera, source = camera_for(name, drone.video_width, drone.video_height)
+    try:
+        detector = json.loads(Path(args.model).read_text())
+    except json.JSONDecodeError as e:
+        raise PlanError(f"{args.model}: not a detector's metadata (not valid JSON: {e.msg})") from None
+    if not isinstance(detector, dict) or not detector.get("apple_radius_px"):
+        raise PlanError(f"{args.model}: no apple_radius_px in the detector's metadata: it does not say its apple size")
+    try:
+        plan = make_plan(layout, camera, drone, detector, from_options(PlanSettings(), args, PLAN_OPTIONS), name)
+    except PlanError as e:
+        raise PlanError(f"{args.orchard}: {e}") from None
+    files = write_plan(plan, Path(args.out))
+    d = plan.as_dict()
+    print(f"{len(layout) if not plan.settings.rows else len(plan.settings.rows)} rows, {d['coverage']['trees']} trees;"
+          f" {drone.name}, camera {source}")
+    print(f"height {d['height_m']:.1f} m above the take-off point, {d['offset_m']:.1f} m to the side of each row, "
+          f"gimbal {d['gimbal_pitch_deg']:.0f} deg; apples {d['apple_px']:.1f} px in radius (the detector's "
+          f"{plan.detector['apple_radius_px']:g})")
+    print(f"speed {d['speed_mps']:.2f} m/s (set by {d['speed_limited_by']}): {d['views_per_apple']:.0f} frames an apple,"
+          f" {d['blur_px']:.2f} px of blur")
+    for f in d["flights"]:
+        print(f"flight {f['flight']}: rows {', '.join(map(str, f['rows']))}, {f['passes']} passes, "
+              f"{f['minutes']:.1f} min")
+    cov = d["coverage"]
+    print(f"{d['batteries']} batteries, {d['minutes']:.1f} min in all; expected coverage {cov['mean']:.2f}, "
+          f"{cov['trees_both_sides']} of {cov['trees']} trees from both sides")
+    for t in plan.trees:
+        if t["sides_seen"] < 2:
+            print(f"  row {t['row']} tree {t['tree']}: seen from {t['sides_seen']} side(s) only "
+                  f"(coverage {t['coverage']:.2f})")
+    print("wrote " + ", ".join(str(f) for f in files))
+    return 0
+
+
 def _positive(value: str) -> float:
     v = float(value)
     if not v > 0:
@@ -129,6 +180,20 @@ def main(argv=None) -> int:
                                    ": the apple radius it works best at")
     m.add_argument("--model-radius-px", type=_positive, help="that radius, given by hand")
     s.set_defaults(func=_cmd_scale)
+
+    pl = sub.add_parser("plan", help="a flight plan that films every tree of the rows from both sides")
+    pl.add_argument("orchard", help="the orchard's layout (CSV: the format of ground's --orchard)")
+    pl.add_argument("--drone", required=True,
+                    help="a built-in drone (phantom-4-pro, mavic-3, generic-quad) or a JSON file of its figures")
+    pl.add_argument("--camera", help="a camera.json, or a built-in camera's name (default: the drone's)")
+    pl.add_argument("--model", default=str(SHIPPED_DETECTOR),
+                    help="the detector's metadata: the apple size it works at (default: the shipped model's)")
+    pl.add_argument("--out", required=True, help="the folder to write plan.json and coverage.csv to")
+    from pomar.plan import PlanSettings
+    from pomar.settings import add_options
+
+    add_options(pl, PlanSettings(), PLAN_OPTIONS)
+    pl.set_defaults(func=_cmd_plan)
 
     args = p.parse_args(argv)
     return cli.run(args.func, args)

@@ -1,4 +1,4 @@
-"""What each tree's canopy showed the camera (ground/orchard/coverage.py), on a made-up orchard whose answer follows
+"""What each tree's canopy showed the camera (pomar/coverage.py), on a made-up orchard whose answer follows
 from its geometry: a camera beside two rows, looking across them, sees the near face of the near row and nothing of
 the far row, which the near one hides."""
 
@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ground.orchard.coverage import SURFACE_POINTS, Sight, row_coverage, tree_coverage
+from pomar.coverage import SURFACE_POINTS, Sight, row_coverage, tree_coverage
 from pomar.camera import Camera
 
 

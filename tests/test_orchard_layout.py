@@ -189,12 +189,19 @@ def test_readmes_yield_commands_as_written(replayed_test_flight, tmp_path):
     _, out, rep = replayed_test_flight
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "demo").symlink_to(out)
-    layout_cmd, replay_cmd, choose_cmd, load_cmd = readme_commands("### Yield")
+    layout_cmd, plan_cmd, replay_cmd, choose_cmd, load_cmd = readme_commands("### Yield")
     r = run(layout_cmd, tmp_path)
     assert r.returncode == 0, r.stderr
     layout = tmp_path / "orchard.csv"
     rows = [replace(x, row=31 - k) for k, x in enumerate(read_layout(layout))]
     write_layout(rows, layout)
+    # the next flight's plan over the layout: every tree of it from both sides (issue 72)
+    r = run(plan_cmd, tmp_path)
+    assert r.returncode == 0, r.stderr
+    plan = json.loads((tmp_path / "out" / "plan" / "plan.json").read_text())
+    n_trees = sum(len(tree_positions(x, Origin(rows[0].start[0], rows[0].start[1], 0.0))) for x in rows)
+    assert plan["coverage"]["trees"] == n_trees == plan["coverage"]["trees_both_sides"], plan["coverage"]
+    assert {w["row"] for f in plan["flights"] for w in f["waypoints"]} == {x.row for x in rows}
     r = run(replay_cmd, tmp_path, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     got = tmp_path / "out" / "plot"

@@ -2,7 +2,7 @@
 grower counted by hand (issue 59).
 
 The camera sees a share of each tree's apples; the hand counts say how a tree's count (and its coverage,
-ground.orchard.coverage) relates to its load. One regression, fitted on the counted trees, predicts every other tree:
+pomar.coverage) relates to its load. One regression, fitted on the counted trees, predicts every other tree:
 
 - ``ratio``:    load = b * count              (the field's practice: scale the camera's count);
 - ``linear``:   load = a + b * count;

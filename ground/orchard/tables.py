@@ -10,7 +10,7 @@ def orchard_tables(table: dict, direction: float, snap, cams: dict, sight, growe
     """(rows, trees, report.json's ``orchard`` section, its ``load`` section or None) for the apples of ``table``
     (apple_table's; with a layout, each apple's row becomes its layout row, 0 outside every row) in the map ``snap``
     (ground.outputs.snapshot.MapSnapshot) with its cameras ``cams`` (pose_table's); ``sight``
-    (ground.orchard.coverage.Sight, or None: no coverage), ``growers`` (ground.orchard.files.OrchardFiles, or None)."""
+    (pomar.coverage.Sight, or None: no coverage), ``growers`` (ground.orchard.files.OrchardFiles, or None)."""
     layout = growers.layout if growers is not None else None
     on_layout = table  # the apples, and the cameras, where the layout's rows are: the map shifted onto them
     if layout is not None and snap.to_enu is not None and snap.origin is not None:
@@ -32,7 +32,7 @@ def orchard_tables(table: dict, direction: float, snap, cams: dict, sight, growe
                          else "the map's own (no orchard layout given)")}
     info["coverage"] = None  # until the drone's camera is known
     if sight is not None and sight.camera is not None:
-        from ground.orchard.coverage import flight_coverage, row_coverage, tree_coverage
+        from pomar.coverage import flight_coverage, row_coverage, tree_coverage
 
         for t, c in zip(trees, tree_coverage(trees, rows, on_layout, cams, sight)):
             t.update(c)

@@ -56,7 +56,7 @@ class MapFiles:
     def write_tables(self, snap: MapSnapshot, out: Path | None = None, sight=None) -> MapTables:
         """The tables of the map ``snap``, written to ``out`` (default: the flight's folder); candidates.csv where
         the snapshot was made at the end (it holds the candidates' checks). With ``sight``
-        (ground.orchard.coverage.Sight: how the drone saw), each tree's and row's coverage."""
+        (pomar.coverage.Sight: how the drone saw), each tree's and row's coverage."""
         out = out or self.out
         table, direction = apple_table(snap)
         cams = pose_table(snap)

@@ -19,7 +19,7 @@ Entity tree::
     world/rows                  LineStrips3D: each row's line, in its row's colour
     world/row_labels            Points3D: "row N" in white at each row's end
     world/trees, map/trees      Points3D on the ground and GeoPoints: each tree, coloured by its coverage (the share of
-                                its canopy the camera saw, ground.orchard.coverage: dark purple none, yellow all)
+                                its canopy the camera saw, pomar.coverage: dark purple none, yellow all)
     world/tracks/<id>           LineStrips3D from each observing camera to the apple (hidden)
     map/apples, map/drone, map/trajectory, map/rows     GeoPoints and GeoLineStrings (WGS84)
     stats/apples                Scalars: apples so far

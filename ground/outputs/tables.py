@@ -236,7 +236,7 @@ def rows_csv(rows: list[dict]) -> str:
     return records_csv(rows, ROW_COLUMNS, ROW_FORMATS)
 
 
-#: With what each tree's canopy showed the camera (ground.orchard.coverage.COVERAGE_COLUMNS): empty where not known.
+#: With what each tree's canopy showed the camera (pomar.coverage.COVERAGE_COLUMNS): empty where not known.
 #: And the load estimated from the hand counts (ground.orchard.calibration.LOAD_COLUMNS): empty without them.
 TREE_COLUMNS = ["row", "tree", "along_m", "x", "y", "lat", "lon", "count", "coverage", "sides_seen", "frames_seen",
                 "range_m", "angle_deg", "apple_px", "hand_count", "load", "load_lo", "load_hi"]

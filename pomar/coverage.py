@@ -1,4 +1,5 @@
-"""What each tree's canopy showed the camera (issue 59), from the geometry the ground has: the cameras' poses, the
+"""What each tree's canopy showed the camera (issue 59), from the geometry the ground has (and, before a flight, what
+a flight plan's cameras will show it: pomar.plan, issue 72): the cameras' poses, the
 rows' lines, the trees' positions and the apples' heights, with no threshold fitted to flights.
 
 A row is a hedge: its canopy's two faces stand ``half_depth`` either side of the row's line, from the bottom to the top
@@ -40,10 +41,16 @@ class Sight:
     scales: dict = field(default_factory=dict)
 
 
-def _canopies(apples: dict, rows: list[dict]) -> list[dict | None]:
+#: A hedge where no apple measures one (a flight plan's, before any flight): the faces 0.5 m either side of the line
+#: (tall-spindle and super-spindle canopies stand 0.6-1.2 m wide), from 0.8 m to 3.0 m (pomar.apple_scale's
+#: trellised trees).
+DEFAULT_HEDGE = {"half_depth": 0.5, "bottom": 0.8, "top": 3.0}
+
+
+def _canopies(apples: dict, rows: list[dict], default: dict | None = None) -> list[dict | None]:
     """Each row's hedge (line, faces' half-depth, bottom, top) from its own apples; a row with fewer than 5 takes the
-    median hedge of the rows that have them (its canopy is the orchard's, its apples unseen); None for every row where
-    no row has 5."""
+    median hedge of the rows that have them (its canopy is the orchard's, its apples unseen); where no row has 5,
+    ``default`` (a hedge's half_depth, bottom and top) or None for every row."""
     xy_all = np.stack([apples["x"], apples["y"]], 1) if len(apples["id"]) else np.zeros((0, 2))
     row_of = np.asarray(apples["row"]) if len(apples["id"]) else np.zeros(0)
     z_all = np.asarray(apples["z"], float) if len(apples["id"]) else np.zeros(0)
@@ -63,9 +70,10 @@ def _canopies(apples: dict, rows: list[dict]) -> list[dict | None]:
                      top=float(np.percentile(z_all[sel], 95)))
         out.append(c)
     known = [c for c in out if c is not None and "top" in c]
-    if not known:
+    if not known and default is None:
         return [None] * len(rows)
-    pooled = {k: float(np.median([c[k] for c in known])) for k in ("half_depth", "bottom", "top")}
+    pooled = ({k: float(np.median([c[k] for c in known])) for k in ("half_depth", "bottom", "top")} if known
+              else dict(default))
     return [None if c is None else {**pooled, **c} for c in out]
 
 
@@ -114,15 +122,17 @@ def _blocked(C: np.ndarray, X: np.ndarray, own: np.ndarray, canopy: list) -> np.
     return out
 
 
-def tree_coverage(trees: list[dict], rows: list[dict], apples: dict, cams: dict, sight: Sight) -> list[dict]:
+def tree_coverage(trees: list[dict], rows: list[dict], apples: dict, cams: dict, sight: Sight,
+                  default_hedge: dict | None = None) -> list[dict]:
     """COVERAGE_COLUMNS for each tree of ``trees`` (trees.csv's records) on ``rows`` (rows.csv's), with the map's
     ``apples`` (apples.csv's columns, ENU) and cameras (``cams``: poses.csv's columns, ENU-to-camera quaternions).
-    The range, angle and apple radius are medians over every (frame, point) seen."""
+    The range, angle and apple radius are medians over every (frame, point) seen. ``default_hedge``: the canopy where
+    no row has apples enough to measure it (a plan's: DEFAULT_HEDGE)."""
     from scipy.spatial.transform import Rotation
 
     none = {"coverage": float("nan"), "sides_seen": 0, "frames_seen": 0, "range_m": float("nan"),
             "angle_deg": float("nan"), "apple_px": float("nan")}
-    canopy = _canopies(apples, rows)
+    canopy = _canopies(apples, rows, default_hedge)
     if not trees or not len(cams["frame"]) or all(c is None for c in canopy):
         return [dict(none) for _ in trees]
     X, N, row_of = _surface(trees, rows, canopy)

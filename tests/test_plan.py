@@ -1,0 +1,118 @@
+"""The flight plan (pomar/plan.py, issue 72) on made-up orchards whose answer follows from geometry: every tree filmed
+from both sides at the detector's apple size, the speed from the views and the blur, whole rows per battery, and one
+line for what cannot be planned."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pomar.apple_scale import expected_radius_px
+from pomar.assemble import camera_for
+from pomar.coverage import Sight, tree_coverage
+from pomar.drones import DRONES
+from pomar.geo import Origin
+from pomar.layout import LayoutRow, write_layout
+from pomar.plan import PlanSettings, flight_time_s, layout_trees_enu, make_plan, plan_cameras
+
+ROOT = Path(__file__).resolve().parents[1]
+DETECTOR = {"apple_radius_px": 5.4, "min_apple_radius_px": 3.0}
+
+
+def _layout(rows=6, length=30.0, gap=4.0, azimuth_deg=140.0, spacing=1.0):
+    """Rows ``gap`` m apart, ``length`` m long, running ``azimuth_deg`` from north, numbered 1..rows."""
+    origin = Origin(-28.516, -50.8811, 0.0)
+    a = np.radians(azimuth_deg)
+    u, n = np.array([np.sin(a), np.cos(a)]), np.array([np.cos(a), -np.sin(a)])
+    out = []
+    for k in range(rows):
+        s, e = k * gap * n, k * gap * n + length * u
+        (la, lo, _), (lb, lob, _) = origin.to_geodetic(np.array([[*s, 0.0], [*e, 0.0]]))
+        out.append(LayoutRow(k + 1, (float(la), float(lo)), (float(lb), float(lob)), spacing, spacing / 2))
+    return out
+
+
+def _camera(drone):
+    return camera_for(drone.camera, drone.video_width, drone.video_height)[0]
+
+
+def test_a_plan_films_every_tree_from_both_sides_at_the_detectors_size():
+    """Six rows of 30 trees, a Phantom 4 Pro: two passes a row; the apples at the detector's 5.4 px (by the geometry
+    the onboard node foresees them with), every tree's expected coverage 1 from both sides, where one pass (the
+    flight a grower flies today) sees one side of a few rows; the speed is the slowest of the views' (5 frames at the
+    detector's rate), the blur's (1 px at the shutter) and the drone's own."""
+    drone = DRONES["phantom-4-pro"]
+    cam = _camera(drone)
+    layout = _layout()
+    plan = make_plan(layout, cam, drone, DETECTOR, PlanSettings(fps=2.0), "phantom-4-pro")
+    g, sp = plan.geometry, plan.speed
+    assert len(plan.flights) == 1 and len(plan.flights[0]) == 12
+    assert expected_radius_px(cam.fx, g["height_m"], 30.0) == pytest.approx(5.4, rel=1e-6)
+    assert g["height_m"] > 3.0 + 2.0 and g["offset_m"] > 0.5
+    cov = np.array([t["coverage"] for t in plan.trees])
+    assert len(cov) == 6 * 30 and cov.min() >= 0.9 and all(t["sides_seen"] == 2 for t in plan.trees)
+    # the speed: an apple crosses the frame's width at the face (width x range / fx) in that over the speed
+    footprint = cam.width * g["range_m"] / cam.fx
+    by_views, by_blur = 2.0 * footprint / 5, 1.0 * g["range_m"] / (cam.fx * drone.shutter_s)
+    assert sp["speed_mps"] == pytest.approx(min(by_views, by_blur, drone.max_speed_mps))
+    assert sp["views"] >= 5 - 1e-9 and sp["blur_px"] <= 1 + 1e-9
+    # one pass along the first row's right-hand side, as flown today: one side of few rows
+    one = make_plan(layout[:1], cam, drone, DETECTOR, PlanSettings(fps=2.0))
+    p = [q for q in one.flights[0] if q.side == -1]
+    cams = plan_cameras([p], sp["speed_mps"], 2.0, g["height_m"], 60.0)
+    rows, trees = layout_trees_enu(layout, plan.origin)
+    none = {k: np.zeros(0) for k in ("id", "x", "y", "z", "row")}
+    from pomar.coverage import DEFAULT_HEDGE
+
+    got = tree_coverage(trees, rows, none, cams, Sight(cam, min_px=3.0), default_hedge=DEFAULT_HEDGE)
+    one_cov = np.array([c["coverage"] for c in got])
+    assert one_cov.mean() <= 0.5 and not any(c["sides_seen"] == 2 for c in got)
+
+
+def test_a_plan_one_battery_cannot_fly_is_split_into_flights_of_whole_rows():
+    """Ten rows of 400 m on a generic quad (20 min a battery, 70 % of it used): several flights, each within the
+    battery, each holding both passes of its rows, every row in one of them."""
+    drone = DRONES["generic-quad"]
+    plan = make_plan(_layout(rows=10, length=400.0), _camera(drone), drone, DETECTOR, PlanSettings())
+    assert len(plan.flights) >= 2
+    seen = []
+    for passes, minutes in zip(plan.flights, plan.minutes):
+        assert minutes * 60 <= drone.usable_s + 1e-6
+        rows = [p.row for p in passes]
+        assert all(rows.count(r) == 2 for r in set(rows))
+        assert minutes * 60 == pytest.approx(flight_time_s(passes, plan.speed["speed_mps"], plan.geometry["height_m"],
+                                                           drone))
+        seen += sorted(set(rows))
+    assert sorted(seen) == list(range(1, 11))
+
+
+def test_plan_command_writes_the_plan_and_refuses_what_cannot_be_planned(tmp_path):
+    """`python -m pomar plan` as the README gives it: plan.json and coverage.csv; then an unknown drone, a row the
+    layout lacks and a legal height under the canopy: one line each naming the file and what is wrong, exit 2, and
+    nothing written."""
+    orchard = tmp_path / "orchard.csv"
+    write_layout(_layout(rows=3), orchard)
+    out = tmp_path / "plan"
+    r = subprocess.run([sys.executable, "-m", "pomar", "plan", str(orchard), "--camera", "phantom-4-pro", "--drone",
+                        "phantom-4-pro", "--out", str(out)], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    d = json.loads((out / "plan.json").read_text())
+    assert d["format"] == "pomar-plan/1" and d["batteries"] == 1 and d["coverage"]["trees_both_sides"] == 90
+    assert "above the take-off point" in d["heights"] and len(d["flights"][0]["waypoints"]) == 12
+    lines = (out / "coverage.csv").read_text().splitlines()
+    assert lines[0].startswith("row,tree,lat,lon,coverage") and len(lines) == 91
+    assert "2 passes" not in r.stdout and "6 passes" in r.stdout and "from both sides" in r.stdout
+    for extra, says in ((["--drone", "dji-x"], "dji-x: not a drone this tool knows"),
+                        (["--drone", "mavic-3", "--rows", "7"], f"{orchard}: --rows: the layout has no row 7"),
+                        (["--drone", "mavic-3", "--max-height", "4"], f"{orchard}: a height of 4.0 m is below the "
+                                                                      "canopy's top")):
+        bad = tmp_path / "bad"
+        r = subprocess.run([sys.executable, "-m", "pomar", "plan", str(orchard), "--out", str(bad), *extra],
+                           capture_output=True, text=True, cwd=ROOT)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and says in r.stderr, r.stderr
+        assert not bad.exists()
