@@ -321,8 +321,9 @@ def make_plan(layout: list[LayoutRow], camera, drone: Drone, detector: dict, set
 
 
 def write_plan(plan: Plan, out: Path) -> list[Path]:
-    """plan.json and coverage.csv (each tree: its layout number, position, expected coverage, sides, frames) in
-    ``out``, each written whole or not at all."""
+    """plan.json, coverage.csv (each tree: its layout number, position, expected coverage, sides, frames) and each
+    flight for the apps (pomar.plan_export: ``flight-N.plan``, ``.waypoints``, ``.litchi.csv``) in ``out``, each
+    written whole or not at all."""
     import csv
     import io
 
@@ -337,7 +338,12 @@ def write_plan(plan: Plan, out: Path) -> list[Path]:
         lat, lon, _ = plan.origin.to_geodetic(np.array([[t["x"], t["y"], 0.0]]))[0]
         vals = {**t, "lat": f"{lat:.9f}", "lon": f"{lon:.9f}"}
         w.writerow([vals[c] if not isinstance(vals[c], float) else f"{vals[c]:.4f}" for c in cols])
-    for name, text in (("plan.json", body), ("coverage.csv", buf.getvalue())):
+    from pomar.plan_export import WRITERS
+
+    texts = [("plan.json", body), ("coverage.csv", buf.getvalue())]
+    for k in range(len(plan.flights)):  # each flight (battery) for the apps growers fly with
+        texts += [(f"flight-{k + 1}{suffix}", write(plan, k)) for suffix, write in WRITERS.items()]
+    for name, text in texts:
         tmp = out / (name + ".tmp")
         tmp.write_text(text)
         tmp.replace(out / name)

@@ -4,6 +4,7 @@ line for what cannot be planned."""
 
 from __future__ import annotations
 
+import csv
 import json
 import subprocess
 import sys
@@ -116,3 +117,50 @@ def test_plan_command_writes_the_plan_and_refuses_what_cannot_be_planned(tmp_pat
                            capture_output=True, text=True, cwd=ROOT)
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and says in r.stderr, r.stderr
         assert not bad.exists()
+
+
+def test_each_flight_is_written_for_the_apps_and_reads_back(tmp_path):
+    """A plan of two flights (a generic quad over long rows): each as QGroundControl's .plan (its documented fields,
+    SimpleItems, heights above take-off), as QGC WPL 110 (loaded by pymavlink's mavwp) and as Litchi's CSV (its
+    documented columns): the same passes at the plan's height, speed and gimbal pitch, the video started once and
+    stopped once, home in the end."""
+    from pymavlink import mavwp
+
+    from pomar.plan import write_plan
+    from pomar.plan_export import (LITCHI_COLUMNS, NAV_RETURN_TO_LAUNCH, NAV_TAKEOFF, NAV_WAYPOINT, VIDEO_START_CAPTURE,
+                                   VIDEO_STOP_CAPTURE)
+
+    drone = DRONES["generic-quad"]
+    plan = make_plan(_layout(rows=4, length=400.0), _camera(drone), drone, DETECTOR, PlanSettings())
+    assert len(plan.flights) >= 2
+    write_plan(plan, tmp_path)
+    d = plan.as_dict()
+    h = plan.geometry["height_m"]
+    for k, f in enumerate(d["flights"]):
+        q = json.loads((tmp_path / f"flight-{k + 1}.plan").read_text())
+        assert q["fileType"] == "Plan" and q["version"] == 1 and q["groundStation"] == "QGroundControl"
+        m = q["mission"]
+        assert m["version"] == 2 and m["firmwareType"] in (3, 12) and len(m["plannedHomePosition"]) == 3
+        items = m["items"]
+        assert all(i["type"] == "SimpleItem" and len(i["params"]) == 7 and i["autoContinue"] for i in items)
+        assert [i["doJumpId"] for i in items] == list(range(1, len(items) + 1))
+        assert items[0]["command"] == NAV_TAKEOFF and items[-1]["command"] == NAV_RETURN_TO_LAUNCH
+        nav = [i for i in items if i["command"] == NAV_WAYPOINT]
+        assert len(nav) == len(f["waypoints"]) and all(i["frame"] == 3 and i["AltitudeMode"] == 1 for i in nav)
+        assert all(abs(i["params"][6] - h) < 1e-9 for i in nav)
+        assert [(i["params"][4], i["params"][5]) for i in nav] == [(w["lat"], w["lon"]) for w in f["waypoints"]]
+        cmds = [i["command"] for i in items]
+        assert cmds.count(VIDEO_START_CAPTURE) == 1 and cmds.count(VIDEO_STOP_CAPTURE) == 1
+        loader = mavwp.MAVWPLoader()
+        n = loader.load(str(tmp_path / f"flight-{k + 1}.waypoints"))
+        assert n == len(items) + 1  # home, then the mission
+        back = [loader.wp(j) for j in range(1, n)]
+        assert [w.command for w in back] == cmds
+        assert [(round(w.x, 6), round(w.y, 6)) for w in back if w.command == NAV_WAYPOINT] == \
+            [(round(w["lat"], 6), round(w["lon"], 6)) for w in f["waypoints"]]
+        rows = list(csv.DictReader(open(tmp_path / f"flight-{k + 1}.litchi.csv")))
+        assert list(rows[0]) == LITCHI_COLUMNS and len(rows) == len(f["waypoints"])
+        assert all(r["altitudemode"] == "0" and float(r["altitude(m)"]) == pytest.approx(h, abs=0.01) for r in rows)
+        assert all(float(r["gimbalpitchangle"]) == -60.0 for r in rows)
+        assert rows[0]["action1type"] == "2" and rows[-1]["action1type"] == "3"
+        assert float(rows[0]["speed(m/s)"]) == pytest.approx(plan.speed["speed_mps"], abs=0.01)
