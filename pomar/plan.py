@@ -322,7 +322,7 @@ def make_plan(layout: list[LayoutRow], camera, drone: Drone, detector: dict, set
 
 def write_plan(plan: Plan, out: Path) -> list[Path]:
     """plan.json, coverage.csv (each tree: its layout number, position, expected coverage, sides, frames) and each
-    flight for the apps (pomar.plan_export: ``flight-N.plan``, ``.waypoints``, ``.litchi.csv``) in ``out``, each
+    flight for the apps (pomar.plan_export: ``flight-N.plan``, ``.waypoints``, ``.litchi.csv``, ``.kmz``) in ``out``, each
     written whole or not at all."""
     import csv
     import io
@@ -345,7 +345,7 @@ def write_plan(plan: Plan, out: Path) -> list[Path]:
         texts += [(f"flight-{k + 1}{suffix}", write(plan, k)) for suffix, write in WRITERS.items()]
     for name, text in texts:
         tmp = out / (name + ".tmp")
-        tmp.write_text(text)
+        tmp.write_bytes(text if isinstance(text, bytes) else text.encode())
         tmp.replace(out / name)
         files.append(out / name)
     return files

@@ -3,7 +3,8 @@
 - QGroundControl's ``.plan`` (its documented JSON: a mission of SimpleItems), for ArduPilot and PX4;
 - the plain-text ``QGC WPL 110`` mission (mavlink.io's file formats), which Mission Planner, QGroundControl and
   pymavlink's ``mavwp`` load;
-- Litchi's CSV mission (its documented columns), for DJI consumer drones (the Phantom 4 Pro, the Mavic).
+- Litchi's CSV mission (its documented columns), for DJI consumer drones (the Phantom 4 Pro, the Mavic);
+- DJI WPML's ``.kmz`` (``wpmz/template.kml`` and ``wpmz/waylines.wpml``), for DJI Pilot 2 (DJI's enterprise drones).
 
 Heights are above the take-off point (MAVLink's MAV_FRAME_GLOBAL_RELATIVE_ALT, Litchi's altitude mode 0), as the plan
 gives them; no file claims an accuracy: the waypoints are the layout's, as precise as the grower drew it.
@@ -113,5 +114,84 @@ def litchi_csv(plan: Plan, flight: int) -> str:
     return buf.getvalue()
 
 
-#: The files each flight is written as: suffix -> writer.
-WRITERS = {".plan": qgc_plan, ".waypoints": wpl, ".litchi.csv": litchi_csv}
+#: DJI WPML's namespaces (DJI Cloud API, WPML 1.0.2).
+KML_NS, WPML_NS = "http://www.opengis.net/kml/2.2", "http://www.dji.com/wpmz/1.0.2"
+#: WPML's drone enumeration (droneEnumValue, droneSubEnumValue) of the drones DJI Pilot 2 flies: the Mavic 3
+#: Enterprise series for the Mavic 3; the others have none (DJI Pilot 2 asks for the drone on import).
+WPML_DRONES = {"mavic-3": (77, 0)}
+
+
+def _wpml_document(plan: Plan, flight: int, template: bool) -> str:
+    """template.kml (``template``: the route as drawn, heights relative to the start point) or waylines.wpml (what
+    the aircraft executes) of one flight."""
+    from xml.sax.saxutils import escape
+
+    f = plan.as_dict()["flights"][flight]
+    wps = f["waypoints"]
+    h, v = plan.geometry["height_m"], plan.speed["speed_mps"]
+    transit = min(TRANSIT_MPS, plan.drone.max_speed_mps)
+    drone = WPML_DRONES.get(plan.drone.name)
+    info = (f"<wpml:droneInfo><wpml:droneEnumValue>{drone[0]}</wpml:droneEnumValue>"
+            f"<wpml:droneSubEnumValue>{drone[1]}</wpml:droneSubEnumValue></wpml:droneInfo>" if drone else "")
+    out = ['<?xml version="1.0" encoding="UTF-8"?>', f'<kml xmlns="{KML_NS}" xmlns:wpml="{WPML_NS}">', "<Document>"]
+    if template:
+        out += [f"<wpml:author>pomar plan</wpml:author>",
+                f"<wpml:createTime>0</wpml:createTime><wpml:updateTime>0</wpml:updateTime>"]
+    out += ["<wpml:missionConfig>", "<wpml:flyToWaylineMode>safely</wpml:flyToWaylineMode>",
+            "<wpml:finishAction>goHome</wpml:finishAction>", "<wpml:exitOnRCLost>executeLostAction</wpml:exitOnRCLost>",
+            "<wpml:executeRCLostAction>goBack</wpml:executeRCLostAction>",
+            f"<wpml:takeOffSecurityHeight>{max(h, 20.0):.1f}</wpml:takeOffSecurityHeight>",
+            f"<wpml:globalTransitionalSpeed>{transit:.2f}</wpml:globalTransitionalSpeed>", info,
+            "</wpml:missionConfig>", "<Folder>", "<wpml:templateId>0</wpml:templateId>"]
+    if template:
+        out += ["<wpml:templateType>waypoint</wpml:templateType>",
+                "<wpml:waylineCoordinateSysParam><wpml:coordinateMode>WGS84</wpml:coordinateMode>"
+                "<wpml:heightMode>relativeToStartPoint</wpml:heightMode></wpml:waylineCoordinateSysParam>",
+                f"<wpml:autoFlightSpeed>{v:.2f}</wpml:autoFlightSpeed>"]
+    else:
+        out += ["<wpml:executeHeightMode>relativeToStartPoint</wpml:executeHeightMode>",
+                "<wpml:waylineId>0</wpml:waylineId>", f"<wpml:autoFlightSpeed>{v:.2f}</wpml:autoFlightSpeed>"]
+    for k, p in enumerate(wps):
+        speed = v if k % 2 == 0 else transit  # a pass from its start; the hop to the next from its end
+        actions = [f"<wpml:action><wpml:actionId>0</wpml:actionId><wpml:actionActuatorFunc>gimbalRotate"
+                   f"</wpml:actionActuatorFunc><wpml:actionActuatorFuncParam><wpml:gimbalPitchRotateEnable>1"
+                   f"</wpml:gimbalPitchRotateEnable><wpml:gimbalPitchRotateAngle>{-plan.settings.pitch_deg:.1f}"
+                   f"</wpml:gimbalPitchRotateAngle><wpml:payloadPositionIndex>0</wpml:payloadPositionIndex>"
+                   f"</wpml:actionActuatorFuncParam></wpml:action>"]
+        if k in (0, len(wps) - 1):
+            func = "startRecord" if k == 0 else "stopRecord"
+            actions.append(f"<wpml:action><wpml:actionId>1</wpml:actionId><wpml:actionActuatorFunc>{func}"
+                           f"</wpml:actionActuatorFunc><wpml:actionActuatorFuncParam><wpml:payloadPositionIndex>0"
+                           f"</wpml:payloadPositionIndex></wpml:actionActuatorFuncParam></wpml:action>")
+        height = f"<wpml:height>{h:.2f}</wpml:height>" if template else f"<wpml:executeHeight>{h:.2f}</wpml:executeHeight>"
+        out += ["<Placemark>", f"<Point><coordinates>{p['lon']:.9f},{p['lat']:.9f}</coordinates></Point>",
+                f"<wpml:index>{k}</wpml:index>", height, f"<wpml:waypointSpeed>{speed:.2f}</wpml:waypointSpeed>",
+                f"<wpml:waypointHeadingParam><wpml:waypointHeadingMode>fixed</wpml:waypointHeadingMode>"
+                f"<wpml:waypointHeadingAngle>{((p['heading_deg'] + 180) % 360) - 180:.1f}</wpml:waypointHeadingAngle>"
+                f"</wpml:waypointHeadingParam>",
+                "<wpml:waypointTurnParam><wpml:waypointTurnMode>toPointAndStopWithDiscontinuityCurvature"
+                "</wpml:waypointTurnMode><wpml:waypointTurnDampingDist>0</wpml:waypointTurnDampingDist>"
+                "</wpml:waypointTurnParam>",
+                f"<wpml:actionGroup><wpml:actionGroupId>{k}</wpml:actionGroupId><wpml:actionGroupStartIndex>{k}"
+                f"</wpml:actionGroupStartIndex><wpml:actionGroupEndIndex>{k}</wpml:actionGroupEndIndex>"
+                f"<wpml:actionGroupMode>sequence</wpml:actionGroupMode><wpml:actionTrigger><wpml:actionTriggerType>"
+                f"reachPoint</wpml:actionTriggerType></wpml:actionTrigger>{''.join(actions)}</wpml:actionGroup>",
+                f"<ExtendedData><name>{escape('row %d side %d' % (p['row'], p['side']))}</name></ExtendedData>",
+                "</Placemark>"]
+    out += ["</Folder>", "</Document>", "</kml>"]
+    return "\n".join(x for x in out if x) + "\n"
+
+
+def wpml_kmz(plan: Plan, flight: int) -> bytes:
+    """DJI Pilot 2's .kmz of one flight: a zip of wpmz/template.kml and wpmz/waylines.wpml."""
+    import zipfile
+
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as z:
+        z.writestr("wpmz/template.kml", _wpml_document(plan, flight, template=True))
+        z.writestr("wpmz/waylines.wpml", _wpml_document(plan, flight, template=False))
+    return buf.getvalue()
+
+
+#: The files each flight is written as: suffix -> writer (text, or bytes).
+WRITERS = {".plan": qgc_plan, ".waypoints": wpl, ".litchi.csv": litchi_csv, ".kmz": wpml_kmz}

@@ -8,6 +8,8 @@ import csv
 import json
 import subprocess
 import sys
+import xml.etree.ElementTree as ET
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +25,7 @@ from pomar.plan import PlanSettings, flight_time_s, layout_trees_enu, make_plan,
 
 ROOT = Path(__file__).resolve().parents[1]
 DETECTOR = {"apple_radius_px": 5.4, "min_apple_radius_px": 3.0}
+NS = {"k": "http://www.opengis.net/kml/2.2", "w": "http://www.dji.com/wpmz/1.0.2"}
 
 
 def _layout(rows=6, length=30.0, gap=4.0, azimuth_deg=140.0, spacing=1.0):
@@ -164,3 +167,16 @@ def test_each_flight_is_written_for_the_apps_and_reads_back(tmp_path):
         assert all(float(r["gimbalpitchangle"]) == -60.0 for r in rows)
         assert rows[0]["action1type"] == "2" and rows[-1]["action1type"] == "3"
         assert float(rows[0]["speed(m/s)"]) == pytest.approx(plan.speed["speed_mps"], abs=0.01)
+        # DJI Pilot 2's KMZ: both documents parse as XML, the same waypoints, heights relative to the start point
+        with zipfile.ZipFile(tmp_path / f"flight-{k + 1}.kmz") as z:
+            assert sorted(z.namelist()) == ["wpmz/template.kml", "wpmz/waylines.wpml"]
+            for name, height_tag in (("wpmz/template.kml", "height"), ("wpmz/waylines.wpml", "executeHeight")):
+                root = ET.fromstring(z.read(name))
+                marks = root.findall(".//k:Placemark", NS)
+                assert len(marks) == len(f["waypoints"])
+                lonlat = [tuple(map(float, m.find("k:Point/k:coordinates", NS).text.split(","))) for m in marks]
+                assert np.allclose(lonlat, [(w["lon"], w["lat"]) for w in f["waypoints"]], atol=1e-8)
+                assert all(float(m.find(f"w:{height_tag}", NS).text) == pytest.approx(h, abs=0.01) for m in marks)
+                assert "relativeToStartPoint" in z.read(name).decode()
+                funcs = [a.text for a in root.iter(f"{{{NS['w']}}}actionActuatorFunc")]
+                assert funcs.count("startRecord") == 1 and funcs.count("stopRecord") == 1
