@@ -322,7 +322,8 @@ def make_plan(layout: list[LayoutRow], camera, drone: Drone, detector: dict, set
 
 def write_plan(plan: Plan, out: Path) -> list[Path]:
     """plan.json, coverage.csv (each tree: its layout number, position, expected coverage, sides, frames) and each
-    flight for the apps (pomar.plan_export: ``flight-N.plan``, ``.waypoints``, ``.litchi.csv``, ``.kmz``) in ``out``, each
+    flight for the apps (pomar.plan_export: ``flight-N.plan``, ``.waypoints``, ``.litchi.csv``, ``.kmz``) and plan.png
+    (pomar.plan_picture, where OpenCV is installed) in ``out``, each
     written whole or not at all."""
     import csv
     import io
@@ -340,7 +341,12 @@ def write_plan(plan: Plan, out: Path) -> list[Path]:
         w.writerow([vals[c] if not isinstance(vals[c], float) else f"{vals[c]:.4f}" for c in cols])
     from pomar.plan_export import WRITERS
 
+    from pomar.plan_picture import plan_png
+
     texts = [("plan.json", body), ("coverage.csv", buf.getvalue())]
+    png = plan_png(plan)
+    if png is not None:
+        texts.append(("plan.png", png))
     for k in range(len(plan.flights)):  # each flight (battery) for the apps growers fly with
         texts += [(f"flight-{k + 1}{suffix}", write(plan, k)) for suffix, write in WRITERS.items()]
     for name, text in texts:

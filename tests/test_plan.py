@@ -111,6 +111,10 @@ def test_plan_command_writes_the_plan_and_refuses_what_cannot_be_planned(tmp_pat
     lines = (out / "coverage.csv").read_text().splitlines()
     assert lines[0].startswith("row,tree,lat,lon,coverage") and len(lines) == 91
     assert "2 passes" not in r.stdout and "6 passes" in r.stdout and "from both sides" in r.stdout
+    import cv2
+
+    png = cv2.imread(str(out / "plan.png"))  # the picture to check at a glance: trees coloured, passes drawn
+    assert png is not None and min(png.shape[:2]) > 300 and len(np.unique(png.reshape(-1, 3), axis=0)) > 10
     for extra, says in ((["--drone", "dji-x"], "dji-x: not a drone this tool knows"),
                         (["--drone", "mavic-3", "--rows", "7"], f"{orchard}: --rows: the layout has no row 7"),
                         (["--drone", "mavic-3", "--max-height", "4"], f"{orchard}: a height of 4.0 m is below the "
