@@ -96,7 +96,12 @@ def _cmd_plan(args) -> int:
     layout = read_layout(args.orchard)
     drone = load_drone(args.drone)
     name = args.camera or drone.camera
-    camera, source = camera_for(name, drone.video_width, drone.video_height)
+    if Path(name).suffix.lower() == ".json":  # a camera.json: its own lens and video size
+        from pomar.camera import Camera
+
+        camera, source = Camera.load(name), name
+    else:
+        camera, source = camera_for(name, drone.video_width, drone.video_height)
     try:
         detector = json.loads(Path(args.model).read_text())
     except json.JSONDecodeError as e:
@@ -185,7 +190,8 @@ def main(argv=None) -> int:
     pl.add_argument("orchard", help="the orchard's layout (CSV: the format of ground's --orchard)")
     pl.add_argument("--drone", required=True,
                     help="a built-in drone (phantom-4-pro, mavic-3, generic-quad) or a JSON file of its figures")
-    pl.add_argument("--camera", help="a camera.json, or a built-in camera's name (default: the drone's)")
+    pl.add_argument("--camera", help="a camera.json (its lens and video size), or a built-in camera's name at the "
+                                     "drone's video size (default: the drone's camera)")
     pl.add_argument("--model", default=str(SHIPPED_DETECTOR),
                     help="the detector's metadata: the apple size it works at (default: the shipped model's)")
     pl.add_argument("--out", required=True, help="the folder to write plan.json and coverage.csv to")

@@ -23,6 +23,10 @@ def _cmd_flight(args) -> int:
         text, cfg = None, sc.SimConfig()
     if args.seed is not None:
         cfg.seed = args.seed
+    if args.plan:
+        from sim.plan import fly_plan, read_plan
+
+        cfg = fly_plan(cfg, read_plan(args.plan), args.plan_flight, args.plan)
     command = "python -m sim flight " + " ".join(sys.argv[2:])
     summary = simulate_flight(cfg, args.out, jobs=args.jobs, progress=not args.quiet, config_text=text, command=command)
     print(json.dumps(summary, indent=2))
@@ -101,7 +105,15 @@ def _cmd_layout(args) -> int:
     from pomar.layout import read_layout, write_layout
     from sim.layout import truth_layout
 
-    rows = truth_layout(FlightDir(args.flight_dir))
+    if (args.flight_dir is None) == (args.config is None):
+        raise cli.InputError("sim layout: give a rendered flight's folder, or --config (the orchard before a flight)")
+    if args.config:
+        from sim import config as sc
+        from sim.layout import config_layout
+
+        rows = config_layout(sc.load(args.config))
+    else:
+        rows = truth_layout(FlightDir(args.flight_dir))
     write_layout(rows, args.out)
     read_layout(args.out)  # what it wrote reads back
     print(f"wrote {args.out}: {len(rows)} rows, numbered as the truth numbers them")
@@ -117,6 +129,9 @@ def main(argv=None) -> int:
     f.add_argument("--seed", type=int, help="override the config's seed")
     f.add_argument("--jobs", type=int, help="render processes (default: all cores)")
     f.add_argument("--quiet", action="store_true", help="no progress bar")
+    f.add_argument("--plan", help="fly this plan (plan.json of python -m pomar plan, made on the orchard's layout) "
+                                  "instead of the config's passes: its lines, height, speed and gimbal pitch")
+    f.add_argument("--plan-flight", type=int, default=1, help="which of the plan's flights (batteries); default 1")
     f.set_defaults(func=_cmd_flight)
     i = sub.add_parser("info", help="print what a flight directory holds")
     i.add_argument("flight_dir")
@@ -162,7 +177,8 @@ def main(argv=None) -> int:
     c.set_defaults(func=_cmd_counts)
     lo = sub.add_parser("layout", help="write the orchard layout file a grower would have (rows' ends, tree spacing), "
                                        "fitted to the truth's trees and numbered as they are")
-    lo.add_argument("flight_dir")
+    lo.add_argument("flight_dir", nargs="?", help="a rendered flight's folder")
+    lo.add_argument("--config", help="or a config: its orchard's layout before any flight (to plan the flight on)")
     lo.add_argument("--out", required=True, help="the orchard layout CSV to write")
     lo.set_defaults(func=_cmd_layout)
     args = p.parse_args(argv)

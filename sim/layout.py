@@ -22,8 +22,24 @@ def truth_layout(flight) -> list[LayoutRow]:
     t = flight.truth_trees()
     a = flight.truth_apples()
     cultivar = {int(r): str(v) for r, v in zip(a["row"], a["variety"])}  # each row's one variety
-    origin = flight.origin()
-    xy = np.stack([t["x"], t["y"]], 1)
+    return _fit_rows(t, np.stack([t["x"], t["y"]], 1), cultivar, flight.origin())
+
+
+def config_layout(cfg) -> list[LayoutRow]:
+    """The layout of a simulator config's orchard (sim.config.SimConfig), before any flight: its scene's trees, as
+    :func:`truth_layout` reads them from a rendered flight (the same seed gives the same orchard)."""
+    from pomar.geo import Origin
+    from sim.orchard import build_scene
+
+    scene = build_scene(cfg)
+    tr, a = scene.trees, scene.apples
+    cultivar = {int(r): str(v) for r, v in zip(a["row"], a["variety"])}
+    origin = Origin(cfg.origin.lat, cfg.origin.lon, cfg.origin.alt)
+    return _fit_rows({"row": np.asarray(tr["row"]), "tree": np.asarray(tr["tree"])}, np.asarray(tr["xyz"])[:, :2],
+                     cultivar, origin)
+
+
+def _fit_rows(t: dict, xy: np.ndarray, cultivar: dict, origin) -> list[LayoutRow]:
     out = []
     for row in np.unique(t["row"].astype(int)):
         sel = t["row"].astype(int) == row

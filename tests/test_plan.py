@@ -184,3 +184,70 @@ def test_each_flight_is_written_for_the_apps_and_reads_back(tmp_path):
                 assert "relativeToStartPoint" in z.read(name).decode()
                 funcs = [a.text for a in root.iter(f"{{{NS['w']}}}actionActuatorFunc")]
                 assert funcs.count("startRecord") == 1 and funcs.count("stopRecord") == 1
+
+
+def test_plan_render_replay_load_end_to_end(tmp_path):
+    """A small simulated orchard (2 rows of 8 m), planned on its layout before any flight (`sim layout --config`),
+    the plan flown by the simulator (`sim flight --plan`: its lines, height, speed and pitch), replayed with the
+    layout, and its loads calibrated by hand counts of four trees: every tree of both rows seen from both sides in
+    the map's coverage, as the plan said, and the video as long as the plan's passes."""
+    cfg = tmp_path / "orchard.toml"
+    cfg.write_text('seed = 7301\nflight_id = "plan-e2e"\n[orchard]\nrows = 2\nrow_length_m = 8.0\n[apples]\n'
+                   'per_tree = 12.0\n[flight]\nfps = 3.0\n[camera]\nwidth = 1280\nheight = 720\nhfov_deg = 50.0\n')
+    py = [sys.executable, "-m"]
+
+    def ok(*cmd, timeout=600):
+        r = subprocess.run([*py, *map(str, cmd)], capture_output=True, text=True, cwd=ROOT, timeout=timeout)
+        assert r.returncode == 0, (cmd, r.stderr[-2000:])
+        return r
+
+    ok("sim", "layout", "--config", cfg, "--out", tmp_path / "orchard.csv")
+    from pomar.camera import Camera
+
+    Camera.from_fov(1280, 720, 50.0).save(tmp_path / "camera.json")
+    ok("pomar", "plan", tmp_path / "orchard.csv", "--drone", "generic-quad", "--camera", tmp_path / "camera.json",
+       "--fps", "3", "--shutter-s", "0.004", "--out", tmp_path / "plan")
+    plan = json.loads((tmp_path / "plan" / "plan.json").read_text())
+    assert plan["coverage"]["trees_both_sides"] == plan["coverage"]["trees"] == 16
+    ok("sim", "flight", "--config", cfg, "--plan", tmp_path / "plan" / "plan.json", "--out", tmp_path / "flight",
+       "--quiet")
+    from pomar.flight import FlightDir
+
+    # the video: the plan's path (its passes and the hops between them) at the plan's speed, within 10 %
+    meta = FlightDir(tmp_path / "flight").meta()
+    o = Origin(plan["origin"]["lat"], plan["origin"]["lon"], 0.0)
+    path = np.array([o.to_enu(w["lat"], w["lon"], 0.0)[:2] for w in plan["flights"][0]["waypoints"]])
+    path_s = np.linalg.norm(np.diff(path, axis=0), axis=1).sum() / plan["speed_mps"]
+    assert abs(meta.frame_count / meta.fps / path_s - 1) < 0.1, (meta.frame_count / meta.fps, path_s)
+    ok("ground", "replay", tmp_path / "flight", "--orchard", tmp_path / "orchard.csv", "--out", tmp_path / "map",
+       timeout=900)
+    trees = list(csv.DictReader(open(tmp_path / "map" / "trees.csv")))
+    assert len(trees) == 16 and all(int(t["sides_seen"]) == 2 for t in trees), [t["sides_seen"] for t in trees]
+    ok("sim", "counts", tmp_path / "flight", "--out", tmp_path / "counts.csv", "--trees", "1:2", "1:6", "2:3", "2:7")
+    ok("ground", "load", tmp_path / "map", "--sample-counts", tmp_path / "counts.csv")
+    rows = list(csv.DictReader(open(tmp_path / "map" / "rows.csv")))
+    assert [r["row"] for r in rows] == ["1", "2"] and all(float(r["load"]) > 0 for r in rows)
+
+
+def test_a_plan_from_another_tool_or_edited_into_nonsense_is_refused_in_one_line(tmp_path):
+    """`sim flight --plan`: a QGroundControl .plan given as plan.json, a plan whose height was edited to -5 and one
+    whose passes lost a waypoint: one line naming the file and what is wrong, exit 2, no flight written."""
+    orchard = tmp_path / "orchard.csv"
+    write_layout(_layout(rows=2, length=10.0), orchard)
+    r = subprocess.run([sys.executable, "-m", "pomar", "plan", str(orchard), "--drone", "mavic-3", "--out",
+                        str(tmp_path / "p")], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    good = json.loads((tmp_path / "p" / "plan.json").read_text())
+    cases = {"qgc.json": ((tmp_path / "p" / "flight-1.plan").read_text(), "not a plan of python -m pomar plan"),
+             "height.json": (json.dumps({**good, "height_m": -5}), "out of range"),
+             "odd.json": (json.dumps({**good, "flights": [{**good["flights"][0],
+                                                            "waypoints": good["flights"][0]["waypoints"][:-1]}]}),
+                          "waypoints in pairs")}
+    for name, (text, says) in cases.items():
+        (tmp_path / name).write_text(text)
+        out = tmp_path / f"flight-{name}"
+        r = subprocess.run([sys.executable, "-m", "sim", "flight", "--plan", str(tmp_path / name), "--out", str(out)],
+                           capture_output=True, text=True, cwd=ROOT)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert str(tmp_path / name) in r.stderr and says in r.stderr, r.stderr
+        assert not out.exists()
