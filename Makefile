@@ -69,14 +69,17 @@ test-latest:
 # The detector's training (issue 70), session after session: the simulated flights it crops and validates on are
 # rendered where missing (byte for byte the same on this lock), then the run kept in export/training goes on from its
 # committed state, bit for bit, on both cores. Stop it with Ctrl-C or SIGTERM (checkpointed); commit export/training.
-TRAIN_RUN := --backbone mobilenet_v2 --fpn-channels 48 --head-width 256 --freeze-stages 1 --epochs 40 --batch 4 \
-	--lr 0.01 --sim-crops 400 --bbch-tiles 600 --seed 1
-train: $(TEST_STAMP) out/sim/detector-train out/sim/detector-val
-	$(PY) -m export train --out out/export/mv2 --keep export/training --resume $(TRAIN_RUN) --threads 2 \
-		--validate-every 4 --sim-flight out/sim/detector-train --val-flight out/sim/detector-val
+# Its second cycle: from the first cycle's best weights (export/checkpoint-mv2: 40 epochs from ImageNet, lr 0.01, 400
+# crops of detector-train an epoch), at a lower rate, with three times the simulated crops from three flights.
+TRAIN_SIM := out/sim/detector-train out/sim/detector-train-b out/sim/detector-train-c
+TRAIN_RUN := --init export/checkpoint-mv2 --freeze-stages 1 --epochs 6 --batch 4 --lr 0.003 --sim-crops 1200 \
+	--bbch-tiles 600 --seed 2
+train: $(TEST_STAMP) $(TRAIN_SIM) out/sim/detector-val
+	$(PY) -m export train --out out/export/mv2-2 --keep export/training --resume $(TRAIN_RUN) --threads 2 \
+		--validate-every 2 $(foreach f,$(TRAIN_SIM),--sim-flight $(f)) --val-flight out/sim/detector-val
 
-out/sim/detector-train: | $(TEST_STAMP)
-	$(PY) -m sim flight --config sim/configs/detector-train.toml --out $@
+out/sim/detector-train out/sim/detector-train-b out/sim/detector-train-c: out/sim/%: | $(TEST_STAMP)
+	$(PY) -m sim flight --config sim/configs/$*.toml --out $@
 
 out/sim/detector-val: | $(TEST_STAMP)
 	$(PY) -m sim flight --config sim/configs/detector-train.toml --seed 5150 --out $@
