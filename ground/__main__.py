@@ -222,7 +222,7 @@ def _cmd_replay(args) -> int:
 ASSOCIATION_FIELDS = ["k", "tau_epipolar", "tau_geom", "min_inliers", "cross_pass", "merge_window", "max_merge_shift_m"]
 REGISTRATION_FIELDS = ["max_num_features", "match_window", "sift", "init_frames", "sift_width", "upright", "revisit"]
 TRACKING_FIELDS = ["min_share_to_go_on", "min_tracked_share", "max_points"]
-COUNTING_FIELDS = ["confirm_score", "confirm_views", "min_radius_ratio", "min_view_ratio", "min_parallax_deg"]
+COUNTING_FIELDS = ["confirm_score", "confirm_at_model_score", "confirm_views", "min_radius_ratio", "min_view_ratio", "min_parallax_deg"]
 EVALUATE_ASSOCIATION_FIELDS = ["k", "tau_epipolar", "tau_geom", "ransac_iterations", "min_inliers", "max_paths",
                                "merge_search_m"]
 GROUND_FIELDS = ["max_wait_s", "max_interp_gap", "mapping", "correction_every_s", "init_spacing_s", "min_score",

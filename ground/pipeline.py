@@ -189,6 +189,7 @@ class GroundPipeline:
             # cannot wait for it, from what the camera message says)
             self.camera = self.apples.camera = camera
             self.apples.box_response = msg.box_response
+            self.apples.count.model_score = msg.operating_score
         return self.step() if step else []
 
     def feed(self, msg: wire.FrameMessage | wire.KeyframeMessage | wire.StatusMessage,

@@ -48,14 +48,15 @@ def camera_message(flight_id: str, drone_id: str, camera: dict, image_width: int
     """The message that opens a drone's stream, the same from every source: its camera (camera.json's content), frame
     rate, start, the keyframes' width, whether frames come at the video's pace, the detector's envelope (the
     smallest apple radius it finds reliably, 0 where its model does not say) and how its boxes answer an apple's
-    size, the score it publishes from, and what the telemetry's altitudes are measured from
-    (wire.ALTITUDE_REFERENCES)."""
+    size, the score it publishes from and the one its model operates at, and what the telemetry's altitudes are
+    measured from (wire.ALTITUDE_REFERENCES)."""
     return wire.CameraMessage(flight_id, drone_id, camera, fps, start_unix,
                               sent_keyframe_width(keyframe_width, image_width), paced=paced,
                               min_apple_radius_px=getattr(detector, "min_apple_radius_px", None) or 0.0,
                               score_thresh=getattr(detector, "score_thresh", None),
                               altitude_reference=altitude_reference,
-                              box_response=getattr(detector, "box_response", None))
+                              box_response=getattr(detector, "box_response", None),
+                              operating_score=(getattr(detector, "meta", None) or {}).get("score_thresh"))
 
 
 def encode_jpeg(img: np.ndarray, width: int, quality: int) -> bytes:

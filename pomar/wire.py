@@ -413,6 +413,9 @@ class CameraMessage:
     #: How the detector's boxes answer an apple's size: box half-size = slope x radius + intercept (px, as the
     #: detector sees them), from its model's metadata; None: not said (boxes taken as the apples' size, as the truth's).
     box_response: tuple[float, float] | None = None
+    #: The score the drone's model operates at (its metadata's ``score_thresh``, chosen on its validation sets): a
+    #: detection at or above it is one the model stands by. None: not said (a truth stand-in, or a node before it).
+    operating_score: float | None = None
 
     def encode(self) -> bytes:
         return msgpack.packb({"v": SCHEMA_VERSION, "type": "camera", "flight": self.flight_id, "drone": self.drone_id,
@@ -422,7 +425,8 @@ class CameraMessage:
                               **({"minr": float(self.min_apple_radius_px)} if self.min_apple_radius_px else {}),
                               **({} if self.score_thresh is None else {"pubs": float(self.score_thresh)}),
                               **({} if self.altitude_reference is None else {"altref": self.altitude_reference}),
-                              **({} if self.box_response is None else {"boxr": [float(v) for v in self.box_response]})},
+                              **({} if self.box_response is None else {"boxr": [float(v) for v in self.box_response]}),
+                              **({} if self.operating_score is None else {"ops": float(self.operating_score)})},
                              use_bin_type=True)
 
     @property
@@ -463,7 +467,8 @@ class CameraMessage:
                    _int("camera message: keyframe width", d.get("kfw", 0), 0, MAX_IMAGE_SIDE), paced,
                    _float("camera message: min apple radius", d.get("minr", 0.0), 0.0, 1000.0),
                    None if d.get("pubs") is None else _float("camera message: published score", d["pubs"], 0.0, 1.0),
-                   ref, box_response_of(d.get("boxr")))
+                   ref, box_response_of(d.get("boxr")),
+                   None if d.get("ops") is None else _float("camera message: operating score", d["ops"], 0.0, 1.0))
 
 
 def box_response_of(x, name: str = "camera message: box response") -> tuple[float, float] | None:

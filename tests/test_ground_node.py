@@ -724,6 +724,28 @@ def test_an_apple_counts_once_enough_views_are_strong(tmp_path):
     assert pipe.apples.count.confirm([a], pipe.arrivals.steps) == [a]
 
 
+def test_views_are_confirmed_at_the_score_the_drones_model_operates_at(tmp_path):
+    """A drone whose model operates at 0.75 (its camera message says so): a view of 0.8 confirms, as that model's own
+    detections count; the ground's confirm_score (0.9) holds where the drone does not say, or when told to."""
+    import numpy as np
+
+    from ground.apples.association import Apple, Detection
+    from ground.apples.counting import CountingSettings
+    from ground.pipeline import GroundPipeline, GroundSettings
+    from pomar import wire
+
+    cam = {"model": "PINHOLE", "width": 640, "height": 360, "params": [300.0, 300.0, 320.0, 180.0]}
+    for said, own, want in ((0.75, True, 0.75), (None, True, 0.9), (0.75, False, 0.9)):
+        pipe = GroundPipeline(tmp_path / f"work-{said}-{own}",
+                              GroundSettings(counting=CountingSettings(confirm_at_model_score=own)))
+        pipe.start(wire.CameraMessage("f", "d", cam, 10.0, operating_score=said), step=False)
+        assert pipe.apples.count.confirm_score == want
+        pipe.apples.frames.frame = list(range(5))
+        a = Apple(7, np.zeros(3), [Detection(f, 0, score=0.8) for f in range(4)], 0.5)
+        assert bool(pipe.apples.count.confirm([a], pipe.arrivals.steps)) == (want < 0.8)
+        assert pipe.apples.count.report()["confirm_score"] == want
+
+
 def test_a_resumed_ground_waits_for_the_frames_its_history_brings(replay_test_flight, tmp_path):
     """A restarted ground gets the frames it missed from the publisher's history and the live ones at once, in either
     order: while it holds gaps, the later frames wait for the missing ones, and none is dropped as late."""

@@ -376,6 +376,20 @@ def test_a_camera_message_carries_the_detectors_box_response():
             wire.CameraMessage.decode(msgpack.packb(d))
 
 
+def test_a_camera_message_carries_the_score_its_model_operates_at():
+    cam = {"model": "PINHOLE", "width": 8, "height": 6, "params": [1, 1, 4, 3]}
+    m = wire.CameraMessage("f", "d", cam, 10.0, score_thresh=0.5, operating_score=0.75)
+    back = wire.CameraMessage.decode(m.encode())
+    assert back.operating_score == pytest.approx(0.75) and back.score_thresh == pytest.approx(0.5)
+    assert wire.CameraMessage.decode(wire.CameraMessage("f", "d", cam, 10.0).encode()).operating_score is None
+    import msgpack
+
+    d = msgpack.unpackb(m.encode())
+    d["ops"] = -0.2
+    with pytest.raises(wire.WireError, match="operating score"):
+        wire.CameraMessage.decode(msgpack.packb(d))
+
+
 def test_a_camera_message_carries_the_score_the_drone_publishes_from():
     cam = {"model": "PINHOLE", "width": 8, "height": 6, "params": [1, 1, 4, 3]}
     assert wire.CameraMessage.decode(wire.CameraMessage("f", "d", cam, 10.0, score_thresh=0.7).encode()

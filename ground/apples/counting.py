@@ -26,6 +26,9 @@ class CountingSettings:
     #: onboard node that sends detections down to 0.7 gives longer tracks without counting apples that
     #: are only ever glimpsed (bundled flight, journal re-run: F1 0.832 -> 0.865, count +4.7 %).
     confirm_score: float = 0.9
+    #: Where the drone's camera message gives its model's operating score, confirm at that instead of confirm_score:
+    #: a view counts as the model's own detections do, whichever model flies (issue 70).
+    confirm_at_model_score: bool = True
     #: ... at the full frame rate. When the ground gets only every s-th frame (a real-time onboard node
     #: that drops what it cannot detect in time), ceil(confirm_views / s) views, at least 2, are asked
     #: for: an apple is in fewer of the frames sent (real-time replays, journal re-run: bundled flight F1
@@ -61,6 +64,8 @@ class Counting:
         self.camera = None  # pomar.camera.Camera, once known: the expected views need its size and focal length
         #: how the drone's detector's boxes answer an apple's size (wire.CameraMessage.box_response), once known
         self.box_response: tuple[float, float] | None = None
+        #: the drone's model's operating score (wire.CameraMessage.operating_score), once known
+        self.model_score: float | None = None
         self.apples: dict[int, Apple] = {}  # confirmed apples, by id
         self.radius: dict[int, float] = {}  # apple id -> radius from its boxes and depths (map frame's unit)
         self.size: dict[int, float] = {}  # apple id -> the fruit's radius, from its least hidden views (map's unit)
@@ -68,6 +73,14 @@ class Counting:
         self.size_rejected = 0  # confirmed apples left out of the map by the size check (counted_ids)
         self.views_rejected = 0  # ... by the expected views
         self.parallax_rejected = 0  # ... and by the parallax of their views
+
+    @property
+    def confirm_score(self) -> float:
+        """The score a view needs to confirm an apple: the drone's model's own operating score where its camera
+        message says it (and confirm_at_model_score), else confirm_score."""
+        if self.s.confirm_at_model_score and self.model_score is not None:
+            return float(self.model_score)
+        return self.s.confirm_score
 
     def views_needed(self, steps) -> int:
         """Strong views an apple needs to count, given how sparse the frames that reach the ground are (``steps``:
@@ -81,7 +94,7 @@ class Counting:
         """Put the apples (new, or updated by a merge) with enough strong views into the map; returns them."""
         out = []
         need = self.views_needed(steps) if apples else 0
-        threshold = np.float32(self.s.confirm_score)  # scores are float32 on the wire: compared as such
+        threshold = np.float32(self.confirm_score)  # scores are float32 on the wire: compared as such
         for a in apples:
             strong = sum(int(np.float32(o.score) >= threshold) for o in self.in_reach(a))
             # a merge may bring views from beyond the association's reach: never count down
@@ -201,7 +214,10 @@ class Counting:
 
     def report(self) -> dict:
         """The counting's part of report.json."""
-        return {"confirmed": len(self.apples), "min_radius_ratio": self.s.min_radius_ratio,
+        return {"confirmed": len(self.apples), "confirm_score": self.confirm_score,
+                "confirm_score_from": ("the drone's model (its operating score)" if self.s.confirm_at_model_score
+                                       and self.model_score is not None else "the ground's setting"),
+                "min_radius_ratio": self.s.min_radius_ratio,
                 "left_out_small": self.size_rejected, "min_view_ratio": self.s.min_view_ratio,
                 "left_out_few_views": self.views_rejected,
                 "min_parallax_deg": self.s.min_parallax_deg, "left_out_narrow": self.parallax_rejected}
