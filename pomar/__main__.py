@@ -102,10 +102,7 @@ def _cmd_plan(args) -> int:
         camera, source = Camera.load(name), name
     else:
         camera, source = camera_for(name, drone.video_width, drone.video_height)
-    try:
-        detector = json.loads(Path(args.model).read_text())
-    except json.JSONDecodeError as e:
-        raise PlanError(f"{args.model}: not a detector's metadata (not valid JSON: {e.msg})") from None
+    detector = cli.read_json(args.model, PlanError)
     if not isinstance(detector, dict) or not detector.get("apple_radius_px"):
         raise PlanError(f"{args.model}: no apple_radius_px in the detector's metadata: it does not say its apple size")
     try:

@@ -14,6 +14,22 @@ class InputError(Exception):
     message names the file and what is wrong. Each reader's own error class derives from it."""
 
 
+def read_json(path, error=InputError):
+    """A JSON file's content; ``error`` (an InputError class) naming the file where it cannot be read or is not
+    JSON."""
+    import json
+    from pathlib import Path
+
+    path = Path(path)
+    try:
+        return json.loads(path.read_text())
+    except OSError as e:
+        raise error(f"{path}: cannot be read ({e.strerror or e})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        why = f"{e.msg}, line {e.lineno}" if isinstance(e, json.JSONDecodeError) else "not text"
+        raise error(f"{path}: not JSON ({why})") from None
+
+
 def run(command, args) -> int:
     """``command(args)``'s exit code; an InputError, or a file the system refuses (OSError: missing, unreadable, a
     full disk; it names the file), is one line on stderr and exit 2."""

@@ -7,11 +7,10 @@ them, as a grower lands with a quarter or more left (DJI's low-battery return co
 
 from __future__ import annotations
 
-import json
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
-from pomar.cli import InputError
+from pomar.cli import InputError, read_json
 
 #: The share of a battery's rated flight time a plan uses.
 USABLE_SHARE = 0.7
@@ -65,16 +64,13 @@ def load_drone(name_or_path: str) -> Drone:
     if not path.suffix.lower() == ".json":
         raise DroneError(f"{name_or_path}: not a drone this tool knows ({', '.join(DRONES)}), nor a .json file "
                          f"with a drone's fields")
-    try:
-        d = json.loads(path.read_text())
-    except OSError as e:
-        raise DroneError(f"{path}: cannot be read ({e.strerror or e})") from None
-    except json.JSONDecodeError as e:
-        raise DroneError(f"{path}: not JSON ({e.msg}, line {e.lineno})") from None
+    d = read_json(path, DroneError)
     names = {f.name for f in fields(Drone)}
+    if not isinstance(d, dict):
+        raise DroneError(f"{path}: a drone file needs an object of a drone's fields")
     missing = sorted(names - set(d) - {"shutter_s"})
-    if not isinstance(d, dict) or missing:
-        raise DroneError(f"{path}: a drone file needs {', '.join(missing) if isinstance(d, dict) else 'an object'}")
+    if missing:
+        raise DroneError(f"{path}: a drone file needs {', '.join(missing)}")
     try:
         drone = Drone(**{k: v for k, v in d.items() if k in names})
     except TypeError as e:

@@ -10,12 +10,11 @@ refused, as is a file that is not a plan of this tool.
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
 import numpy as np
 
-from pomar.cli import InputError
+from pomar.cli import InputError, read_json
 from pomar.geo import Origin
 
 #: Passes whose along-row ends differ by more than this (m) cannot be one simulated flight's.
@@ -29,12 +28,7 @@ class PlanFileError(InputError, ValueError):
 def read_plan(path) -> dict:
     """plan.json of ``python -m pomar plan``; a PlanFileError naming the file for anything else."""
     path = Path(path)
-    try:
-        d = json.loads(path.read_text())
-    except OSError as e:
-        raise PlanFileError(f"{path}: cannot be read ({e.strerror or e})") from None
-    except json.JSONDecodeError as e:
-        raise PlanFileError(f"{path}: not JSON ({e.msg}, line {e.lineno})") from None
+    d = read_json(path, PlanFileError)
     if not isinstance(d, dict) or d.get("format") != "pomar-plan/1":
         raise PlanFileError(f"{path}: not a plan of python -m pomar plan (no format pomar-plan/1)")
     for key in ("height_m", "speed_mps", "gimbal_pitch_deg", "flights"):
