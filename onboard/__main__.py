@@ -16,7 +16,7 @@ from pathlib import Path
 from onboard.node import NodeSettings
 from onboard.numbering import default_state_dir
 from pomar import cli
-from pomar.countable import PUBLISH_SCORE
+from pomar.countable import PUBLISH_BELOW, PUBLISH_SCORE, publish_score
 from pomar.settings import add_options
 from pomar.telemetry import mount_arguments
 
@@ -126,9 +126,11 @@ def _detector(args, flight_dir=None):
     if args.detector == "onnx":
         from onboard.detector import OnnxDetector
 
-        thresh = PUBLISH_SCORE if args.score_thresh is None else args.score_thresh
-        return OnnxDetector(args.model, providers=args.providers, score_thresh=thresh, tile_size=args.tile_size,
-                            threads=args.threads)
+        det = OnnxDetector(args.model, providers=args.providers, score_thresh=args.score_thresh,
+                           tile_size=args.tile_size, threads=args.threads)
+        if args.score_thresh is None:  # the publish score follows the model's operating score (its JSON's)
+            det.score_thresh = publish_score(det.meta.get("score_thresh"))
+        return det
     from onboard.replay_detector import TruthReplayDetector
 
     if flight_dir is None:
@@ -178,8 +180,8 @@ def _detector_options(r):
     r.add_argument("--providers", nargs="+", help="onnxruntime execution providers, in order of preference "
                    "(default CPUExecutionProvider; e.g. CUDAExecutionProvider TensorrtExecutionProvider)")
     r.add_argument("--score-thresh", type=float, help="publish the detections scored at least this (default "
-                   f"{PUBLISH_SCORE}, pomar.countable.PUBLISH_SCORE: weaker than the count's confirm score, they "
-                   "extend tracks)")
+                   f"{PUBLISH_SCORE}, pomar.countable.PUBLISH_SCORE, or {PUBLISH_BELOW} under the model's operating "
+                   "score where that is lower: weaker than the count's confirm score, they extend tracks)")
     r.add_argument("--tile-size", type=int, default=1344, help="frames larger than this are tiled")
     r.add_argument("--threads", type=int, help="onnxruntime intra-op threads")
     add_options(r, NodeSettings(), SCALE_FIELDS)

@@ -30,6 +30,18 @@ IGNORE_ABOVE = 0.05
 #: the tracks, and the count decides which apples count. The camera message says what the drone sent; a ground given
 #: less says so in its log and report.json.
 PUBLISH_SCORE = 0.7
+#: ... and, for a model whose operating score (its JSON's ``score_thresh``, where the count confirms) lies closer to it,
+#: from this far below that score: the band of weak views the tracks were tuned with (0.7 under the default's 0.9). A
+#: model confirming at 0.75 and publishing from 0.7 lost 2-4 % of each tuning flight's 3-D F1 (docs/benchmarks.md).
+PUBLISH_BELOW = 0.2
+
+
+def publish_score(operating_score: float | None) -> float:
+    """The score the onboard node publishes detections from, for a model of this operating score (None: unknown):
+    PUBLISH_SCORE, or PUBLISH_BELOW under the operating score where that is lower."""
+    if operating_score is None:
+        return PUBLISH_SCORE
+    return max(0.0, min(PUBLISH_SCORE, float(operating_score) - PUBLISH_BELOW))
 
 
 def visible(visible_fraction) -> np.ndarray:

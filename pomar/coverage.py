@@ -27,7 +27,11 @@ SURFACE_POINTS = ALONG * HEIGHTS
 #: The frames looked at: at most this many, evenly spread (neighbouring frames see nearly the same).
 MAX_FRAMES = 400
 #: Columns added to trees.csv (and, averaged over a row's trees, coverage to rows.csv).
-COVERAGE_COLUMNS = ["coverage", "sides_seen", "frames_seen", "range_m", "angle_deg", "apple_px"]
+#: ``cover_left``, ``cover_right``: the share seen of each face, on the row line's left and right looking from its start
+#: to its end (``coverage`` is their mean): where two flights of one orchard are combined, each side's apples come from
+#: the flight that saw that side best.
+COVERAGE_COLUMNS = ["coverage", "cover_left", "cover_right", "sides_seen", "frames_seen", "range_m", "angle_deg",
+                    "apple_px"]
 #: An apple's radius (m) where the map has none measured: the middle of the 60-90 mm of dessert apples.
 DEFAULT_APPLE_RADIUS_M = 0.0375
 
@@ -130,7 +134,7 @@ def tree_coverage(trees: list[dict], rows: list[dict], apples: dict, cams: dict,
     no row has apples enough to measure it (a plan's: DEFAULT_HEDGE)."""
     from scipy.spatial.transform import Rotation
 
-    none = {"coverage": float("nan"), "sides_seen": 0, "frames_seen": 0, "range_m": float("nan"),
+    none = {"coverage": float("nan"), "cover_left": float("nan"), "cover_right": float("nan"), "sides_seen": 0, "frames_seen": 0, "range_m": float("nan"),
             "angle_deg": float("nan"), "apple_px": float("nan")}
     canopy = _canopies(apples, rows, default_hedge)
     if not trees or not len(cams["frame"]) or all(c is None for c in canopy):
@@ -183,7 +187,8 @@ def tree_coverage(trees: list[dict], rows: list[dict], apples: dict, cams: dict,
             continue
         mine = seen_at[order[bounds[k]:bounds[k + 1]]]
         med = np.median(mine[:, 2:], 0) if len(mine) else np.full(3, np.nan)
-        out.append({"coverage": float(seen[k].mean()), "sides_seen": int(seen[k].any(1).sum()),
+        out.append({"coverage": float(seen[k].mean()), "cover_left": float(seen[k, 0].mean()),
+                    "cover_right": float(seen[k, 1].mean()), "sides_seen": int(seen[k].any(1).sum()),
                     "frames_seen": int(len(np.unique(mine[:, 0])) * step), "range_m": float(med[0]),
                     "angle_deg": float(np.degrees(np.arccos(np.clip(med[1], -1, 1)))), "apple_px": float(med[2])})
     return out

@@ -404,7 +404,7 @@ class CameraMessage:
     #: The smallest apple radius (px, as the detector sees it) the drone's detector finds reliably: its model's
     #: envelope (``min_apple_radius_px``); 0: not said. The ground counts the frames whose apples reached it smaller.
     min_apple_radius_px: float = 0.0
-    #: The drone publishes detections scored at least this (pomar.countable.PUBLISH_SCORE unless told otherwise);
+    #: The drone publishes detections scored at least this (pomar.countable.publish_score unless told otherwise);
     #: None: not said (a truth stand-in, or a node before it).
     score_thresh: float | None = None
     #: What the frames' altitudes are measured from (one of ALTITUDE_REFERENCES); None: not said (a node before it;

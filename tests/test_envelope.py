@@ -74,3 +74,31 @@ def test_a_drone_that_publishes_fewer_detections_than_the_tracks_need_is_said_on
     for argv in (["onboard", "run", "--help"], ["onboard", "live", "--help"]):
         out = subprocess.run([sys.executable, "-m", *argv], capture_output=True, text=True, timeout=60).stdout
         assert f"(default {PUBLISH_SCORE}, pomar.countable.PUBLISH_SCORE" in " ".join(out.split())
+
+
+def test_the_publish_score_follows_the_models_operating_score(caplog):
+    """A model that stands by its detections from 0.75 publishes from PUBLISH_BELOW under it, as the default (0.9)
+    publishes from 0.7: the band of weak views the tracks extend with. The onboard node takes it from the model's
+    JSON; a ground whose drone's model says 0.75 but publishes from 0.7 says it fell short."""
+    from argparse import Namespace
+
+    from onboard.__main__ import _detector
+    from pomar.countable import PUBLISH_BELOW, PUBLISH_SCORE, publish_score
+
+    assert publish_score(None) == PUBLISH_SCORE and publish_score(0.9) == PUBLISH_SCORE
+    assert abs(publish_score(0.75) - (0.75 - PUBLISH_BELOW)) < 1e-9 and publish_score(0.1) == 0.0
+    models = Path(__file__).resolve().parents[1] / "onboard" / "models"
+    for name in ("apple-detector.onnx", "apple-detector-mv2.onnx"):
+        own = json.loads((models / name).with_suffix(".json").read_text())["score_thresh"]
+        det = _detector(Namespace(detector="onnx", model=str(models / name), providers=None, score_thresh=None,
+                                  tile_size=1344, threads=1))
+        assert abs(det.score_thresh - publish_score(own)) < 1e-9, name
+    seen = ApplesSeen()
+    seen.take(wire.decode(wire.CameraMessage("f", "d", CAM, 10.0, score_thresh=publish_score(0.75),
+                                             operating_score=0.75).encode()))
+    assert not seen.detections()["short"]
+    with caplog.at_level(logging.WARNING, logger="ground.link.envelope"):
+        seen.take(wire.decode(wire.CameraMessage("f", "d", CAM, 10.0, score_thresh=PUBLISH_SCORE,
+                                                 operating_score=0.75).encode()))
+    assert seen.detections() == {"published_from": PUBLISH_SCORE, "needed_from": publish_score(0.75), "short": True}
+    assert any("the tracks need them from 0.55" in m for m in caplog.messages)

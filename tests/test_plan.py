@@ -186,14 +186,20 @@ def test_each_flight_is_written_for_the_apps_and_reads_back(tmp_path):
                 assert funcs.count("startRecord") == 1 and funcs.count("stopRecord") == 1
 
 
-def test_plan_render_replay_load_end_to_end(tmp_path):
-    """A small simulated orchard (2 rows of 8 m), planned on its layout before any flight (`sim layout --config`),
-    the plan flown by the simulator (`sim flight --plan`: its lines, height, speed and pitch), replayed with the
-    layout, and its loads calibrated by hand counts of four trees: every tree of both rows seen from both sides in
-    the map's coverage, as the plan said, and the video as long as the plan's passes."""
+def test_plan_render_replay_combine_load_end_to_end(tmp_path):
+    """A small simulated orchard (2 rows of 8 m), planned on its layout before any flight (`sim layout --config`) for
+    a drone of one short battery, so that the plan is two flights of a row each; each flight flown by the simulator
+    (`sim flight --plan --plan-flight`: its lines, height, speed and pitch), replayed with the layout, the two maps
+    combined (`ground combine`), and the combined map's loads calibrated by hand counts of four trees: every tree of
+    both rows seen from both sides, as the plan said, no apple counted twice, and each video as long as its passes."""
     cfg = tmp_path / "orchard.toml"
     cfg.write_text('seed = 7301\nflight_id = "plan-e2e"\n[orchard]\nrows = 2\nrow_length_m = 8.0\n[apples]\n'
                    'per_tree = 12.0\n[flight]\nfps = 3.0\n[camera]\nwidth = 1280\nheight = 720\nhfov_deg = 50.0\n')
+    drone = tmp_path / "drone.json"  # a battery for one row's two passes (0.6 min of 0.9 usable), not two rows'
+    drone.write_text(json.dumps({"name": "short-battery", "what": "a test drone", "battery_min": 1.3,
+                                 "max_speed_mps": 10.0, "min_speed_mps": 0.5, "climb_mps": 3.0,
+                                 "camera": "phantom-4-pro", "video_width": 1280, "video_height": 720,
+                                 "video_fps": 30.0}))
     py = [sys.executable, "-m"]
 
     def ok(*cmd, timeout=600):
@@ -203,27 +209,43 @@ def test_plan_render_replay_load_end_to_end(tmp_path):
 
     ok("sim", "layout", "--config", cfg, "--out", tmp_path / "orchard.csv")
     from pomar.camera import Camera
-
-    Camera.from_fov(1280, 720, 50.0).save(tmp_path / "camera.json")
-    ok("pomar", "plan", tmp_path / "orchard.csv", "--drone", "generic-quad", "--camera", tmp_path / "camera.json",
-       "--fps", "3", "--shutter-s", "0.004", "--out", tmp_path / "plan")
-    plan = json.loads((tmp_path / "plan" / "plan.json").read_text())
-    assert plan["coverage"]["trees_both_sides"] == plan["coverage"]["trees"] == 16
-    ok("sim", "flight", "--config", cfg, "--plan", tmp_path / "plan" / "plan.json", "--out", tmp_path / "flight",
-       "--quiet")
     from pomar.flight import FlightDir
 
-    # the video: the plan's path (its passes and the hops between them) at the plan's speed, within 10 %
-    meta = FlightDir(tmp_path / "flight").meta()
-    o = Origin(plan["origin"]["lat"], plan["origin"]["lon"], 0.0)
-    path = np.array([o.to_enu(w["lat"], w["lon"], 0.0)[:2] for w in plan["flights"][0]["waypoints"]])
-    path_s = np.linalg.norm(np.diff(path, axis=0), axis=1).sum() / plan["speed_mps"]
-    assert abs(meta.frame_count / meta.fps / path_s - 1) < 0.1, (meta.frame_count / meta.fps, path_s)
-    ok("ground", "replay", tmp_path / "flight", "--orchard", tmp_path / "orchard.csv", "--out", tmp_path / "map",
-       timeout=900)
+    Camera.from_fov(1280, 720, 50.0).save(tmp_path / "camera.json")
+    ok("pomar", "plan", tmp_path / "orchard.csv", "--drone", drone, "--camera", tmp_path / "camera.json",
+       "--fps", "3", "--shutter-s", "0.004", "--out", tmp_path / "plan")
+    plan = json.loads((tmp_path / "plan" / "plan.json").read_text())
+    assert plan["coverage"]["trees_both_sides"] == plan["coverage"]["trees"] == 16 and len(plan["flights"]) == 2
+    maps = []
+    for n, flight in enumerate(plan["flights"], start=1):
+        ok("sim", "flight", "--config", cfg, "--plan", tmp_path / "plan" / "plan.json", "--plan-flight", n,
+           "--out", tmp_path / f"flight-{n}", "--quiet")
+        # the video: the plan's path (its passes and the hops between them) at the plan's speed, within 10 %
+        meta = FlightDir(tmp_path / f"flight-{n}").meta()
+        o = Origin(plan["origin"]["lat"], plan["origin"]["lon"], 0.0)
+        path = np.array([o.to_enu(w["lat"], w["lon"], 0.0)[:2] for w in flight["waypoints"]])
+        path_s = np.linalg.norm(np.diff(path, axis=0), axis=1).sum() / plan["speed_mps"]
+        assert abs(meta.frame_count / meta.fps / path_s - 1) < 0.1, (n, meta.frame_count / meta.fps, path_s)
+        ok("ground", "replay", tmp_path / f"flight-{n}", "--orchard", tmp_path / "orchard.csv", "--out",
+           tmp_path / f"map-{n}", timeout=900)
+        maps.append(tmp_path / f"map-{n}")
+    ok("ground", "combine", *maps, "--out", tmp_path / "map")
     trees = list(csv.DictReader(open(tmp_path / "map" / "trees.csv")))
     assert len(trees) == 16 and all(int(t["sides_seen"]) == 2 for t in trees), [t["sides_seen"] for t in trees]
-    ok("sim", "counts", tmp_path / "flight", "--out", tmp_path / "counts.csv", "--trees", "1:2", "1:6", "2:3", "2:7")
+    # each face of each tree from one flight: the combined count is each face's count in the map that gave it
+    apples = [list(csv.DictReader(open(m / "apples.csv"))) for m in maps]
+    combined = list(csv.DictReader(open(tmp_path / "map" / "apples.csv")))
+    for t in trees:
+        for side in ("left", "right"):
+            mine = [a for a in combined if (a["row"], a["tree"], a["side"]) == (t["row"], t["tree"], side)]
+            given = {a["flight"] for a in mine}
+            assert len(given) <= 1
+            if given:
+                k = int(given.pop()) - 1
+                assert len(mine) == sum((a["row"], a["tree"], a["side"]) == (t["row"], t["tree"], side)
+                                        for a in apples[k])
+    assert sum(int(t["count"]) for t in trees) == len(combined) <= sum(len(a) for a in apples)
+    ok("sim", "counts", tmp_path / "flight-1", "--out", tmp_path / "counts.csv", "--trees", "1:2", "1:6", "2:3", "2:7")
     ok("ground", "load", tmp_path / "map", "--sample-counts", tmp_path / "counts.csv")
     rows = list(csv.DictReader(open(tmp_path / "map" / "rows.csv")))
     assert [r["row"] for r in rows] == ["1", "2"] and all(float(r["load"]) > 0 for r in rows)

@@ -1,5 +1,5 @@
 """What the drone's detector gives the ground, against what the ground needs: the apples' size, frame by frame,
-against the smallest it finds reliably; and the score it publishes detections from, against PUBLISH_SCORE.
+against the smallest it finds reliably; and the score it publishes detections from, against the one its tracks need (pomar.countable.publish_score).
 
     seen = ApplesSeen()
     seen.take(msg)          # every message: the camera message gives fx, the detector's minimum and its published score
@@ -21,7 +21,7 @@ import numpy as np
 from pomar import wire
 from pomar.apple_scale import expected_radius_px, off_nadir_deg
 from pomar.camera import Camera
-from pomar.countable import PUBLISH_SCORE
+from pomar.countable import publish_score
 
 log = logging.getLogger(__name__)
 
@@ -36,18 +36,20 @@ class ApplesSeen:
         self.below: list[int] = []  # frames whose apples reached the detector under min_px
         self._warned = False
         self.published_from: float | None = None  # the drone's published score (None: not said)
+        self.needed_from = publish_score(None)  # the score the tracks need views from, for the drone's model
 
     def take(self, msg) -> None:
         if isinstance(msg, wire.CameraMessage):
             self.camera = Camera.from_dict(msg.camera, source="camera message")  # the wire checked it already
             self.fx = self.camera.fx
             self.min_px = float(msg.min_apple_radius_px or 0.0)
-            if msg.score_thresh is not None and msg.score_thresh != self.published_from:
-                self.published_from = float(msg.score_thresh)
+            needed = publish_score(msg.operating_score)
+            if msg.score_thresh is not None and (msg.score_thresh, needed) != (self.published_from, self.needed_from):
+                self.published_from, self.needed_from = float(msg.score_thresh), needed
                 if self.short():
                     log.warning("the drone publishes detections scored %.2f and more: the tracks need them from %.2f "
-                                "(pomar.countable.PUBLISH_SCORE), so apples seen weakly in some views may go uncounted "
-                                "(start the onboard node without --score-thresh)", self.published_from, PUBLISH_SCORE)
+                                "(pomar.countable.publish_score), so apples seen weakly in some views may go uncounted "
+                                "(start the onboard node without --score-thresh)", self.published_from, needed)
         elif isinstance(msg, wire.FrameMessage) and np.isfinite(self.fx):
             self.scales[int(msg.frame)] = float(msg.scale)
             tel = msg.telemetry
@@ -66,10 +68,10 @@ class ApplesSeen:
 
     def short(self) -> bool:
         """Whether the drone left out detections the ground's tracks need."""
-        return self.published_from is not None and self.published_from > PUBLISH_SCORE
+        return self.published_from is not None and self.published_from > self.needed_from + 1e-6
 
     def detections(self) -> dict:
-        return {"published_from": self.published_from, "needed_from": PUBLISH_SCORE, "short": self.short()}
+        return {"published_from": self.published_from, "needed_from": self.needed_from, "short": self.short()}
 
     def report(self) -> dict:
         r = np.asarray(self.radii, float)

@@ -35,6 +35,41 @@ def _lines(layout: list[LayoutRow], origin) -> list[dict]:
     return out
 
 
+def _place(xy: np.ndarray, lines: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each apple's row number (OUTSIDE for none), its tree's index in that row (from 0) and its signed offset from
+    the row's line (m, positive on the line's left, looking from its start to its end)."""
+    n = len(xy)
+    row_of = np.full(n, OUTSIDE, int)
+    tree_of = np.zeros(n, int)
+    signed = np.zeros(n)
+    best = np.full(n, np.inf)  # |across| of the strip an apple was given to: the nearest line wins where strips meet
+    for L in lines:
+        s = L["row"].tree_spacing_m
+        along, off = (xy - L["a"]) @ L["u"], (xy - L["a"]) @ L["n"]
+        across = np.abs(off)
+        inside = ((along >= min(0.0, L["along"][0] - s / 2)) & (along <= max(L["length"], L["along"][-1] + s / 2))
+                  & (across <= L["half_width"]) & (across < best))
+        row_of[inside], best[inside], signed[inside] = L["row"].row, across[inside], off[inside]
+        tree_of[inside] = np.clip(np.rint((along[inside] - L["along"][0]) / s), 0, len(L["along"]) - 1).astype(int)
+    return row_of, tree_of, signed
+
+
+#: An apple's side of its row, in apples.csv: on the row line's left or right, looking from its start to its end (the
+#: face a camera on that side sees); empty outside every row, or without a layout.
+LEFT, RIGHT = "left", "right"
+
+
+def apple_places(table: dict, layout: list[LayoutRow], origin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each apple of ``table`` (ENU) on the layout: its row number (OUTSIDE for none), its tree number (from 1; 0
+    outside) and its side of the row (LEFT, RIGHT; "" outside): apples.csv's ``row``, ``tree`` and ``side``."""
+    n = len(table["id"])
+    xy = np.stack([table["x"], table["y"]], 1) if n else np.zeros((0, 2))
+    row_of, tree_of, signed = _place(xy, _lines(layout, origin))
+    inside = row_of != OUTSIDE
+    side = np.where(~inside, "", np.where(signed >= 0, LEFT, RIGHT)).astype(object)
+    return row_of, np.where(inside, tree_of + 1, 0), side
+
+
 def orchard_rows(table: dict, layout: list[LayoutRow], origin) -> tuple[np.ndarray, list[dict], list[dict]]:
     """The apples of ``table`` (apple_table's columns, ENU) on the layout's rows and trees: (each apple's row number,
     OUTSIDE for none; the rows' records as rows_summary gives them, every row of the layout, in its order; the trees'
@@ -42,16 +77,7 @@ def orchard_rows(table: dict, layout: list[LayoutRow], origin) -> tuple[np.ndarr
     lines = _lines(layout, origin)
     n = len(table["id"])
     xy = np.stack([table["x"], table["y"]], 1) if n else np.zeros((0, 2))
-    row_of = np.full(n, OUTSIDE, int)
-    tree_of = np.zeros(n, int)
-    best = np.full(n, np.inf)  # |across| of the strip an apple was given to: the nearest line wins where strips meet
-    for L in lines:
-        s = L["row"].tree_spacing_m
-        along, across = (xy - L["a"]) @ L["u"], np.abs((xy - L["a"]) @ L["n"])
-        inside = ((along >= min(0.0, L["along"][0] - s / 2)) & (along <= max(L["length"], L["along"][-1] + s / 2))
-                  & (across <= L["half_width"]) & (across < best))
-        row_of[inside], best[inside] = L["row"].row, across[inside]
-        tree_of[inside] = np.clip(np.rint((along[inside] - L["along"][0]) / s), 0, len(L["along"]) - 1).astype(int)
+    row_of, tree_of, _ = _place(xy, lines)
     z_all = float(np.median(table["z"])) if n else 0.0
     rows, trees = [], []
     for L in lines:

@@ -116,8 +116,23 @@ def _cmd_choose(args) -> int:
     return 0
 
 
+def _cmd_combine(args) -> int:
+    from ground.orchard.combine import write_combined
+
+    report = write_combined([Path(m) for m in args.maps], Path(args.out))
+    cov = report["orchard"]["coverage"] or {}
+    print(f"wrote {args.out}: {report['apples']} apples from {len(args.maps)} maps, each face of each tree from the map "
+          f"that saw it best; tree coverage {cov.get('mean', float('nan')):.2f} (mean), "
+          f"{cov.get('trees_both_sides', 0)} of {cov.get('trees', 0)} trees seen from both sides")
+    for m in report["combined"]["maps"]:
+        print(f"  {m['map']}: {m['faces_given']['left']} left and {m['faces_given']['right']} right faces, "
+              f"{m['apples_given']} of its {m['apples_in_map']} apples")
+    print(f"give {args.out} to `ground choose-trees` and `ground load` as one flight's map")
+    return 0
+
+
 def add_orchard_commands(sub) -> None:
-    """The three commands' parsers, on `python -m ground`'s subparsers."""
+    """The grower's commands' parsers, on `python -m ground`'s subparsers."""
     lo = sub.add_parser("layout", help="write an orchard layout file (row,start,end,tree spacing) from a finished "
                                        "map, for the grower to check and correct; or check one (--check)",
                         description=__import__("pomar.layout", fromlist=["x"]).__doc__,
@@ -143,3 +158,11 @@ def add_orchard_commands(sub) -> None:
     ch.add_argument("--out", required=True, help="the sample-count file to write, its apples column empty")
     add_options(ch, GroundSettings(), ["load_model"])
     ch.set_defaults(func=_cmd_choose)
+    co = sub.add_parser("combine", help="several flights of one orchard as one map (a plan's split flights, or one "
+                                        "flight per side): each face of each tree from the flight that saw it best",
+                        description=__import__("ground.orchard.combine", fromlist=["x"]).__doc__,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)
+    co.add_argument("maps", nargs="+", help="the finished maps' folders, each replayed with the same --orchard layout")
+    co.add_argument("--out", required=True, help="the combined map's folder (rows.csv, trees.csv, apples.csv, "
+                                                 "report.json)")
+    co.set_defaults(func=_cmd_combine)

@@ -14,11 +14,12 @@ def orchard_tables(table: dict, direction: float, snap, cams: dict, sight, growe
     layout = growers.layout if growers is not None else None
     on_layout = table  # the apples, and the cameras, where the layout's rows are: the map shifted onto them
     if layout is not None and snap.to_enu is not None and snap.origin is not None:
-        from ground.orchard.assign import OUTSIDE, orchard_rows
+        from ground.orchard.assign import OUTSIDE, apple_places, orchard_rows
         from ground.orchard.register import register_to_layout
 
         on_layout, cams, shift = register_to_layout(table, cams, layout, snap.origin)
         table["row"], rows, trees = orchard_rows(on_layout, layout, snap.origin)
+        _, table["tree"], table["side"] = apple_places(on_layout, layout, snap.origin)
         on_layout["row"] = table["row"]
         info = {"numbering": "layout", "layout": str(growers.layout_path),
                 "apples_outside": int((table["row"] == OUTSIDE).sum()), "layout_shift": shift}

@@ -82,6 +82,7 @@ def apple_table(snap) -> tuple[dict[str, np.ndarray], float]:
     return {"id": np.array(ids, int), "x": enu[:, 0], "y": enu[:, 1], "z": enu[:, 2],
             "lat": geo[:, 0], "lon": geo[:, 1], "alt": geo[:, 2],
             "row": np.asarray(rows, int) + 1,
+            "tree": np.zeros(len(A), int), "side": np.full(len(A), "", dtype=object),  # on a layout (ground.orchard)
             "radius_m": np.array([snap.size.get(i, np.nan) for i in ids], float) * snap.metres_per_unit,
             "observations": np.array([a.n_observations for a in A], int),
             "reprojection_error_px": np.array([a.reprojection_error for a in A], float),
@@ -126,8 +127,10 @@ def pose_table(snap) -> dict[str, np.ndarray]:
             "sigma_m": np.array([p.sigma_m for p in P])}
 
 
-APPLE_COLUMNS = ["id", "x", "y", "z", "lat", "lon", "alt", "row", "radius_m", "observations", "reprojection_error_px",
-                 "first_frame", "last_frame"]
+#: ``tree`` and ``side``: with an orchard layout, the apple's tree (numbered from 1 along its row; 0 outside) and its side
+#: of the row (ground.orchard.assign.LEFT, RIGHT); without one, 0 and empty.
+APPLE_COLUMNS = ["id", "x", "y", "z", "lat", "lon", "alt", "row", "tree", "side", "radius_m", "observations",
+                 "reprojection_error_px", "first_frame", "last_frame"]
 ROW_COLUMNS = ["row", "count", "length_m", "apples_per_m", "start_x", "start_y", "end_x", "end_y",
                "start_lat", "start_lon", "end_lat", "end_lon", "coverage", "load", "load_lo", "load_hi",
                "diameter_mm", "share_lt60", "share_60_70", "share_70_80", "share_gt80", "apple_kg", "kg", "kg_lo",
@@ -238,13 +241,14 @@ def rows_csv(rows: list[dict]) -> str:
 
 #: With what each tree's canopy showed the camera (pomar.coverage.COVERAGE_COLUMNS): empty where not known.
 #: And the load estimated from the hand counts (ground.orchard.calibration.LOAD_COLUMNS): empty without them.
-TREE_COLUMNS = ["row", "tree", "along_m", "x", "y", "lat", "lon", "count", "coverage", "sides_seen", "frames_seen",
-                "range_m", "angle_deg", "apple_px", "hand_count", "load", "load_lo", "load_hi"]
+TREE_COLUMNS = ["row", "tree", "along_m", "x", "y", "lat", "lon", "count", "coverage", "cover_left", "cover_right",
+                "sides_seen", "frames_seen", "range_m", "angle_deg", "apple_px", "hand_count", "load", "load_lo",
+                "load_hi"]
 
 
 def trees_csv(trees: list[dict]) -> str:
     return records_csv(trees, TREE_COLUMNS, {"along_m": ".2f", "x": ".3f", "y": ".3f", "lat": ".9f", "lon": ".9f",
-                                             "coverage": ".3f", "range_m": ".2f", "angle_deg": ".1f", "apple_px": ".2f",
+                                             "coverage": ".3f", "cover_left": ".3f", "cover_right": ".3f", "range_m": ".2f", "angle_deg": ".1f", "apple_px": ".2f",
                                              "load": ".1f", "load_lo": ".1f", "load_hi": ".1f"})
 
 
