@@ -9,7 +9,7 @@ PY := $(VENV)/bin/python
 LOCK := requirements.lock
 # the demo needs no torch; the tests also cover training/export (torch, torchvision: the export extra)
 EXTRAS ?= onboard,ground,sim,dev
-TEST_EXTRAS ?= onboard,ground,sim,export,dev
+TEST_EXTRAS ?= onboard,ground,sim,export,farm,dev
 comma := ,
 STAMP := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 TEST_STAMP := $(VENV)/.installed-$(subst $(comma),-,$(TEST_EXTRAS))

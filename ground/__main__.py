@@ -6,6 +6,8 @@
   run       the ground node: subscribe to a flight over zenoh, map its apples live, log to rerun
   register  register a flight's keyframes with pycolmap (files, no zenoh)
   evaluate  run the association on a simulated flight and score it against the truth
+  batch     replay many flights at once on Dask (a local cluster, or --cluster), and one farm report
+  layout, choose-trees, load, combine: the grower's commands on finished maps (ground/orchard/cli.py)
 """
 
 from __future__ import annotations
@@ -19,6 +21,39 @@ import sys
 from pomar import cli
 from pomar.apple_scale import SCALE_HELP, scale_argument
 from pathlib import Path
+
+
+def _cmd_batch(args) -> int:
+    from ground.batch import BatchSettings, connect, read_flights, run_batch
+    from ground.farm import farm_report
+    from pomar.settings import from_options
+
+    jobs = read_flights(args.flights, args.flights_csv)  # every flight checked before any starts
+    s = from_options(BatchSettings(), args, BATCH_FIELDS)
+    client = connect(s)  # a cluster that does not answer stops the batch here
+    out = Path(args.out)
+    print(f"{len(jobs)} flights in {len({j.block for j in jobs})} blocks; on "
+          f"{s.cluster or 'a local Dask cluster'}; outputs in {out}/", file=sys.stderr)
+    report = run_batch(jobs, out, s, progress=lambda line: print(line, file=sys.stderr, flush=True), client=client)
+    for f in report["flights"]:
+        if f["status"] == "failed":
+            print(f"  {f['name']}: failed after {f['attempts']} attempts: {f['error']}", file=sys.stderr)
+    blocks: dict = {}
+    for j in jobs:
+        b = blocks.setdefault(j.block, {"folders": [], "flights": 0, "counts": j.sample_counts})
+        b["flights"] += 1
+        st = next(f for f in report["flights"] if f["name"] == j.name)["status"]
+        if st in ("done", "skipped"):
+            b["folders"].append(out / j.name)
+    farm = farm_report(out, blocks)
+    print(f"{report['done']} flights replayed, {report['skipped']} done before, {report['failed']} failed "
+          f"({report['wall_s'] / 60:.1f} min); {out}/batch.json; the farm report in {farm['folder']}/ (rows.csv, "
+          "trees.csv, blocks.csv, farm.parquet, farm.png)")
+    return 1 if report["failed"] else 0
+
+
+#: The batch's settings (ground.batch.BatchSettings) that are options.
+BATCH_FIELDS = ["retries", "cpus_per_flight", "memory_per_flight_gb", "resume", "cluster"]
 
 
 def _cmd_evaluate(args) -> int:
@@ -299,6 +334,18 @@ def main(argv=None) -> int:
     from ground.orchard.cli import add_orchard_commands
 
     add_orchard_commands(sub)
+    from ground.batch import BatchSettings
+    from pomar.settings import add_options
+
+    b = sub.add_parser("batch", help="replay many flights at once on Dask (a local cluster, or --cluster ADDRESS), "
+                                     "and one farm report", description=__import__("ground.batch", fromlist=["x"]).__doc__,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
+    b.add_argument("flights", nargs="*", help="flight directories (each its own block)")
+    b.add_argument("--flights", dest="flights_csv", help="a flights CSV (block, flight or video+log+camera; optional "
+                                                         "name, orchard, sample_counts, args)")
+    b.add_argument("--out", required=True, help="the batch's folder: a folder per flight, batch.json, farm/")
+    add_options(b, BatchSettings(), BATCH_FIELDS)
+    b.set_defaults(func=_cmd_batch)
     e = sub.add_parser("evaluate", help="run the association on a simulated flight and score it against the truth",
                        description=evaluate_doc,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
