@@ -6,7 +6,8 @@ give the best maps on tuning flights, measured from one detector run a flight.
 
 Each flight is replayed once lock-step with the drone publishing from the lowest ``--publish`` score (``ground replay
 --detector-score-thresh``); then the ground alone runs again from that replay's journal for each pair (publish P,
-confirm C >= P: ``ground replay FLIGHT --recorded JOURNAL --speed 0 --min-score P --confirm-score C``), as a drone
+confirm C >= P: ``ground replay FLIGHT --recorded JOURNAL --speed 0 --min-score P --confirm-score C
+--no-confirm-at-model-score``), as a drone
 publishing from P would have given it. Prints each pair's F1 and count error (against the simulator's countable
 apples) per flight, their mean F1 and the root mean square of the count errors. Tuning flights only.
 """
@@ -53,7 +54,8 @@ def main(argv=None) -> int:
         replay([str(f), *model, "--detector-score-thresh", str(low)], base, a.reuse)
         for pub, c in pairs:
             ev = replay([str(f), "--recorded", str(base / "journal.bin"), "--speed", "0", "--min-score", str(pub),
-                         "--confirm-score", str(c)], a.out / f.name / f"p{pub:g}-c{c:g}", a.reuse)
+                         "--confirm-score", str(c), "--no-confirm-at-model-score"],
+                        a.out / f.name / f"p{pub:g}-c{c:g}", a.reuse)
             got[(pub, c)].append(ev)
             print(f"{f.name}: publish {pub:g}, confirm {c:g}: F1 {ev['f1']:.3f}, count {ev['count']} for "
                   f"{ev['truth_count']} ({ev['count_error_pct']:+.1f} %)", flush=True)
