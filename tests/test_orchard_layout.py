@@ -282,3 +282,36 @@ def test_readmes_yield_commands_as_written(replayed_test_flight, tmp_path):
         f"error: counts.csv: every one of the {len(hand)} trees counted by hand holds 0 apples: nothing relates the "
         "camera's count to a load (count trees that carry fruit)"), r.stderr
     assert (got / "trees.csv").read_text() == before
+
+
+@pytest.mark.parametrize("scale", [1.0, 1.03])
+def test_the_maps_row_spacing_is_measured_against_the_layouts_and_a_disagreement_is_said(scale):
+    """Issue 75's row-spacing source: five made-up rows 4 m apart, apples on both faces, the map 3 % too large (or
+    true). The map's spacing is measured within its stated 2 sigma, and 3 % off disagrees with the layout's beyond
+    3 sigma of the measurement and a 0.5 % map scale together, where the true map agrees."""
+    from ground.orchard.register import register_to_layout, spacing_check
+
+    origin = Origin(-28.516, -50.8811, 20.0)
+    layout, lines = _tilted_layout(origin, rows=(1, 2, 3, 4, 5), gap=4.0, length=30.0, spacing=1.0, first=0.5)
+    rng = np.random.default_rng(11)
+    pts, cams_at = [], []
+    for s, u, n in lines:
+        for k in range(120):
+            side = 1.0 if k % 2 else -1.0
+            p = s + rng.uniform(1.0, 29.0) * u + side * (0.5 + rng.uniform(-0.2, 0.2)) * n
+            pts.append(p)
+            cams_at.append(p + 3.0 * side * n)
+    centre = np.mean(pts, axis=0)
+    P = centre + scale * (np.array(pts) - centre) + 0.7 * lines[0][2]
+    C = centre + scale * (np.array(cams_at) - centre) + 0.7 * lines[0][2]
+    N = len(P)
+    table = {"id": np.arange(N), "x": P[:, 0], "y": P[:, 1], "z": np.full(N, 2.0), "first_frame": np.arange(N),
+             "last_frame": np.arange(N)}
+    cams = {"frame": np.arange(N), "x": C[:, 0], "y": C[:, 1], "z": np.full(N, 14.0)}
+    _, _, shift = register_to_layout(table, cams, layout, origin)
+    assert shift["rows_measured"] == 5
+    assert abs(shift["map_spacing_m"] - 4.0 * scale) < 2 * shift["map_spacing_sigma_m"], shift
+    assert 0.005 < shift["map_spacing_sigma_m"] / 4.0 < 0.02, shift
+    check = spacing_check(shift, 0.005)
+    assert check["agrees"] == (scale == 1.0), check
+    assert abs(check["factor"] - 1 / scale) < 0.015

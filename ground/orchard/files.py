@@ -4,7 +4,7 @@ not read, or hand counts that cannot calibrate the load model, stop the command 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from ground.orchard.calibration import DEFAULT_MODEL, CalibrationError, check_enough
@@ -19,6 +19,8 @@ class OrchardFiles:
     #: (row, tree) -> apples counted by hand.
     samples: dict | None = None
     samples_path: Path | None = None
+    #: What the flight's log was already told of these files (a warning said once, not at every refresh).
+    warned: set = field(default_factory=set)
 
 
 def read_orchard_files(orchard=None, sample_counts=None, load_model: str = DEFAULT_MODEL) -> OrchardFiles:

@@ -26,6 +26,41 @@ MIN_APPLES = 20
 FACE_PRIOR_M = 0.3
 
 
+#: Apples a row's side needs for its place across the rows to count in the map's row spacing.
+MIN_ROW_APPLES = 10
+#: How far a canopy's face lies off its row's line varies from row to row (m, 1 sigma): vigour, pruning. It bounds how
+#: well one row's apples place its line, however many there are.
+FACE_SD_M = 0.1
+
+
+def map_spacing(across: np.ndarray, side: np.ndarray, shift: float, spacing: float) -> dict:
+    """The rows' spacing as the map has them (its own metres), with its 1-sigma: each row's apples seen from one side
+    (``side`` +1 or -1; 0 unknown) give that face's place across the rows (their median, ``across`` less ``shift``);
+    one line through the rows' places, a face offset for each side, is fitted by weighted least squares (each place's
+    variance its median's plus FACE_SD_M squared). NaN with fewer than two rows measured."""
+    a = across - shift
+    k = np.rint(a / spacing)
+    ks, ys, vs, sides = [], [], [], []
+    for sd in (1, -1):
+        for kk in np.unique(k[side == sd]):
+            sel = (k == kk) & (side == sd)
+            if sel.sum() < MIN_ROW_APPLES:
+                continue
+            y = a[sel]
+            spread = 1.4826 * np.median(np.abs(y - np.median(y)))
+            ks.append(kk), ys.append(np.median(y)), sides.append(sd)
+            vs.append((1.2533 * spread) ** 2 / sel.sum() + FACE_SD_M ** 2)
+    none = {"map_m": float("nan"), "sigma_m": float("nan"), "rows": len(set(ks))}
+    if len(set(ks)) < 2:
+        return none
+    used = sorted(set(sides))
+    X = np.column_stack([np.array(ks)] + [np.array(sides) == sd for sd in used]).astype(float)
+    W = 1.0 / np.array(vs)
+    cov = np.linalg.inv(X.T @ (X * W[:, None]))
+    beta = cov @ (X.T @ (W * np.array(ys)))
+    return {"map_m": float(beta[0]), "sigma_m": float(np.sqrt(cov[0, 0])), "rows": len(set(ks))}
+
+
 def _circular_mean(x: np.ndarray, period: float) -> tuple[float, float]:
     """(the mean of ``x`` taken modulo ``period``, in [-period/2, period/2); its resultant length, 0-1: 1 where every
     value has one phase, 0 where they are spread evenly)."""
@@ -73,8 +108,10 @@ def layout_shift(apples_xy: np.ndarray, cameras_xy: np.ndarray, lines: list[dict
         how = "one side of the rows seen: the apples centred on the line (the face's offset left in)"
     else:
         return none
+    measured = map_spacing(across, side, shift, spacing)
     return {"shift": shift * n, "across_m": shift, "face_m": face, "apples": [int(len(plus)), int(len(minus))],
-            "resultant": float(r), "spacing_m": spacing, "how": how}
+            "resultant": float(r), "spacing_m": spacing, "map_spacing_m": measured["map_m"],
+            "map_spacing_sigma_m": measured["sigma_m"], "rows_measured": measured["rows"], "how": how}
 
 
 def register_to_layout(table: dict, cams: dict, layout, origin) -> tuple[dict, dict, dict]:
@@ -102,3 +139,24 @@ def register_to_layout(table: dict, cams: dict, layout, origin) -> tuple[dict, d
     moved = {**table, "x": np.asarray(table["x"]) - dx, "y": np.asarray(table["y"]) - dy}
     cams = {**cams, "x": np.asarray(cams["x"]) - dx, "y": np.asarray(cams["y"]) - dy}
     return moved, cams, record
+
+
+#: The map's row spacing disagrees with the layout's beyond this many sigmas of their joint uncertainty (the
+#: measurement's and the map scale's): the layout, or the map's scale, is wrong.
+SPACING_SIGMAS = 3.0
+
+
+def spacing_check(shift: dict, scale_sigma_rel: float) -> dict | None:
+    """report.json's ``orchard.row_spacing``: the layout's row spacing against the map's (``shift``: the record
+    :func:`register_to_layout` gives), the factor the map's sizes would take to match the layout (``layout / map``)
+    and its relative 1-sigma, and whether the two agree within SPACING_SIGMAS of their joint uncertainty (the map
+    scale's ``scale_sigma_rel``, NaN: not known, taken as 0). None where the map's spacing was not measured."""
+    layout_m, map_m, sd = (shift.get(k) for k in ("spacing_m", "map_spacing_m", "map_spacing_sigma_m"))
+    if not layout_m or map_m is None or sd is None or not np.isfinite(map_m) or map_m <= 0:
+        return None
+    rel = float(np.hypot(sd / map_m, np.nan_to_num(scale_sigma_rel)))
+    z = abs(np.log(layout_m / map_m)) / rel if rel > 0 else float("inf")
+    return {"layout_m": round(float(layout_m), 3), "map_m": round(float(map_m), 3),
+            "map_sigma_m": round(float(sd), 3), "rows": shift.get("rows_measured"),
+            "factor": round(float(layout_m / map_m), 4), "factor_sigma_pct": round(100.0 * sd / map_m, 2),
+            "sigmas_apart": round(float(z), 2), "agrees": bool(z <= SPACING_SIGMAS)}

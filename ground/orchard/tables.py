@@ -4,6 +4,10 @@ per row, and the load in kilograms."""
 
 from __future__ import annotations
 
+import logging
+
+log = logging.getLogger(__name__)
+
 
 def orchard_tables(table: dict, direction: float, snap, cams: dict, sight, growers, tree_spacing_m: float,
                    load_model: str) -> tuple[list[dict], list[dict], dict, dict | None]:
@@ -15,14 +19,21 @@ def orchard_tables(table: dict, direction: float, snap, cams: dict, sight, growe
     on_layout = table  # the apples, and the cameras, where the layout's rows are: the map shifted onto them
     if layout is not None and snap.to_enu is not None and snap.origin is not None:
         from ground.orchard.assign import OUTSIDE, apple_places, orchard_rows
-        from ground.orchard.register import register_to_layout
+        from ground.orchard.register import register_to_layout, spacing_check
 
         on_layout, cams, shift = register_to_layout(table, cams, layout, snap.origin)
         table["row"], rows, trees = orchard_rows(on_layout, layout, snap.origin)
         _, table["tree"], table["side"] = apple_places(on_layout, layout, snap.origin)
         on_layout["row"] = table["row"]
         info = {"numbering": "layout", "layout": str(growers.layout_path),
-                "apples_outside": int((table["row"] == OUTSIDE).sum()), "layout_shift": shift}
+                "apples_outside": int((table["row"] == OUTSIDE).sum()), "layout_shift": shift,
+                "row_spacing": spacing_check(shift, snap.scale_sigma_rel)}
+        rs = info["row_spacing"]
+        if rs is not None and not rs["agrees"] and "row_spacing" not in growers.warned:
+            growers.warned.add("row_spacing")
+            log.warning("%s: its rows are %.2f m apart, the map's %.2f m (+-%.2f, %.1f sigma apart): the layout, or the "
+                        "map's scale, is wrong", growers.layout_path, rs["layout_m"], rs["map_m"], rs["map_sigma_m"],
+                        rs["sigmas_apart"])
     else:
         from ground.orchard.map_rows import rows_summary, trees_summary
 
