@@ -315,3 +315,19 @@ def test_the_maps_row_spacing_is_measured_against_the_layouts_and_a_disagreement
     check = spacing_check(shift, 0.005)
     assert check["agrees"] == (scale == 1.0), check
     assert abs(check["factor"] - 1 / scale) < 0.015
+
+
+def test_the_sizes_take_the_row_spacing_by_its_weight_and_never_a_disagreeing_one():
+    """The map's own scale (sigma 1 %) and the layout's row spacing asking 2 % smaller (sigma 1 %): the sizes take
+    1 % (half-way in log), with sigma 0.71 %; a spacing that disagrees changes nothing; without the map's sigma the
+    spacing's factor is taken whole."""
+    from ground.orchard.tables import sizes_scale
+
+    rs = {"agrees": True, "factor": 0.98, "factor_sigma_pct": 1.0}
+    f, s = sizes_scale(rs, 0.01)
+    assert f == pytest.approx(np.sqrt(0.98), rel=1e-6) and s == pytest.approx(0.01 / np.sqrt(2), rel=1e-6)
+    assert rs["weight"] == 0.5 and rs["scale_sigma_pct_after"] == pytest.approx(0.707, abs=1e-3)
+    assert sizes_scale({"agrees": False, "factor": 0.9, "factor_sigma_pct": 1.0}, 0.01) == (1.0, 0.01)
+    assert sizes_scale(None, 0.02) == (1.0, 0.02)
+    f, s = sizes_scale({"agrees": True, "factor": 0.98, "factor_sigma_pct": 1.0}, float("nan"))
+    assert f == pytest.approx(0.98) and s == pytest.approx(0.01)
