@@ -181,13 +181,17 @@ FORMATS = {"x": ".4f", "y": ".4f", "z": ".4f", "lat": ".9f", "lon": ".9f", "alt"
            "radius_m": ".4f"}
 
 
+#: An apple's place on a layout where the table has none (a map without a layout): tree 0, no side.
+NO_PLACE = {"tree": 0, "side": ""}
+
+
 def apples_csv(table: dict) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(APPLE_COLUMNS)
     n = len(table["id"])
     for i in range(n):
-        w.writerow([format(table[c][i], FORMATS.get(c, "")) for c in APPLE_COLUMNS])
+        w.writerow([format(table[c][i] if c in table else NO_PLACE.get(c, ""), FORMATS.get(c, "")) for c in APPLE_COLUMNS])
     return buf.getvalue()
 
 
