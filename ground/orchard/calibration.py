@@ -10,7 +10,7 @@ pomar.coverage) relates to its load. One regression, fitted on the counted trees
 Every coefficient is at least 0 (issue 71): a load does not fall as the count rises, and no level is below 0. Where
 the counted trees alone would fit one below 0 it is held at 0 and the model falls to the better-constrained one (no
 slope: each tree the sample's level); ``constraints`` in report.json says which and why.
-In ``linear`` and ``coverage``, the trees the camera never saw (coverage 0) take a level of their
+In every model, the trees the camera never saw (coverage 0) take a level of their
 own, fitted on the counted trees among them (``ground choose-trees`` names some in every row): a count of 0 there is
 nothing looked at, not an empty tree, and the line's intercept is an extrapolation from the trees seen least. Where
 none of them was counted, each takes the sample's level (its mean, with the interval of one more tree drawn from the
@@ -69,9 +69,9 @@ def regressors(trees: list[dict], model: str) -> np.ndarray:
     on the fitted line they would take its intercept, an extrapolation from the trees seen least (the second
     evaluation set: every row never seen came out 20-55 % low)."""
     x = regressor(trees, model)
-    if model == "ratio":
-        return x[:, None]
     unseen = never_seen(trees)
+    if model == "ratio":  # no intercept; the trees never seen still take a level of their own, never 0
+        return x[:, None] if not unseen.any() else np.column_stack([np.where(unseen, 0.0, x), unseen.astype(float)])
     if not unseen.any():
         return np.column_stack([np.ones_like(x), x])
     return np.column_stack([(~unseen).astype(float), np.where(unseen, 0.0, x), unseen.astype(float)])
@@ -135,7 +135,7 @@ def coefficient_names(Z: np.ndarray, model: str) -> list[str]:
     """What each of ``regressors``' columns multiplies, for report.json."""
     x = "count / coverage" if model == "coverage" else "count"
     if model == "ratio":
-        return [f"slope ({x})"]
+        return [f"slope ({x})", "level (a tree never seen)"][:Z.shape[1]]
     return ["level (a tree seen)", f"slope ({x})", "level (a tree never seen)"][:Z.shape[1]]
 
 
@@ -171,7 +171,7 @@ def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model:
     # Trees never seen, none of them counted: nothing relates them to the line, so each takes the sample's level, with
     # the interval of one more tree drawn from the sample (its spread, and the uncertainty of its mean, shared).
     unseen = never_seen(trees)
-    guessed = unseen & ~counted & (model != "ratio") & (not (unseen & counted).any())
+    guessed = unseen & ~counted & (not (unseen & counted).any())
     y_mean, y_sd = float(y.mean()), float(y.std(ddof=1)) if len(y) > 1 else 0.0
     q_level = float(student.ppf(0.5 + level / 2, max(len(y) - 1, 1)))
     pred[guessed] = y_mean
@@ -213,7 +213,7 @@ def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model:
              "estimated_by": ("the sample's level (no tree never seen was counted): mean "
                               f"{y_mean:.1f}, sd {y_sd:.1f}" if guessed.any() else
                               "their own level, fitted on the counted trees among them"
-                              if unseen.any() and model != "ratio" else "the model")}
+                              if unseen.any() else "the model")}
     return {"model": model, "level": level, "coefficients": [float(b) for b in beta],
             "coefficient_names": names, "constraints": {"held_at_0": held, "why": why}, "never_seen": never,
             "residual_sd": float(np.sqrt(s2)), "row_sd": float(np.sqrt(tau2)), "trees": per_tree,
