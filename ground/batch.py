@@ -15,7 +15,8 @@ resources ``cpus`` and ``memory``: a local cluster declares the machine's; an ex
 with ``--resources "cpus=N memory=BYTES"``, else the tasks go without). A flight that fails, or whose worker is killed,
 is tried again ``--retries`` times, then reported failed with its error; the others go on. ``--resume`` skips the
 flights whose folder holds a finished replay. ``DIR/batch.json`` gives each flight's status, attempts, error, seconds,
-CPU-seconds and peak memory; the farm report (ground.farm) follows.
+CPU-seconds (its replay's processes together) and peak memory (its largest process); the farm report (ground.farm)
+follows.
 """
 
 from __future__ import annotations
@@ -165,26 +166,27 @@ def finished(folder: Path) -> bool:
 def run_flight(job: dict, out: str) -> dict:
     """One flight's task (on a Dask worker): ``ground replay`` into ``out``; its figures, or an exception with the
     replay's last error line (Dask tries it again, up to the batch's retries)."""
-    import resource
-
     out_dir = Path(out)
     out_dir.mkdir(parents=True, exist_ok=True)
     attempts = out_dir / "batch-attempts.txt"
     n = int(attempts.read_text() or 0) + 1 if attempts.is_file() else 1
     attempts.write_text(str(n))
-    t0, ru0 = time.monotonic(), resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.monotonic()
     with open(out_dir / "batch.log", "w") as logf:
-        r = subprocess.run([sys.executable, "-m", "ground", "replay", *job["argv"], "--out", str(out_dir), "--quiet"],
-                           stdout=logf, stderr=subprocess.STDOUT)
-    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+        proc = subprocess.Popen([sys.executable, "-m", "ground", "replay", *job["argv"], "--out", str(out_dir),
+                                 "--quiet"], stdout=logf, stderr=subprocess.STDOUT)
+        # this replay's own usage, its processes' with it (a worker runs several flights at once: the worker's
+        # RUSAGE_CHILDREN would mix theirs)
+        _, status, ru = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+    r = proc
     if r.returncode != 0:
         lines = [x for x in (out_dir / "batch.log").read_text(errors="replace").splitlines() if x.strip()]
         why = lines[-1].strip() if lines else f"exit {r.returncode}"
         raise RuntimeError(f"{job['name']}: the replay failed (exit {r.returncode}, attempt {n}): {why[:300]}")
     report = json.loads((out_dir / "report.json").read_text())
     return {"name": job["name"], "seconds": time.monotonic() - t0,
-            "cpu_s": (ru.ru_utime + ru.ru_stime) - (ru0.ru_utime + ru0.ru_stime),
-            "max_rss_mb": ru.ru_maxrss / 1024.0, "apples": report.get("apples"), "attempts": n}
+            "cpu_s": ru.ru_utime + ru.ru_stime, "max_rss_mb": ru.ru_maxrss / 1024.0, "apples": report.get("apples"), "attempts": n}
 
 
 def _machine() -> tuple[int, float]:
