@@ -255,6 +255,7 @@ def run_batch(jobs: list[FlightJob], out: Path, s: BatchSettings, progress=None,
         for j in todo:
             status[j.name]["status"] = "running"
         durations: list[float] = []
+        last_done = None  # when a flight last finished: the ETA counts down from it
         pending = set(futures)
         while pending:
             try:  # a progress line as flights finish, and every PROGRESS_S while they run
@@ -262,6 +263,8 @@ def run_batch(jobs: list[FlightJob], out: Path, s: BatchSettings, progress=None,
                     finished_now, pending = wait(pending, timeout=PROGRESS_S, return_when="FIRST_COMPLETED")
             except TimeoutError:
                 finished_now = set()
+            if finished_now:
+                last_done = time.monotonic()
             for fut in finished_now:
                 j = futures[fut]
                 st = status[j.name]
@@ -275,7 +278,8 @@ def run_batch(jobs: list[FlightJob], out: Path, s: BatchSettings, progress=None,
                     a = out / j.name / "batch-attempts.txt"
                     st["attempts"] = int(a.read_text() or 0) if a.is_file() else 0
             if progress is not None:
-                progress(_progress_line(status, durations, client, time.monotonic() - t0))
+                progress(_progress_line(status, durations, client, time.monotonic() - t0,
+                                        time.monotonic() - (last_done or t0)))
     finally:
         client.close()
         if not s.cluster:
@@ -294,7 +298,9 @@ def run_batch(jobs: list[FlightJob], out: Path, s: BatchSettings, progress=None,
     return report
 
 
-def _progress_line(status: dict, durations: list[float], client, elapsed: float) -> str:
+def _progress_line(status: dict, durations: list[float], client, elapsed: float, since_done: float) -> str:
+    """Flights done, running, waiting, failed, the time so far and the ETA: the mean flight's time for each left, as
+    many at once as run now, less the time since a flight last finished."""
     n = {k: sum(v["status"] == k for v in status.values()) for k in ("done", "running", "failed", "skipped")}
     left = n["running"]
     try:
@@ -304,6 +310,6 @@ def _progress_line(status: dict, durations: list[float], client, elapsed: float)
     eta = ""
     if durations and left:
         slots = max(busy, 1)
-        eta = f"; ETA {sum(durations) / len(durations) * left / slots / 60:.1f} min"
+        eta = f"; ETA {max(sum(durations) / len(durations) * left / slots - since_done, 0.0) / 60:.1f} min"
     return (f"flights: {n['done']} done, {busy} running, {left - busy} waiting, {n['failed']} failed"
             + (f", {n['skipped']} skipped (done before)" if n["skipped"] else "") + f" ({elapsed / 60:.1f} min{eta})")
