@@ -8,7 +8,8 @@ A flight is what ``ground replay`` takes: a flight directory, or a video with it
 lists one a line: ``block`` and ``flight`` (a directory), or ``video``, ``log`` and ``camera`` in place of
 ``flight``; optionally ``name`` (its output folder; default the directory's or the video's name), ``orchard`` (the
 block's layout), ``sample_counts`` (the block's hand counts) and ``args`` (more ``ground replay`` options, as on a
-command line). Each flight is replayed lock-step into ``DIR/<name>/`` exactly as ``ground replay --out`` writes it.
+command line). Each flight is replayed lock-step into ``DIR/<name>/`` exactly as ``ground replay --out`` writes it, with
+the replay's output (``batch.log``) and its attempts so far (``batch-attempts.txt``) beside.
 
 Each flight is one task asking for ``--cpus-per-flight`` cores and ``--memory-per-flight-gb`` of memory (Dask's worker
 resources ``cpus`` and ``memory``: a local cluster declares the machine's; an existing cluster's workers are started
