@@ -116,11 +116,12 @@ def farm_picture(rows: list[dict], trees: list[dict]) -> np.ndarray | None:
     pts = [p for p in pts if np.isfinite(p[1]) and np.isfinite(p[2])]
     if not pts:
         return None
-    lat0, lon0 = np.mean([p[1] for p in pts]), np.mean([p[2] for p in pts])
-    k = np.cos(np.radians(lat0)) * 111_320.0
+    from pomar.geo import Origin
+
+    origin = Origin(float(np.mean([p[1] for p in pts])), float(np.mean([p[2] for p in pts])), 0.0)
 
     def enu(lat, lon):
-        return np.array([(lon - lon0) * k, (lat - lat0) * 110_574.0])
+        return origin.to_enu(lat, lon, 0.0)[:2]
 
     P = np.array([enu(la, lo) for _, la, lo in pts])
     lo_, hi_ = P.min(0) - 5.0, P.max(0) + 5.0

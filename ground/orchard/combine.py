@@ -76,15 +76,21 @@ def _num(x) -> float:
 
 def _same_layout(maps: list[dict]) -> None:
     """Every map's trees, numbered the same and standing where the first map's do (within 0.1 m): one layout."""
+    from pomar.geo import Origin
+
     first = {(int(t["row"]), int(t["tree"])): (_num(t.get("lat")), _num(t.get("lon"))) for t in maps[0]["trees"]}
+    o = maps[0]["origin"]
+    origin = Origin(o["lat"], o["lon"], o["alt"])
+
+    def enu(ll):
+        return origin.to_enu(ll[0], ll[1], o["alt"])[:2]
+
     for m in maps[1:]:
         mine = {(int(t["row"]), int(t["tree"])): (_num(t.get("lat")), _num(t.get("lon"))) for t in m["trees"]}
         if set(mine) != set(first):
             raise InputError(f"{m['folder'] / 'trees.csv'}: its trees are not those of {maps[0]['folder']} (another "
                              "layout): replay every flight with the same --orchard file")
-        far = [k for k in first if np.hypot((mine[k][0] - first[k][0]) * 111_320.0,
-                                            (mine[k][1] - first[k][1]) * 111_320.0
-                                            * np.cos(np.radians(first[k][0]))) > 0.1]
+        far = [k for k in first if np.linalg.norm(enu(mine[k]) - enu(first[k])) > 0.1]
         if far:
             raise InputError(f"{m['folder'] / 'trees.csv'}: row {far[0][0]} tree {far[0][1]} stands elsewhere than in "
                              f"{maps[0]['folder']} (another layout): replay every flight with the same --orchard file")
@@ -93,7 +99,7 @@ def _same_layout(maps: list[dict]) -> None:
 def _to_first(m: dict, origin0: dict) -> np.ndarray:
     """The map's apples in the first map's ENU frame, shifted onto the layout as its rows were (report.json's
     ``orchard.layout_shift``)."""
-    import pymap3d
+    from pomar.geo import Origin
 
     a = m["apples"]
     if not a:
@@ -102,8 +108,8 @@ def _to_first(m: dict, origin0: dict) -> np.ndarray:
     lon = np.array([_num(r["lon"]) for r in a])
     o = m["origin"]
     # the map's own ENU frame about its origin, moved to the first's: origins a few metres apart, frames parallel
-    dx, dy, dz = pymap3d.geodetic2enu(o["lat"], o["lon"], o["alt"], origin0["lat"], origin0["lon"], origin0["alt"])
-    xyz = np.array([[_num(r["x"]), _num(r["y"]), _num(r["z"])] for r in a]) + np.array([dx, dy, dz])
+    offset = Origin(origin0["lat"], origin0["lon"], origin0["alt"]).to_enu(o["lat"], o["lon"], o["alt"])
+    xyz = np.array([[_num(r["x"]), _num(r["y"]), _num(r["z"])] for r in a]) + offset
     shift = (m["report"].get("orchard") or {}).get("layout_shift") or {}
     xyz[:, :2] -= np.nan_to_num([_num(shift.get("east_m", 0.0)), _num(shift.get("north_m", 0.0))])
     bad = ~np.isfinite(lat) | ~np.isfinite(lon)
