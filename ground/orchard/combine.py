@@ -80,10 +80,10 @@ def _same_layout(maps: list[dict]) -> None:
 
     first = {(int(t["row"]), int(t["tree"])): (_num(t.get("lat")), _num(t.get("lon"))) for t in maps[0]["trees"]}
     o = maps[0]["origin"]
-    origin = Origin(o["lat"], o["lon"], o["alt"])
+    origin = Origin(o["lat"], o["lon"], o.get("alt") or 0.0)
 
     def enu(ll):
-        return origin.to_enu(ll[0], ll[1], o["alt"])[:2]
+        return origin.to_enu(ll[0], ll[1], origin.alt)[:2]
 
     for m in maps[1:]:
         mine = {(int(t["row"]), int(t["tree"])): (_num(t.get("lat")), _num(t.get("lon"))) for t in m["trees"]}
@@ -108,7 +108,8 @@ def _to_first(m: dict, origin0: dict) -> np.ndarray:
     lon = np.array([_num(r["lon"]) for r in a])
     o = m["origin"]
     # the map's own ENU frame about its origin, moved to the first's: origins a few metres apart, frames parallel
-    offset = Origin(origin0["lat"], origin0["lon"], origin0["alt"]).to_enu(o["lat"], o["lon"], o["alt"])
+    offset = Origin(origin0["lat"], origin0["lon"], origin0.get("alt") or 0.0).to_enu(o["lat"], o["lon"],
+                                                                                  o.get("alt") or 0.0)
     xyz = np.array([[_num(r["x"]), _num(r["y"]), _num(r["z"])] for r in a]) + offset
     shift = (m["report"].get("orchard") or {}).get("layout_shift") or {}
     xyz[:, :2] -= np.nan_to_num([_num(shift.get("east_m", 0.0)), _num(shift.get("north_m", 0.0))])
