@@ -23,6 +23,7 @@ import numpy as np
 
 from ground.orchard.assign import LEFT, RIGHT
 from pomar.cli import InputError
+from pomar.coverage import flight_coverage, row_coverage
 
 #: The columns a map needs to be combined: its apples on the layout's trees and sides, its trees' faces seen.
 APPLE_NEEDS = ("id", "x", "y", "z", "lat", "lon", "alt", "row", "tree", "side", "radius_m")
@@ -169,12 +170,11 @@ def combine_maps(folders: list[Path]) -> dict:
     for r in maps[0]["rows"]:
         row = int(r["row"])
         mine = [t for t in trees if t["row"] == row]
-        c = [t["coverage"] for t in mine if np.isfinite(t["coverage"])]
         n = sum(t["count"] for t in mine)
         rows.append({**{k: _num(r.get(k)) for k in ("length_m", "start_x", "start_y", "end_x", "end_y", "start_lat",
                                                      "start_lon", "end_lat", "end_lon")},
-                     "row": row, "count": n, "apples_per_m": n / _num(r["length_m"]) if _num(r["length_m"]) else 0.0,
-                     "coverage": float(np.mean(c)) if c else float("nan")})
+                     "row": row, "count": n, "apples_per_m": n / _num(r["length_m"]) if _num(r["length_m"]) else 0.0})
+    row_coverage(rows, trees)
     sources = [{"map": str(m["folder"]), "faces_given": gave[k], "apples_given": sum(a["flight"] == k + 1
                                                                                      for a in apples),
                 "apples_in_map": len(m["apples"])} for k, m in enumerate(maps)]
@@ -185,7 +185,6 @@ def write_combined(folders: list[Path], out: Path) -> dict:
     """Combine the maps in ``folders`` and write the combined map's files to ``out``; its report."""
     from ground.orchard.size import row_sizes
     from ground.outputs.tables import APPLE_COLUMNS, FORMATS, records_csv, rows_csv, trees_csv, write_atomic, write_json
-    from pomar.coverage import flight_coverage
 
     c = combine_maps(folders)
     out = Path(out)
