@@ -17,7 +17,8 @@ alone; writes them to OUT/NAME/yield.json. ``--detector truth-replay`` maps each
 instead of the shipped detector's (what the detector costs). ``--pair A B`` (flight names): a repeat pair, the same
 orchard flown twice; the trees chosen on A's map are counted for each flight (their own counts: errors drawn apart)
 and each flight is calibrated by its own; printed: the share of rows whose loads lie within each other's 90 %
-intervals. Lock-step replays (deterministic); timings are not its subject.
+intervals. Beside the goals: each flight's total (its rows' loads summed) against the truth, the random draws' and
+the oracle's. Lock-step replays (deterministic); timings are not its subject.
 """
 
 from __future__ import annotations
@@ -55,7 +56,12 @@ def estimate_and_score(trees, rows, samples, model, truth) -> dict:
     est = estimate_load(t, samples, model)
     apply_load(t, r, est)
     row_kilograms(r)
-    return {**score_yield(t, r, truth), "loo": est["loo"]["median_abs_pct"]}
+    score = score_yield(t, r, truth)
+    true_total = sum(x["true_load"] for x in score["rows"])
+    f = est["flight"]
+    return {**score, "loo": est["loo"]["median_abs_pct"],
+            "total": {"load": f["load"], "lo": f["load_lo"], "hi": f["load_hi"], "true": true_total,
+                      "covered": bool(f["load_lo"] <= true_total <= f["load_hi"])}}
 
 
 def seen_rows(score: dict, trees: list[dict]) -> dict:
@@ -131,11 +137,14 @@ def flight_figures(flight: Path, out: Path, models, k: int, draws: int, cv: floa
         samples = counted(chosen)
         mine = estimate_and_score(trees, rows, samples, model, truth)
         random = [estimate_and_score(trees, rows, counted([trees[i] for i in rng.choice(len(trees), k, replace=False)]),
-                                     model, truth)["row_load_error_median"] for _ in range(draws)]
+                                     model, truth) for _ in range(draws)]
         oracle = estimate_and_score(oracle_trees(trees, share), rows, samples, "coverage", truth)
         figures[model] = {"chosen": mine, "seen_rows": seen_rows(mine, trees),
-                          "random_row_error_median": float(np.median(random)),
+                          "random_row_error_median": float(np.median([x["row_load_error_median"] for x in random])),
+                          "random_total_errors": [x["total_error"] for x in random],
+                          "random_total_covered": float(np.mean([x["total"]["covered"] for x in random])),
                           "oracle": {"row_load_error_median": oracle["row_load_error_median"],
+                                     "total_error": oracle["total_error"],
                                      "tree_r": oracle["trees"]["r"],
                                      "row_errors": [abs(x["load_error"]) for x in oracle["rows"]]}}
     (out / "yield.json").write_text(json.dumps(figures, indent=1, default=float) + "\n")
@@ -164,6 +173,13 @@ def goals(figs: dict[str, dict], pairs: dict[str, dict], model: str) -> list[str
                    f"{o if o is None else round(o, 2)} (goal: no more than 0.05 below it); chosen trees' row error "
                    f"{m['chosen']['row_load_error_median']:.3f} against random draws' median "
                    f"{m['random_row_error_median']:.3f} (goal no larger)")
+        tot = np.abs(m["random_total_errors"])
+        t = m["chosen"]["total"]
+        out.append(f"  {name}: flight total {100 * m['chosen']['total_error']:+.1f} % (goal within 10 %), its 90 % "
+                   f"interval {100 * (t['lo'] / t['load'] - 1):+.0f} to {100 * (t['hi'] / t['load'] - 1):+.0f} % "
+                   f"{'holds' if t['covered'] else 'misses'} the truth; random draws within 10 % {np.mean(tot <= 0.10):.2f}"
+                   f" (median |error| {100 * np.median(tot):.1f} %, intervals holding {m['random_total_covered']:.2f}), "
+                   f"the oracle's {100 * m['oracle']['total_error']:+.1f} %")
     for name, rp in pairs.items():
         out.append(f"  repeat pair {name}: row loads within each other's intervals {sum(rp['within'])}/{len(rp['within'])}")
     out.append(f"  diameter per row: median error {d:.1f} mm, rows within 2 mm {np.mean([abs(x['diameter_error_mm']) <= 2 for x in sized]) if sized else float('nan'):.2f}, "

@@ -305,3 +305,26 @@ def test_the_yield_score_compares_loads_intervals_sizes_and_kilograms_with_the_t
     assert np.isclose(a["diameter_error_mm"], -1.0) and np.isclose(b["diameter_error_mm"], 1.0)
     assert np.isclose(a["constant_error_mm"], 72.5 - 80) and np.isclose(b["constant_error_mm"], 72.5 - 65)
     assert np.isclose(a["kg_error"], -1 / 62) and np.isclose(b["kg_error"], 3 / 9)
+
+
+def test_the_trees_to_count_for_a_total_within_10_percent_give_it():
+    """The flight's ``trees_for_target``, from 10 counted trees (the median over 20 samples): counting that many brings
+    the flight's 90 % interval within 10 % of its load in at least 80 % of 40 draws, and a third as many does not (the
+    suggestion errs on the safe side, not wildly)."""
+    rng = np.random.default_rng(11)
+    trees, load = _orchard(rng, rows=6, per_row=40, vigour_cv=0.4)
+
+    def flight(k):
+        pick = rng.choice(len(trees), k, replace=False)
+        return estimate_load(trees, {(trees[i]["row"], trees[i]["tree"]): int(load[i]) for i in pick}, "linear")["flight"]
+
+    first = [flight(10) for _ in range(20)]
+    assert all(f["load_hi"] - f["load"] > 0.1 * f["load"] for f in first)
+    need = int(np.median([f["trees_for_target"] for f in first]))
+    assert 10 < need < len(trees)
+
+    def widths(k):
+        return np.array([(f["load_hi"] - f["load"]) / f["load"] for f in (flight(k) for _ in range(40))])
+
+    assert np.mean(widths(need) <= 0.10) >= 0.8, need
+    assert np.median(widths(need // 3)) > 0.10, need

@@ -97,6 +97,9 @@ def score_yield(trees: list[dict], rows: list[dict], truth: dict) -> dict:
     return {"trees": {"n": int(len(est)), "r": float(np.corrcoef(est, true)[0, 1]) if len(est) >= 3 else None,
                       "median_abs_error": float(np.median(np.abs(est - true))) if len(est) else None},
             "rows": per_row,
+            # the flight's total over the rows scored: the sum of their loads against the sum of their true loads
+            "total_error": (sum(r["load"] for r in per_row) / sum(r["true_load"] for r in per_row) - 1.0
+                            if per_row else None),
             "row_load_error_median": float(np.median([abs(r["load_error"]) for r in per_row])) if per_row else None,
             "coverage": float(np.mean([r["covered"] for r in per_row])) if per_row else None,
             "half_width_median": float(np.median([r["half_width"] for r in per_row])) if per_row else None}

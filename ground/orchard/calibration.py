@@ -34,6 +34,9 @@ from pomar.cli import InputError
 MODELS = ("ratio", "linear", "coverage")
 #: The model used unless asked for another: chosen on issue 59's tuning flights (docs/design.md).
 DEFAULT_MODEL = "linear"
+#: The flight total's 90 % half-width a grower aims at (share of the load): ``ground load`` says how many trees counted
+#: by hand would give it (issue 71's goal: the flight's total within 10 %).
+TOTAL_TARGET = 0.10
 #: Columns added to trees.csv and (load, load_lo, load_hi) to rows.csv: empty where there are no hand counts.
 LOAD_COLUMNS = ["hand_count", "load", "load_lo", "load_hi"]
 
@@ -201,10 +204,17 @@ def estimate_load(trees: list[dict], samples: dict[tuple[int, int], int], model:
         # the line's trees: their own scatter, each row's shared error (once per tree of it) and the fit's, shared;
         # the guessed ones: their own scatter and the mean's, shared
         per_row = np.bincount(row_index[u], minlength=1).astype(float)
-        var = s2 * (u.sum() + zu @ G @ zu) + tau2 * float((per_row ** 2).sum())
-        h = np.sqrt(q ** 2 * var + q_level ** 2 * y_sd ** 2 * (g + g * g / len(y)))
+        own = q ** 2 * s2 * u.sum() + q_level ** 2 * y_sd ** 2 * g  # each tree's own scatter: no sample shrinks it
+        shared = q ** 2 * (s2 * zu @ G @ zu + tau2 * float((per_row ** 2).sum())) + q_level ** 2 * y_sd ** 2 * g * g / len(y)
+        h = np.sqrt(own + shared)
+        # the trees to count for the interval to reach TOTAL_TARGET of the load: the shared part shrinks as 1/trees
+        # counted (the fit's and the rows' errors, the sample mean's), the own part does not; None where it alone
+        # is wider than that
+        room = (TOTAL_TARGET * est) ** 2 - own
+        needed = int(np.ceil(len(y) * shared / room)) if room > 0 and est > 0 else None
         return {"load": est, "load_lo": max(known, est - h), "load_hi": est + h, "trees": int(sel.sum()),
-                "trees_counted": int((sel & counted).sum())}
+                "trees_counted": int((sel & counted).sum()),
+                "target": TOTAL_TARGET, "trees_for_target": max(needed, len(y)) if needed is not None else None}
 
     why = ("; ".join(f"{n} held at 0 (the sample alone gives {f:.3g})" for n, f, ok in zip(names, free_beta, free)
                      if not ok) + ": a load does not fall as the count rises, nor below 0") if held else \

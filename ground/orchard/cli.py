@@ -70,6 +70,11 @@ def _cmd_load(args) -> int:
     print(f"load: {fl['load']:.0f} apples ({load['level']:.0%} interval {fl['load_lo']:.0f}-{fl['load_hi']:.0f}) on "
           f"{fl['trees']} trees, {fl['trees_counted']} counted by hand; the sample's leave-one-out error "
           f"{loo['median_abs_pct']:.0f} % (median), model {load['model']}")
+    need, target = fl.get("trees_for_target"), fl.get("target", 0.1)
+    if fl["load"] > 0 and fl["load_hi"] - fl["load"] > target * fl["load"]:
+        print(f"  for an interval within {target:.0%} of the load, count about {need} trees by hand" if need else
+              f"  no number of trees counted brings the interval within {target:.0%}: the trees' own scatter "
+              "alone is wider")
     if load["constraints"]["held_at_0"]:
         print(f"  {load['constraints']['why']}")
     for r in rows:
