@@ -142,7 +142,7 @@ def test_a_map_lying_off_the_layout_across_the_rows_is_shifted_onto_it(sides):
             across = side * (0.5 + rng.uniform(-0.2, 0.2))
             p = s + rng.uniform(1.0, 29.0) * u + across * n  # along the rows nothing is shifted back
             pts.append(p)
-            cams_at.append(p + 3.0 * side * n)
+            cams_at.append(p + 6.0 * side * n)
             want.append(r.row)
     s, u, n = lines[0]
     off = 1.6 * n + 0.6 * u
@@ -300,7 +300,7 @@ def test_the_maps_row_spacing_is_measured_against_the_layouts_and_a_disagreement
             side = 1.0 if k % 2 else -1.0
             p = s + rng.uniform(1.0, 29.0) * u + side * (0.5 + rng.uniform(-0.2, 0.2)) * n
             pts.append(p)
-            cams_at.append(p + 3.0 * side * n)
+            cams_at.append(p + 6.0 * side * n)
     centre = np.mean(pts, axis=0)
     P = centre + scale * (np.array(pts) - centre) + 0.7 * lines[0][2]
     C = centre + scale * (np.array(cams_at) - centre) + 0.7 * lines[0][2]
@@ -331,3 +331,33 @@ def test_the_sizes_take_the_row_spacing_by_its_weight_and_never_a_disagreeing_on
     assert sizes_scale(None, 0.02) == (1.0, 0.02)
     f, s = sizes_scale({"agrees": True, "factor": 0.98, "factor_sigma_pct": 1.0}, float("nan"))
     assert f == pytest.approx(0.98) and s == pytest.approx(0.01)
+
+
+def test_a_row_seen_from_nearly_above_does_not_bend_the_rows_spacing():
+    """One pass beside five rows 4 m apart, 12 m above their apples, looking across them: the four rows it looks at
+    from the side show their near face, the row 1.5 m beside its track its far face (the camera looks down over its
+    top). That row's apples tell no side (FACE_MIN_RUN): the spacing is measured within 2 sigma of 4 m, where taking
+    its side from the camera's would have put it about half a canopy off."""
+    from ground.orchard.register import FACE_MIN_RUN, register_to_layout
+
+    origin = Origin(-28.516, -50.8811, 20.0)
+    layout, lines = _tilted_layout(origin, rows=(1, 2, 3, 4, 5), gap=4.0, length=30.0, spacing=1.0, first=0.5)
+    rng = np.random.default_rng(5)
+    track = lines[0][0] - 1.5 * lines[0][2]  # 1.5 m outside row 1, looking across rows 1-5
+    pts, cams_at = [], []
+    for i, (s, u, n) in enumerate(lines):
+        for _ in range(150):
+            along = rng.uniform(1.0, 29.0)
+            face = 1.0 if i == 0 else -1.0  # row 1: its far face from the camera; the others their near face
+            # each row's own face offset varies a little (vigour, pruning)
+            pts.append(s + along * u + face * (0.5 + rng.uniform(-0.1, 0.1)) * n)
+            cams_at.append(track + along * lines[0][1])
+    P, C = np.array(pts), np.array(cams_at)
+    assert abs((C[0] - P[0]) @ lines[0][2]) < FACE_MIN_RUN * 12.0 < abs((C[-1] - P[-1]) @ lines[0][2])
+    N = len(P)
+    table = {"id": np.arange(N), "x": P[:, 0], "y": P[:, 1], "z": np.full(N, 2.0), "first_frame": np.arange(N),
+             "last_frame": np.arange(N)}
+    cams = {"frame": np.arange(N), "x": C[:, 0], "y": C[:, 1], "z": np.full(N, 14.0)}
+    _, _, shift = register_to_layout(table, cams, layout, origin)
+    assert shift["rows_measured"] == 4, shift
+    assert abs(shift["map_spacing_m"] - 4.0) < 2 * shift["map_spacing_sigma_m"], shift

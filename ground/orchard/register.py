@@ -26,6 +26,12 @@ MIN_APPLES = 20
 FACE_PRIOR_M = 0.3
 
 
+#: A face is told from where its camera stood only where the camera looked at it from the side: its run across the
+#: row at least this share of its height above the apple (rays 19 deg or more off the vertical, about twice the lean
+#: of a slender canopy's faces, 6-11 deg for 0.6-1.2 m wide over 3 m). A camera nearly above a row looks down over its
+#: top and sees apples on either face: on heavy-tune-1 the row 2.4 m beside the pass showed its far face, and the
+#: rows' spacing read 3.50 m for 4.00 (docs/benchmarks.md, twenty-sixth session).
+FACE_MIN_RUN = 0.35
 #: Apples a row's side needs for its place across the rows to count in the map's row spacing.
 MIN_ROW_APPLES = 10
 #: How far a canopy's face lies off its row's line varies from row to row (m, 1 sigma): vigour, pruning. It bounds how
@@ -68,13 +74,15 @@ def _circular_mean(x: np.ndarray, period: float) -> tuple[float, float]:
     return float(np.angle(z) * period / (2 * np.pi)), float(abs(z))
 
 
-def layout_shift(apples_xy: np.ndarray, cameras_xy: np.ndarray, lines: list[dict]) -> dict:
+def layout_shift(apples_xy: np.ndarray, cameras_xy: np.ndarray, lines: list[dict],
+                 drop_m: np.ndarray | None = None) -> dict:
     """The shift (ENU metres, horizontal) that moves the map onto the layout's rows, from the map's apples
     (``apples_xy``, (N, 2) ENU) and the camera that saw each (``cameras_xy``, (N, 2); NaN where unknown), about the
     layout's row ``lines`` (ground.orchard.assign's: start ``a``, unit normal ``n``). Returns ``shift`` (2,),
     ``across_m`` (its size across the rows, signed along the rows' mean normal), ``face_m`` (the seen face's offset
     from the line, NaN where one side only was seen), the apples on each side, how sharply the apples lie in rows
-    (``resultant``: 1 all on lines, 0 spread evenly) and ``how``."""
+    (``resultant``: 1 all on lines, 0 spread evenly) and ``how``. ``drop_m``: each camera's height above its apple
+    (m; NaN unknown): an apple seen from nearly above tells no side (FACE_MIN_RUN)."""
     none = {"shift": np.zeros(2), "across_m": 0.0, "face_m": float("nan"), "apples": [0, 0], "resultant": 0.0,
             "how": "not shifted: fewer than two parallel rows, or too few apples seen from the cameras"}
     if len(lines) < 2 or len(apples_xy) < MIN_APPLES:
@@ -88,7 +96,10 @@ def layout_shift(apples_xy: np.ndarray, cameras_xy: np.ndarray, lines: list[dict
     if spacing <= 0 or np.ptp(np.mod(offsets / spacing + 0.5, 1.0) - 0.5) > 0.1:
         return {**none, "how": "not shifted: the layout's rows are not evenly spaced"}
     across = (apples_xy - lines[0]["a"]) @ n  # each apple across the rows, from the first row's line
-    side = np.sign((cameras_xy - apples_xy) @ n)  # the side of the apple its camera saw it from
+    run = (cameras_xy - apples_xy) @ n
+    side = np.sign(run)  # the side of the apple its camera saw it from
+    if drop_m is not None:
+        side[np.abs(run) < FACE_MIN_RUN * np.asarray(drop_m, float)] = 0.0
     plus, minus = across[side > 0], across[side < 0]
     face = float("nan")
     if len(plus) >= MIN_APPLES and len(minus) >= MIN_APPLES:
@@ -123,13 +134,15 @@ def register_to_layout(table: dict, cams: dict, layout, origin) -> tuple[dict, d
     lines = _lines(layout, origin)
     xy = np.column_stack([table["x"], table["y"]]) if len(table["id"]) else np.zeros((0, 2))
     cam_xy = np.full_like(xy, np.nan)
+    drop = np.full(len(xy), np.nan)
     if len(cams["frame"]) and len(xy):
         # the camera midway through each apple's frames: the side it was seen from
         frames = np.asarray(cams["frame"])
         mid = (np.asarray(table["first_frame"]) + np.asarray(table["last_frame"])) // 2
         k = np.clip(np.searchsorted(frames, mid), 0, len(frames) - 1)
         cam_xy = np.column_stack([cams["x"], cams["y"]])[k]
-    found = layout_shift(xy, cam_xy, lines)
+        drop = np.asarray(cams["z"], float)[k] - np.asarray(table["z"], float)
+    found = layout_shift(xy, cam_xy, lines, drop)
     dx, dy = found.pop("shift")
     record = {"east_m": round(float(dx), 3), "north_m": round(float(dy), 3),
               **{k: (round(v, 3) if isinstance(v, float) and np.isfinite(v) else v if not isinstance(v, float)
