@@ -328,3 +328,14 @@ def test_the_trees_to_count_for_a_total_within_10_percent_give_it():
 
     assert np.mean(widths(need) <= 0.10) >= 0.8, need
     assert np.median(widths(need // 3)) > 0.10, need
+
+
+def test_more_trees_keep_those_counted_already():
+    """Ten trees chosen and counted, then 16 asked for with them: the ten are among the 16, and the six more lie in
+    the rows and over the counts as the rule spreads them (no tree twice)."""
+    from ground.orchard.choose import choose_trees
+
+    trees, _ = _orchard(np.random.default_rng(1), rows=6)
+    first = {(t["row"], t["tree"]) for t in choose_trees(trees, 10)}
+    more = [(t["row"], t["tree"]) for t in choose_trees(trees, 16, counted=first)]
+    assert len(more) == len(set(more)) == 16 and first <= set(more)

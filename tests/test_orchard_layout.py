@@ -262,6 +262,16 @@ def test_readmes_yield_commands_as_written(replayed_test_flight, tmp_path):
     assert {x["row"]: (round(x["load"], 1), x["kg"] if x["kg"] is None else round(x["kg"], 1)) for x in report["rows"]} \
         == {int(x["row"]): (float(x["load"]), None if x["kg"] == "nan" else float(x["kg"])) for x in plot_rows}
     assert abs(report["load"]["flight"]["load"] - sum(float(x["load"]) for x in plot_rows)) < 1.0
+    # more trees after a first sample (as `ground load` suggests): those counted are kept, with their counts
+    k = min(len(trees), len(hand) + 4)
+    more = choose_cmd.replace("--out counts.csv", f"--trees {k} --counted counts.csv --out more.csv")
+    r = run(more, tmp_path)
+    assert r.returncode == 0, r.stderr
+    again = {(int(c["row"]), int(c["tree"])): c["apples"] for c in csv.DictReader(open(tmp_path / "more.csv"))}
+    assert len(again) == k and all(again[key] == str(n) for key, n in hand.items()), again
+    r = run(choose_cmd.replace("--out counts.csv", "--trees 3 --counted counts.csv --out few.csv"), tmp_path)
+    assert r.returncode == 2 and r.stderr.strip() == f"error: --trees 3 is fewer than the {len(hand)} trees counts.csv " \
+                                                     "has counted", r.stderr
     # the same loads live, from the recorded stream with the counts
     live = replay_cmd.replace("out/plot", "out/live") + " --sample-counts counts.csv"
     r = run(live, tmp_path, timeout=600)

@@ -40,13 +40,23 @@ def _one_per_row(trees: list[dict], x: np.ndarray, seen: np.ndarray, k: int) -> 
     return out
 
 
-def choose_trees(trees: list[dict], k: int = 10, model: str = DEFAULT_MODEL) -> list[dict]:
-    """``k`` of ``trees`` (trees.csv's records with count and coverage) to count by hand, in row and tree order."""
+def choose_trees(trees: list[dict], k: int = 10, model: str = DEFAULT_MODEL,
+                 counted: set[tuple[int, int]] = frozenset()) -> list[dict]:
+    """``k`` of ``trees`` (trees.csv's records with count and coverage) to count by hand, in row and tree order;
+    ``counted``: (row, tree) of trees already counted, kept among the ``k`` (more trees asked for after a first
+    sample): a row with one of them gets no other by the first rule, and the strata are drawn over the rest."""
     if k <= 0:
         raise ValueError(f"k must be at least 1, got {k}")
     x = regressor(trees, model)
     seen = ~never_seen(trees)
-    chosen = _one_per_row(trees, x, seen, min(k, len(trees)))
+    kept = [i for i, t in enumerate(trees) if (t["row"], t["tree"]) in counted]
+    if kept:
+        rows_kept = {trees[i]["row"] for i in kept}
+        free = [i for i, t in enumerate(trees) if t["row"] not in rows_kept]
+        more = _one_per_row([trees[i] for i in free], x[free], seen[free], max(min(k, len(trees)) - len(kept), 0))
+        chosen = kept + [free[i] for i in more]
+    else:
+        chosen = _one_per_row(trees, x, seen, min(k, len(trees)))
     left = np.setdiff1d(np.nonzero(seen)[0], chosen)
     if len(left) < k - len(chosen):  # too few seen trees: any tree not chosen yet
         left = np.setdiff1d(np.arange(len(trees)), chosen)

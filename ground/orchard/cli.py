@@ -72,7 +72,8 @@ def _cmd_load(args) -> int:
           f"{loo['median_abs_pct']:.0f} % (median), model {load['model']}")
     need, target = fl.get("trees_for_target"), fl.get("target", 0.1)
     if fl["load"] > 0 and fl["load_hi"] - fl["load"] > target * fl["load"]:
-        print(f"  for an interval within {target:.0%} of the load, count about {need} trees by hand" if need else
+        print(f"  for an interval within {target:.0%} of the load, count about {need} trees by hand (`ground "
+              f"choose-trees {folder} --trees {need} --counted {args.sample_counts} --out FILE` keeps yours)" if need else
               f"  no number of trees counted brings the interval within {target:.0%}: the trees' own scatter "
               "alone is wider")
     if load["constraints"]["held_at_0"]:
@@ -110,15 +111,24 @@ def _cmd_choose(args) -> int:
     trees = _read_trees(Path(args.map), ["row", "tree", "count", "lat", "lon", "coverage"])
     if trees is None:
         return 2
-    chosen = choose_trees(trees, args.trees, args.load_model)
+    done = {}
+    if args.counted:
+        from pomar.sample_counts import read_sample_counts
+
+        done = read_sample_counts(args.counted, {(t["row"], t["tree"]) for t in trees})
+        if args.trees < len(done):
+            print(f"error: --trees {args.trees} is fewer than the {len(done)} trees {args.counted} has counted",
+                  file=sys.stderr)
+            return 2
+    chosen = choose_trees(trees, args.trees, args.load_model, set(done))
     for t in chosen:
-        t["apples"] = ""
+        t["apples"] = done.get((t["row"], t["tree"]), "")
     write_atomic(Path(args.out), records_csv(chosen, ["row", "tree", "apples", "lat", "lon", "count", "coverage"], {}))
-    print(f"wrote {args.out}: {len(chosen)} trees to count by hand, one in every row and the rest spread over what the "
-          "map saw; "
+    print(f"wrote {args.out}: {len(chosen)} trees to count by hand" + (f" ({len(done)} of them counted already)" if done
+          else "") + ", one in every row and the rest spread over what the map saw; "
           "count every apple on each, write it in the apples column, then give the file as --sample-counts")
     for t in chosen:
-        print(f"  row {t['row']} tree {t['tree']} at {t['lat']}, {t['lon']}")
+        print(f"  row {t['row']} tree {t['tree']} at {t['lat']}, {t['lon']}" + (" (counted)" if t['apples'] != '' else ''))
     return 0
 
 
@@ -162,6 +172,8 @@ def add_orchard_commands(sub) -> None:
                                 "numbers are yours)")
     ch.add_argument("--trees", type=int, default=10, help="how many trees (default 10)")
     ch.add_argument("--out", required=True, help="the sample-count file to write, its apples column empty")
+    ch.add_argument("--counted", help="a sample-count file of trees counted already: kept, with their counts, among "
+                                      "--trees (more trees after `ground load` asked for them)")
     add_options(ch, GroundSettings(), ["load_model"])
     ch.set_defaults(func=_cmd_choose)
     co = sub.add_parser("combine", help="several flights of one orchard as one map (a plan's split flights, or one "
