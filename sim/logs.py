@@ -36,6 +36,8 @@ DF_FORMATS = {
     "ATT": (131, "QccccCCCCB", "TimeUS,DesRoll,Roll,DesPitch,Pitch,DesYaw,Yaw,ErrRP,ErrYaw,AEKF"),
     "MNT": (132, "QBffffffff", "TimeUS,I,DesRoll,Roll,DesPitch,Pitch,DesYawB,YawB,DesYawE,YawE"),
     "CAM": (133, "QBHIHLLeefccC", "TimeUS,I,Img,GPSTime,GPSWeek,Lat,Lng,Alt,RelAlt,GPSAlt,R,P,Y"),
+    # the receiver's stated accuracy beside each GPS record (centimetres: C is uint16 x 100 of metres)
+    "GPA": (134, "QBCCCCfBIH", "TimeUS,I,VDop,HAcc,VAcc,SAcc,YAcc,VV,SMS,Delta"),
 }
 
 
@@ -115,6 +117,11 @@ def write_dataflash(tlog: Path, out: Path) -> dict:
             w.write("GPS", [int(round(t_boot * 1e6)), 0, m.fix_type, ms, week, m.satellites_visible,
                             int(round(m.eph)), m.lat, m.lon, int(round(m.alt / 10)), m.vel / 100, m.cog / 100, 0.0,
                             0.0, 1])
+            if getattr(m, "h_acc", 0):  # ArduPilot logs GPA with each GPS record: HAcc, VAcc in cm, SAcc in cm/s
+                w.write("GPA", [int(round(t_boot * 1e6)), 0, int(m.epv), int(round(m.h_acc / 10)),
+                                int(round(m.v_acc / 10)), int(round(getattr(m, "vel_acc", 0) / 10)), 0.0, 1, ms // 1000,
+                                200])
+                counts["GPA"] = counts.get("GPA", 0) + 1
             name = "GPS"
         elif kind == "ATTITUDE":
             r, p, y = np.degrees([m.roll, m.pitch, m.yaw])

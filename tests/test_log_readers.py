@@ -169,6 +169,34 @@ def test_sim_logs_give_the_tlogs_samples(sim_logs):
             np.testing.assert_allclose(s[k], s_ref[k], atol=tol)
         ang = (quat_wxyz_to_rotation(s["q_gimbal"]).inv() * quat_wxyz_to_rotation(s_ref["q_gimbal"])).magnitude()
         assert np.degrees(ang).max() < (0.05 if fmt == "dataflash" else 0.1), (fmt, np.degrees(ang).max())
+        if fmt == "dataflash":  # the receiver's stated accuracy in metres (GPA's HAcc), as the tlog states it
+            np.testing.assert_allclose(s["h_acc"], s_ref["h_acc"], atol=0.01)
+            assert np.nanmin(s["h_acc"]) > 0
+
+
+def test_a_dataflash_log_without_gpa_states_no_accuracy(sim_logs, tmp_path):
+    """A DataFlash log whose receiver's accuracy is not logged (no GPA): the positions' accuracy is unstated (NaN, so
+    the ground takes its default), never GPS's HDop, which is no distance."""
+    from pymavlink import DFReader
+
+    from sim.logs import DF_FORMATS
+
+    _, binf, _ = sim_logs
+    data = binf.read_bytes()
+    gpa = DF_FORMATS["GPA"][0]
+    size = {t: 3 + DFReader.struct.calcsize(DFReader.DFFormat(t, n, 0, f, c).msg_struct)
+            for n, (t, f, c) in DF_FORMATS.items()}
+    size[128] = 89
+    out, i = bytearray(), 0
+    while i < len(data):  # every record but GPA's
+        t = data[i + 2]
+        if t != gpa:
+            out += data[i:i + size[t]]
+        i += size[t]
+    bare = tmp_path / "no-gpa.bin"
+    bare.write_bytes(bytes(out))
+    tl = read_log(bare)
+    assert len(tl.gps) and np.isnan(tl.gps.values[:, 1]).all() and (tl.gps.values[:, 0] >= 3).all()
 
 
 def test_dataflash_cut_mid_record_keeps_what_it_read(sim_logs, tmp_path):

@@ -1,7 +1,9 @@
 """ArduPilot's on-board DataFlash log (``.bin``), through pymavlink's DFReader (``mavutil``).
 
 - position: ``POS`` (Lat, Lng, Alt MSL); without it, ``GPS`` (Lat, Lng, Alt).
-- GPS: ``GPS`` (Status = fix type, HDop, NSats).
+- GPS: ``GPS`` (Status = fix type, NSats) and, where logged, ``GPA`` (HAcc, VAcc: the receiver's stated accuracy in
+  metres, nearest in time to each GPS record of the same instance). HDop is no accuracy in metres: without GPA the
+  accuracy is unstated.
 - attitude: ``ATT`` (Roll, Pitch, Yaw in degrees, NED).
 - gimbal: ``MNT`` (newer firmware: Roll, Pitch, YawE = yaw in the earth frame; older: ActRoll, ActPitch, ActYaw
   relative to the vehicle) or ``GIMB``.
@@ -26,7 +28,7 @@ from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing
 
 log = logging.getLogger(__name__)
 
-TYPES = ["POS", "GPS", "ATT", "MNT", "GIMB", "CAM", "TRIG"]
+TYPES = ["POS", "GPS", "GPA", "ATT", "MNT", "GIMB", "CAM", "TRIG"]
 
 
 def read_dataflash(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
@@ -48,7 +50,7 @@ def read_dataflash(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
                 break
             kind = m.get_type()
             counts[kind] += 1
-            if getattr(m, "I", 0) not in (0, None) and kind in ("GPS", "CAM", "TRIG", "MNT"):
+            if getattr(m, "I", 0) not in (0, None) and kind in ("GPS", "GPA", "CAM", "TRIG", "MNT"):
                 continue  # the first instance of each (GPS 0, camera 0, mount 0)
             rows[kind].append((m._timestamp, m))
     except Exception as exc:  # a damaged record DFReader cannot step over: keep what was read
@@ -82,7 +84,19 @@ def read_dataflash(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
             problems.append("no POS messages: positions are the GPS receiver's")
         else:
             problems.append("no position (no POS, no GPS with a fix)")
-    gps_s = series("GPS", ["Status", "HDop", "HDop", "NSats"], 4)
+    gps_s = series("GPS", ["Status", "NSats", "NSats", "NSats"], 4)
+    if len(gps_s):  # fix, h_acc, v_acc, satellites: the accuracies from GPA where logged, else unstated (NaN)
+        v = gps_s.values.copy()
+        v[:, 1:3] = np.nan
+        acc = [(t, m.HAcc, m.VAcc) for t, m in rows["GPA"]]
+        if acc:
+            at = np.array([a[0] for a in acc])
+            k = np.clip(np.searchsorted(at, gps_s.t), 1, len(at) - 1)
+            k = np.where(np.abs(at[k - 1] - gps_s.t) <= np.abs(at[k] - gps_s.t), k - 1, k) if len(at) > 1 else 0 * k
+            near = np.abs(at[k] - gps_s.t) <= 0.5
+            v[near, 1] = np.array([a[1] for a in acc])[k[near]]
+            v[near, 2] = np.array([a[2] for a in acc])[k[near]]
+        gps_s = Series.of(list(gps_s.t), v, 4)
     attitude = series("ATT", ["Roll", "Pitch", "Yaw"], 4,
                       scale=lambda v: rotation_to_quat_wxyz(ned_euler_to_rotation(v[:, 0], v[:, 1], v[:, 2])))
     gimbal = Series.empty(4)
