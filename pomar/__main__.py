@@ -83,7 +83,7 @@ def _cmd_scale(args) -> int:
 
 #: The shipped detector's metadata: the apple size a plan flies for.
 SHIPPED_DETECTOR = Path(__file__).resolve().parents[1] / "onboard" / "models" / "apple-detector.json"
-PLAN_OPTIONS = ["pitch_deg", "views", "blur_px", "shutter_s", "fps", "max_height_m", "rows"]
+PLAN_OPTIONS = ["pitch_deg", "views", "blur_px", "shutter_s", "fps", "max_height_m", "rows", "boundary"]
 
 
 def _cmd_plan(args) -> int:
@@ -124,8 +124,10 @@ def _cmd_plan(args) -> int:
     cov = d["coverage"]
     print(f"{d['batteries']} batteries, {d['minutes']:.1f} min in all; expected coverage {cov['mean']:.2f}, "
           f"{cov['trees_both_sides']} of {cov['trees']} trees from both sides")
+    for line in plan.problems:
+        print(f"  {line}")
     for t in plan.trees:
-        if t["sides_seen"] < 2:
+        if t["sides_seen"] < 2 and not plan.settings.boundary:
             print(f"  row {t['row']} tree {t['tree']}: seen from {t['sides_seen']} side(s) only "
                   f"(coverage {t['coverage']:.2f})")
     print("wrote " + ", ".join(str(f) for f in files))

@@ -11,7 +11,8 @@ The speed follows from geometry: every apple in at least ``views`` frames at the
 (an apple crosses the frame's width at the face in ``width / speed`` seconds), and its motion during the shutter
 under ``blur_px``; then the drone's limits. The passes run serpentine, across the rows in order, each extended by half
 the frame's width past the row's ends (so that the end trees get their views), turns outside the rows. A plan that
-one battery cannot fly is split into flights of whole rows.
+one battery cannot fly is split into flights of whole rows. Within a ``boundary`` (pomar.boundary) each pass keeps
+its longest stretch inside; a pass with none is left out, and the plan says which, and the trees that lose a side.
 
 What it will give is measured with the same geometry the ground uses for ``trees.csv``'s coverage
 (:mod:`pomar.coverage`): the planned cameras, every frame, against the layout's trees, a hedge of DEFAULT_HEDGE.
@@ -26,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from pomar.apple_scale import APPLE_RADIUS_M, CANOPY_MID_M, envelope_height_m, expected_radius_px
+from pomar.boundary import read_boundary
 from pomar.cli import InputError
 from pomar.coverage import DEFAULT_HEDGE
 from pomar.drones import Drone
@@ -64,6 +66,9 @@ class PlanSettings:
     max_height_m: float = field(default=120.0, metadata={"flag": "--max-height"})
     #: The rows to film (the layout's numbers; default all).
     rows: list[int] = field(default_factory=list, metadata={"type": int, "nargs": "+", "metavar": "ROW"})
+    #: A polygon the drone stays inside (GeoJSON, or a CSV of lat,lon vertices): the property's edge, a no-fly area
+    #: left out.
+    boundary: str | None = field(default=None, metadata={"type": str, "metavar": "FILE"})
 
     def __post_init__(self):
         for name in ("views", "blur_px", "max_height_m") + (("shutter_s",) if self.shutter_s is not None else ()) + (
@@ -253,6 +258,8 @@ class Plan:
     flights: list[list[Pass]]
     trees: list[dict]
     minutes: list[float]
+    #: What the plan cannot do as asked, one line each (a pass cut short or left out by the boundary).
+    problems: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
         """plan.json: what the plan says and how it was made; waypoints in WGS84 with heights above take-off."""
@@ -281,7 +288,7 @@ class Plan:
                 "coverage": {"mean": float(np.nanmean(cov)) if np.isfinite(cov).any() else None,
                              "trees": len(self.trees),
                              "trees_both_sides": int(sum(t["sides_seen"] == 2 for t in self.trees))},
-                "flights": flights}
+                "problems": self.problems, "flights": flights}
 
 
 def make_plan(layout: list[LayoutRow], camera, drone: Drone, detector: dict, settings: PlanSettings | None = None,
@@ -306,6 +313,12 @@ def make_plan(layout: list[LayoutRow], camera, drone: Drone, detector: dict, set
     fps = s.fps or drone.video_fps
     speed = pass_speed(geom, camera.fx, fps, s.views, s.blur_px, s.shutter_s or drone.shutter_s, drone)
     passes = row_passes(rows, origin, geom["offset_m"], geom["footprint_m"] / 2)
+    problems = []
+    if s.boundary:
+        passes, problems = within_boundary(passes, read_boundary(s.boundary, origin), s.boundary,
+                                           geom["footprint_m"] / 2)
+        if not passes:
+            raise PlanError(f"{s.boundary}: no pass of the rows asked lies inside the boundary")
     flights = split_flights(passes, speed["speed_mps"], geom["height_m"], drone)
     minutes = [flight_time_s(f, speed["speed_mps"], geom["height_m"], drone) / 60 for f in flights]
     cams = plan_cameras(flights, speed["speed_mps"], fps, geom["height_m"], s.pitch_deg)
@@ -315,9 +328,52 @@ def make_plan(layout: list[LayoutRow], camera, drone: Drone, detector: dict, set
                                                               min(1.0, target / geom["apple_px"])))
     for t, c in zip(trees, tree_coverage(trees, lrows, none, cams, sight, default_hedge=DEFAULT_HEDGE)):
         t.update(c)
+    if s.boundary:  # the trees the boundary costs a side, a line a row
+        for r in rows:
+            lost = [t["tree"] for t in trees if t["row"] == r.row and t["sides_seen"] < 2]
+            if lost:
+                problems.append(f"row {r.row}: trees {_spans(lost)} not seen from both sides (the boundary)")
     return Plan(s, drone, {"name": camera_name, "width": camera.width, "height": camera.height, "fx": camera.fx},
                 {"apple_radius_px": target, "min_apple_radius_px": min_px}, origin, geom, speed, flights, trees,
-                minutes)
+                minutes, problems)
+
+
+def _spans(numbers: list[int]) -> str:
+    """1, 2, 3, 7 -> '1-3, 7'."""
+    out, start = [], None
+    for k, n in enumerate(sorted(numbers)):
+        if start is None:
+            start = prev = n
+        elif n != prev + 1:
+            out.append(f"{start}-{prev}" if prev > start else str(start))
+            start = n
+        prev = n
+        if k == len(numbers) - 1:
+            out.append(f"{start}-{prev}" if prev > start else str(start))
+    return ", ".join(out)
+
+
+def within_boundary(passes: list[Pass], poly: np.ndarray, name: str, run_in_m: float) -> tuple[list[Pass], list[str]]:
+    """Each pass cut to its longest stretch inside ``poly`` (pomar.boundary.clip_segment), a pass with none left
+    out; with a line for each pass cut into its row (past its run-in) or left out."""
+    from pomar.boundary import clip_segment
+
+    kept, lines = [], []
+    for p in passes:
+        side = "left" if p.side > 0 else "right"
+        span = clip_segment(poly, p.start, p.end)
+        if span is None:
+            lines.append(f"row {p.row}, {side} side: its pass lies outside the boundary {name}: left out")
+            continue
+        t0, t1 = span
+        d = p.end - p.start
+        cut = [(t0 * p.length_m, "start"), ((1 - t1) * p.length_m, "end")]
+        for metres, where in cut:
+            if metres > run_in_m + 1e-6:
+                lines.append(f"row {p.row}, {side} side: the boundary {name} stops its pass {metres - run_in_m:.1f} m "
+                             f"inside the row's {where}")
+        kept.append(Pass(p.row, p.side, p.start + t0 * d, p.start + t1 * d, p.look))
+    return kept, lines
 
 
 def write_plan(plan: Plan, out: Path) -> list[Path]:

@@ -126,6 +126,56 @@ def test_plan_command_writes_the_plan_and_refuses_what_cannot_be_planned(tmp_pat
         assert not bad.exists()
 
 
+def test_a_boundary_keeps_the_flight_inside_and_says_what_it_costs(tmp_path):
+    """Three rows of 30 m, a boundary (GeoJSON) drawn across the rows 20 m from their start: every waypoint lies inside
+    it, each pass stops short of its row's end and says so, and the trees past the line are named as not seen from
+    both sides, a line a row; the trees well inside keep both sides. A boundary the rows lie wholly outside, and files
+    that are no polygon: one line naming the file, exit 2, nothing written."""
+    from pomar.boundary import inside
+
+    layout = _layout(rows=3)
+    origin = Origin(-28.516, -50.8811, 0.0)
+    a = np.radians(140.0)
+    u, n = np.array([np.sin(a), np.cos(a)]), np.array([np.cos(a), -np.sin(a)])
+    corners = [-30 * u - 20 * n, 8 * u - 20 * n, 8 * u + 30 * n, -30 * u + 30 * n]  # the rows' first 8 m, and more
+    ll = [origin.to_geodetic(np.array([[*c, 0.0]]))[0] for c in corners]
+    ring = [[float(lo), float(la)] for la, lo, _ in ll]
+    fence = tmp_path / "fence.geojson"
+    fence.write_text(json.dumps({"type": "Feature", "geometry": {"type": "Polygon", "coordinates": [ring + ring[:1]]}}))
+    orchard = tmp_path / "orchard.csv"
+    write_layout(layout, orchard)
+    out = tmp_path / "plan"
+    r = subprocess.run([sys.executable, "-m", "pomar", "plan", str(orchard), "--drone", "phantom-4-pro", "--boundary",
+                        str(fence), "--out", str(out)], capture_output=True, text=True, cwd=ROOT)
+    assert r.returncode == 0, r.stderr
+    d = json.loads((out / "plan.json").read_text())
+    poly = np.array(corners)
+    wps = np.array([np.asarray(origin.to_enu(w["lat"], w["lon"], 0.0))[:2] for f in d["flights"] for w in f["waypoints"]])
+    assert inside(poly * 1.001, wps).all(), wps
+    stops = [x for x in d["problems"] if "stops its pass" in x and "row's end" in x]
+    assert len(stops) == 6, d["problems"]  # both sides of three rows
+    lost = [x for x in d["problems"] if "not seen from both sides" in x]
+    assert len(lost) == 3 and all(x in r.stdout for x in d["problems"]), (d["problems"], r.stdout)
+    cov = {(int(t["row"]), int(t["tree"])): int(t["sides_seen"]) for t in csv.DictReader(open(out / "coverage.csv"))}
+    assert all(cov[(k, t)] == 2 for k in (1, 2, 3) for t in range(1, 9)) and cov[(2, 30)] < 2
+    # a boundary the rows lie outside, a file that is no polygon, one with two vertices
+    far = [[lo + 0.01, la] for lo, la in ring]
+    away = tmp_path / "away.geojson"
+    away.write_text(json.dumps({"type": "Polygon", "coordinates": [far]}))
+    line = tmp_path / "line.csv"
+    line.write_text("lat,lon\n-28.516,-50.8811\n-28.517,-50.8811\n")
+    text = tmp_path / "notes.geojson"
+    text.write_text("the north fence")
+    for bad_file, says in ((away, "no pass of the rows asked lies inside the boundary"),
+                           (line, f"{line}: a boundary needs 3 or more positions"),
+                           (text, f"{text}: not JSON")):
+        bad = tmp_path / "bad"
+        r = subprocess.run([sys.executable, "-m", "pomar", "plan", str(orchard), "--drone", "phantom-4-pro",
+                            "--boundary", str(bad_file), "--out", str(bad)], capture_output=True, text=True, cwd=ROOT)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and says in r.stderr, r.stderr
+        assert not bad.exists()
+
+
 def test_each_flight_is_written_for_the_apps_and_reads_back(tmp_path):
     """A plan of two flights (a generic quad over long rows): each as QGroundControl's .plan (its documented fields,
     SimpleItems, heights above take-off), as QGC WPL 110 (loaded by pymavlink's mavwp) and as Litchi's CSV (its
