@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from pomar.apple_scale import APPLE_RADIUS_M, CANOPY_MID_M, envelope_height_m, expected_radius_px
-from pomar.boundary import read_boundary
+from pomar.boundary import clip_segment, read_boundary
 from pomar.cli import InputError
 from pomar.coverage import DEFAULT_HEDGE
 from pomar.drones import Drone
@@ -356,8 +356,6 @@ def _spans(numbers: list[int]) -> str:
 def within_boundary(passes: list[Pass], poly: np.ndarray, name: str, run_in_m: float) -> tuple[list[Pass], list[str]]:
     """Each pass cut to its longest stretch inside ``poly`` (pomar.boundary.clip_segment), a pass with none left
     out; with a line for each pass cut into its row (past its run-in) or left out."""
-    from pomar.boundary import clip_segment
-
     kept, lines = [], []
     for p in passes:
         side = "left" if p.side > 0 else "right"
