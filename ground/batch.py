@@ -179,12 +179,11 @@ def run_flight(job: dict, out: str) -> dict:
         # this replay's own usage, its processes' with it (a worker runs several flights at once: the worker's
         # RUSAGE_CHILDREN would mix theirs)
         _, status, ru = os.wait4(proc.pid, 0)
-        proc.returncode = os.waitstatus_to_exitcode(status)
-    r = proc
-    if r.returncode != 0:
+    proc.returncode = code = os.waitstatus_to_exitcode(status)  # reaped here: Popen must not wait for it again
+    if code != 0:
         lines = [x for x in (out_dir / "batch.log").read_text(errors="replace").splitlines() if x.strip()]
-        why = lines[-1].strip() if lines else f"exit {r.returncode}"
-        raise RuntimeError(f"{job['name']}: the replay failed (exit {r.returncode}, attempt {n}): {why[:300]}")
+        why = lines[-1].strip() if lines else f"exit {code}"
+        raise RuntimeError(f"{job['name']}: the replay failed (exit {code}, attempt {n}): {why[:300]}")
     report = json.loads((out_dir / "report.json").read_text())
     return {"name": job["name"], "seconds": time.monotonic() - t0,
             "cpu_s": ru.ru_utime + ru.ru_stime, "max_rss_mb": ru.ru_maxrss / 1024.0, "apples": report.get("apples"), "attempts": n}

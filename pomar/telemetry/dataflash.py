@@ -2,7 +2,7 @@
 
 - position: ``POS`` (Lat, Lng, Alt MSL); without it, ``GPS`` (Lat, Lng, Alt).
 - GPS: ``GPS`` (Status = fix type, NSats) and, where logged, ``GPA`` (HAcc, VAcc: the receiver's stated accuracy in
-  metres, nearest in time to each GPS record of the same instance). HDop is no accuracy in metres: without GPA the
+  metres, the last at or before each GPS record of the same instance). HDop is no accuracy in metres: without GPA the
   accuracy is unstated.
 - attitude: ``ATT`` (Roll, Pitch, Yaw in degrees, NED).
 - gimbal: ``MNT`` (newer firmware: Roll, Pitch, YawE = yaw in the earth frame; older: ActRoll, ActPitch, ActYaw
@@ -89,13 +89,11 @@ def read_dataflash(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
         v = gps_s.values.copy()
         v[:, 1:3] = np.nan
         acc = [(t, m.HAcc, m.VAcc) for t, m in rows["GPA"]]
-        if acc:
-            at = np.array([a[0] for a in acc])
-            k = np.clip(np.searchsorted(at, gps_s.t), 1, len(at) - 1)
-            k = np.where(np.abs(at[k - 1] - gps_s.t) <= np.abs(at[k] - gps_s.t), k - 1, k) if len(at) > 1 else 0 * k
-            near = np.abs(at[k] - gps_s.t) <= 0.5
-            v[near, 1] = np.array([a[1] for a in acc])[k[near]]
-            v[near, 2] = np.array([a[2] for a in acc])[k[near]]
+        if acc:  # ArduPilot logs GPA with each GPS record, at its time: the last one at or before it, within 0.5 s
+            at, hv = np.array([a[0] for a in acc]), np.array([a[1:] for a in acc], float)
+            k = np.searchsorted(at, gps_s.t, side="right") - 1
+            near = (k >= 0) & (gps_s.t - at[np.clip(k, 0, None)] <= 0.5)
+            v[near, 1:3] = hv[k[near]]
         gps_s = Series.of(list(gps_s.t), v, 4)
     attitude = series("ATT", ["Roll", "Pitch", "Yaw"], 4,
                       scale=lambda v: rotation_to_quat_wxyz(ned_euler_to_rotation(v[:, 0], v[:, 1], v[:, 2])))
