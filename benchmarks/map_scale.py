@@ -4,7 +4,8 @@
                                    [--out out/bench/map-scale] [--reuse] [-- REPLAY ARGS]
 
 Each flight of the CSV (config, log) is rendered where missing (out/sim/scale/NAME), its log written as the CSV says
-(``tlog`` and ``tlog-px4``: the flight's own telemetry.tlog; ``dataflash``: ``sim logs``' telemetry.bin; ``srt-p4p``,
+(``tlog`` and ``tlog-px4``: the flight's own telemetry.tlog; ``dataflash`` and ``ulog``: ``sim logs``' telemetry.bin
+and telemetry.ulg; ``srt-p4p``,
 ``srt-mavic3``: ``sim logs --srt-layout``'s video.SRT with the video and camera.json), and replayed lock-step with the
 truth's layout (``--orchard``, numbered as the truth). Printed per flight: the map's scale error (the similarity that
 takes its cameras onto the truth's, ground/evaluation/scoring.py), the 1-sigma report.json states
@@ -53,7 +54,7 @@ def replay(flight: Path, log: str, out: Path, extra: list[str]) -> None:
     logs = out.parent / f"{flight.name}-logs"
     sh([py, "-m", "sim", "logs", str(flight), "--out", str(logs)]
        + (["--srt-layout", log.split("-", 1)[1]] if log.startswith("srt-") else []))
-    what = logs / ("telemetry.bin" if log == "dataflash" else "video.SRT")
+    what = logs / {"dataflash": "telemetry.bin", "ulog": "telemetry.ulg"}.get(log, "video.SRT")
     sh(args + ["--video", str(flight / "video.mp4"), "--log", str(what), "--camera", str(flight / "camera.json")])
 
 

@@ -74,6 +74,9 @@ class TrainSettings:
     #: for ADD256-like imagery alone).
     add256_scale: tuple[float, float] = field(default=(0.45, 1.3), metadata={"nargs": 2, "type": float,
                                                                              "metavar": ("LO", "HI")})
+    #: Random scale range of AppleBBCH76 tiles (default: --add256-scale's; its apples are resized to ADD256's size).
+    bbch_scale: tuple[float, float] | None = field(default=None, metadata={"nargs": 2, "type": float,
+                                                                          "metavar": ("LO", "HI")})
     #: Where to train (auto: the GPU if torch sees one, else the CPU).
     device: str = field(default="auto", metadata={"choices": ["auto", "cpu", "cuda"]})
     #: Mixed precision: the forward pass in bfloat16.

@@ -112,9 +112,9 @@ class EpochItems(torch.utils.data.Dataset):
     """One epoch's augmented training items, each from its own seed (seed, epoch, position): the same on a resume,
     whatever the number of loader processes."""
 
-    def __init__(self, items, add, sim, seed: int, epoch: int, add256_scale, bbch=()):
+    def __init__(self, items, add, sim, seed: int, epoch: int, add256_scale, bbch=(), bbch_scale=None):
         self.items, self.add, self.sim, self.seed, self.epoch, self.add256_scale = items, add, sim, seed, epoch, add256_scale
-        self.bbch = bbch
+        self.bbch, self.bbch_scale = bbch, bbch_scale or add256_scale
 
     def __len__(self):
         return len(self.items)
@@ -124,8 +124,8 @@ class EpochItems(torch.utils.data.Dataset):
         aug = Augment(rng=np.random.default_rng([self.seed, self.epoch, k]))
         if kind == "add256":
             img, b = aug(self.add[i].image, self.add[i].boxes, scale=self.add256_scale)
-        elif kind == "bbch":  # resized by its curators to ADD256's apple size: the same scales
-            img, b = aug(self.bbch[i].image, self.bbch[i].boxes, scale=self.add256_scale)
+        elif kind == "bbch":  # resized by its curators to ADD256's apple size: the same scales unless told
+            img, b = aug(self.bbch[i].image, self.bbch[i].boxes, scale=self.bbch_scale)
         else:
             img, b = aug(self.sim[i].image, self.sim[i].boxes, scale=(0.8, 1.25))
         return to_tensor(img), target(b)
@@ -175,7 +175,7 @@ FIT_AFTER, FIT_SHARE = 60, 0.85
 #: The settings that make a run what it is: a resumed run takes them from its checkpoint, and refuses an option that
 #: asks for another value (the others, such as the paths to the data, the threads or the device, may change).
 RUN_FIELDS = ("backbone", "fpn_channels", "head_width", "epochs", "batch", "lr", "sim_crops", "bbch_tiles", "seed",
-              "min_visible", "add256_scale", "freeze_stages")
+              "min_visible", "add256_scale", "freeze_stages", "bbch_scale")
 
 
 def _plain(v):
@@ -195,7 +195,8 @@ def run_settings(s: TrainSettings, ckpt: dict, path) -> TrainSettings:
             opt = "--" + k.replace("_", "-")
             raise TrainingError(f"{path}: this run trains with {opt} {want}, not {given}: resume it without {opt}, or "
                                 f"start a new run in another --out")
-    return dataclasses.replace(s, **{k: tuple(v) if k == "add256_scale" else v for k, v in stored.items()
+    return dataclasses.replace(s, **{k: tuple(v) if k in ("add256_scale", "bbch_scale") and v else v
+                                     for k, v in stored.items()
                                      if k in RUN_FIELDS})
 
 
@@ -266,6 +267,7 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
                             f"freezing would keep random (pretrained: mobilenet_v2, efficientnet_lite0)")
     epochs, batch, lr, sim_crops, seed = s.epochs, s.batch, s.lr, s.sim_crops, s.seed
     add256_scale, workers = tuple(s.add256_scale), s.workers
+    bbch_scale = tuple(s.bbch_scale) if s.bbch_scale else None
     if workers is None:
         workers = min(4, max((os.cpu_count() or 1) - 1, 0)) if dev.type == "cuda" else 0
     threads = s.threads or (2 if dev.type == "cuda" else os.cpu_count() or 1)
@@ -330,7 +332,8 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
                     applebbch76_train=len(bbch), bbch_tiles=plan.bbch_tiles, sim_frames=len(sim), iterations=total,
                     validation={k: len(v) for k, v in val.items()}, imagenet=is_pretrained(config["backbone"]),
                     init=str(s.init) if s.init is not None else None, add256_scale=list(add256_scale),
-                    min_visible=s.min_visible, freeze_stages=s.freeze_stages)
+                    min_visible=s.min_visible, freeze_stages=s.freeze_stages,
+                    bbch_scale=list(bbch_scale) if bbch_scale else None)
     if source is not None:  # where the run began, not this call's --init
         run_info["init"] = (ckpt.get("run") or {}).get("init")
     run_settings_now = {k: _plain(getattr(s, k)) for k in RUN_FIELDS}
@@ -358,7 +361,7 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
     with StopRequest() as request:
         while it < total and stopping is None:
             epoch, pos = divmod(it, per_epoch)
-            items = EpochItems(plan.items(epoch), add, sim, seed, epoch, add256_scale, bbch)
+            items = EpochItems(plan.items(epoch), add, sim, seed, epoch, add256_scale, bbch, bbch_scale)
             rest = torch.utils.data.Subset(items, range(pos * batch, len(items)))
             # its own generator: a loader drawing its seed from torch's would shift the RNG on every resume
             loader = torch.utils.data.DataLoader(rest, batch_size=batch, num_workers=workers, collate_fn=collate,

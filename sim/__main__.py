@@ -67,13 +67,14 @@ def _cmd_logs(args) -> int:
 
     from pomar.flight import FlightDir
     from sim.config import rendered_config
-    from sim.logs import write_dataflash, write_srt
+    from sim.logs import write_dataflash, write_srt, write_ulog
 
     fd = FlightDir(args.flight_dir)
     meta = fd.meta()
     out = Path(args.out or fd.path)
     out.mkdir(parents=True, exist_ok=True)
     counts = write_dataflash(fd.tlog, out / "telemetry.bin")
+    ucounts = write_ulog(fd.tlog, out / "telemetry.ulg")
     truth = None
     # the height above take-off as a DJI barometer gives it: the truth's, drifting a little; where the tlog's height is
     # already the barometer's (height_source baro), that one: one drone, one barometer, whichever log records it
@@ -83,7 +84,8 @@ def _cmd_logs(args) -> int:
     n = write_srt(fd.tlog, meta.frame_count, meta.fps, meta.video_start_utc, out / "video.SRT",
                   layout=args.srt_layout, attitude=not args.no_attitude, truth_heights=truth,
                   seed=int(meta.extra.get("seed", 0)))
-    print(f"wrote {out / 'telemetry.bin'} ({', '.join(f'{k} {v}' for k, v in counts.items())}) and "
+    print(f"wrote {out / 'telemetry.bin'} ({', '.join(f'{k} {v}' for k, v in counts.items())}), "
+          f"{out / 'telemetry.ulg'} ({', '.join(f'{k} {v}' for k, v in ucounts.items())}) and "
           f"{out / 'video.SRT'} ({n} subtitles)")
     return 0
 
@@ -156,7 +158,7 @@ def main(argv=None) -> int:
     lg = sub.add_parser("logs", help="write the flight's telemetry as other drones log it, beside its .tlog: an "
                                      "ArduPilot DataFlash telemetry.bin and a DJI video.SRT (one subtitle a frame)")
     lg.add_argument("flight_dir")
-    lg.add_argument("--out", help="folder for the two files (default: the flight directory)")
+    lg.add_argument("--out", help="folder for the three files (default: the flight directory)")
     from sim.logs import SRT_LAYOUTS
 
     lg.add_argument("--srt-layout", choices=sorted(SRT_LAYOUTS), default="mavic3",

@@ -4,12 +4,15 @@
   -> POS, GPS_RAW_INT -> GPS with GPS week and ms, ATTITUDE -> ATT, the gimbal -> MNT with an earth-frame yaw,
   CAMERA_FEEDBACK -> CAM with Img = frame + 1), timed by the autopilot's boot clock. Written with pymavlink's
   DataFlash support (``DFReader.DFFormat`` and ``DFMessage.get_msgbuf``), with an FMT record for each type.
+- ``telemetry.ulg``: PX4's ULog of the same samples (GLOBAL_POSITION_INT -> vehicle_global_position and home_position,
+  GPS_RAW_INT -> vehicle_gps_position with its accuracy in metres, ATTITUDE -> vehicle_attitude, the gimbal ->
+  gimbal_device_attitude_status, the camera's events -> camera_capture), read back by pyulog.
 - ``video.SRT``: a DJI subtitle per video frame, in the Mavic 3 layout (date, ``[latitude: …] [longitude: …]
   [rel_alt: … abs_alt: …] [gb_yaw: … gb_pitch: … gb_roll: …]``), from the tlog's samples at each frame's capture
   time; ``--srt-layout`` writes another DJI layout (``SRT_LAYOUTS``, each as a real file has it), and
   ``--no-attitude`` leaves out the layout's attitude fields, as most DJI drones write none.
 
-    python -m sim logs FLIGHT_DIR          # writes both
+    python -m sim logs FLIGHT_DIR          # writes all three
 """
 
 from __future__ import annotations
@@ -142,6 +145,122 @@ def write_dataflash(tlog: Path, out: Path) -> dict:
         else:
             continue
         counts[name] = counts.get(name, 0) + 1
+    w.close()
+    log.info("wrote %s: %s", out, counts)
+    return counts
+
+
+#: topic -> fields (ULog type, name), as PX4 logs them (the fields pomar's reader takes, in PX4's names and units)
+ULOG_TOPICS = {
+    "vehicle_global_position": [("uint64_t", "timestamp"), ("double", "lat"), ("double", "lon"), ("float", "alt")],
+    "vehicle_gps_position": [("uint64_t", "timestamp"), ("uint64_t", "time_utc_usec"), ("int32_t", "lat"),
+                             ("int32_t", "lon"), ("int32_t", "alt"), ("float", "eph"), ("float", "epv"),
+                             ("uint8_t", "fix_type"), ("uint8_t", "satellites_used")],
+    "vehicle_attitude": [("uint64_t", "timestamp"), ("float[4]", "q")],
+    "gimbal_device_attitude_status": [("uint64_t", "timestamp"), ("float[4]", "q")],
+    "camera_capture": [("uint64_t", "timestamp"), ("uint64_t", "timestamp_utc"), ("uint32_t", "seq")],
+    "home_position": [("uint64_t", "timestamp"), ("float", "alt")],
+}
+
+
+class ULogWriter:
+    """A PX4 ULog (version 1): header, flag bits, a format and a subscription per topic, then data records in time
+    order. The record types and the header are pyulog's; each record is a uint16 size, a uint8 type, its bytes."""
+
+    def __init__(self, path, start_us: int):
+        import struct
+
+        from pyulog import ULog
+
+        self._U, self._struct = ULog, struct
+        self._records: list[tuple[int, int, bytes]] = []  # (timestamp, order, record)
+        self._f = open(path, "wb")
+        self._f.write(bytes(ULog.HEADER_BYTES) + struct.pack("<BQ", 1, start_us))
+        self._put(ULog.MSG_TYPE_FLAG_BITS, bytes(16) + struct.pack("<3Q", 0, 0, 0))
+        self._packers = {}
+        for name, fields in ULOG_TOPICS.items():
+            self._put(ULog.MSG_TYPE_FORMAT, (name + ":" + "".join(f"{t} {n};" for t, n in fields)).encode())
+            codes = "".join(ULog._UNPACK_TYPES[t.split("[")[0]][0] * (int(t[t.index("[") + 1:-1]) if "[" in t else 1)
+                            for t, _ in fields)
+            self._packers[name] = (len(self._packers), struct.Struct("<H" + codes))
+        for name, (msg_id, _) in self._packers.items():
+            self._put(ULog.MSG_TYPE_ADD_LOGGED_MSG, struct.pack("<BH", 0, msg_id) + name.encode())
+
+    def _put(self, kind: int, data: bytes):
+        self._f.write(self._struct.pack("<HB", len(data), kind) + data)
+
+    def write(self, topic: str, timestamp_us: int, *values):
+        msg_id, packer = self._packers[topic]
+        flat = [v for x in values for v in (x if isinstance(x, (list, tuple, np.ndarray)) else [x])]
+        data = packer.pack(msg_id, int(timestamp_us), *flat)
+        self._records.append((int(timestamp_us), len(self._records),
+                              self._struct.pack("<HB", len(data), self._U.MSG_TYPE_DATA) + data))
+
+    def close(self):
+        for _, _, rec in sorted(self._records):
+            self._f.write(rec)
+        self._f.close()
+
+
+def write_ulog(tlog: Path, out: Path) -> dict:
+    """The tlog's samples as a PX4 .ulg (boot-time stamps; UTC in the GPS's time_utc_usec and the captures'
+    timestamp_utc); returns record counts."""
+    from pomar.mavlink import dialect
+    from pomar.rotations import ned_euler_to_rotation, rotation_to_quat_wxyz
+
+    dialect()
+    from pymavlink import mavutil
+
+    conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
+    msgs, boot_to_unix = [], None
+    while (m := conn.recv_match()) is not None:
+        if m.get_type() == "SYSTEM_TIME" and m.time_unix_usec and boot_to_unix is None:
+            boot_to_unix = m.time_unix_usec / 1e6 - m.time_boot_ms / 1e3
+        msgs.append(m)
+    conn.close()
+    if boot_to_unix is None:
+        raise ValueError(f"{tlog}: no SYSTEM_TIME with UTC: cannot place a ULog's boot clock")
+
+    def boot_us(us):  # a MAVLink time_usec (boot or unix) as PX4's boot-time stamp
+        return int(round(us - boot_to_unix * 1e6)) if us > 1e15 else int(us)
+
+    w = ULogWriter(out, 0)
+    counts: dict[str, int] = {}
+    home = False
+    for m in msgs:
+        kind = m.get_type()
+        if kind == "GLOBAL_POSITION_INT":
+            t = m.time_boot_ms * 1000
+            if m.lat == 0 and m.lon == 0:
+                continue
+            w.write("vehicle_global_position", t, m.lat / 1e7, m.lon / 1e7, m.alt / 1e3)
+            if not home and m.relative_alt:  # PX4 logs its home once it is set
+                w.write("home_position", t, (m.alt - m.relative_alt) / 1e3)
+                home = True
+                counts["home_position"] = 1
+            topic = "vehicle_global_position"
+        elif kind == "GPS_RAW_INT":
+            t = boot_us(m.time_usec)
+            eph = getattr(m, "h_acc", 0) / 1e3 or m.eph / 100  # PX4's eph is metres; MAVLink's eph is HDOP x 100
+            epv = getattr(m, "v_acc", 0) / 1e3 or m.epv / 100
+            w.write("vehicle_gps_position", t, int(round((boot_to_unix + t / 1e6) * 1e6)), m.lat, m.lon, m.alt,
+                    eph, epv, m.fix_type, m.satellites_visible)
+            topic = "vehicle_gps_position"
+        elif kind == "ATTITUDE":
+            q = rotation_to_quat_wxyz(ned_euler_to_rotation(m.roll, m.pitch, m.yaw, degrees=False))
+            w.write("vehicle_attitude", m.time_boot_ms * 1000, np.asarray(q, float).reshape(4))
+            topic = "vehicle_attitude"
+        elif kind == "GIMBAL_DEVICE_ATTITUDE_STATUS":  # the simulator's yaw is in the earth frame, as PX4 logs it
+            w.write("gimbal_device_attitude_status", m.time_boot_ms * 1000, list(m.q))
+            topic = "gimbal_device_attitude_status"
+        elif kind in ("CAMERA_FEEDBACK", "CAMERA_TRIGGER"):
+            idx = m.img_idx if kind == "CAMERA_FEEDBACK" else m.seq
+            w.write("camera_capture", boot_us(m.time_usec), int(m.time_usec if m.time_usec > 1e15 else
+                                                                 m.time_usec + boot_to_unix * 1e6), idx)
+            topic = "camera_capture"
+        else:
+            continue
+        counts[topic] = counts.get(topic, 0) + 1
     w.close()
     log.info("wrote %s: %s", out, counts)
     return counts

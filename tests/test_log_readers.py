@@ -137,7 +137,8 @@ def test_not_a_log(tmp_path):
 
 @pytest.fixture(scope="module")
 def sim_logs(replay_test_flight, tmp_path_factory):
-    """The tiny simulated flight's telemetry also as a DataFlash .bin and a DJI .SRT (python -m sim logs)."""
+    """The tiny simulated flight's telemetry also as a DataFlash .bin, a PX4 .ulg and a DJI .SRT (python -m sim
+    logs)."""
     out = tmp_path_factory.mktemp("logs")
     r = subprocess.run([sys.executable, "-m", "sim", "logs", str(replay_test_flight.path), "--out", str(out)],
                        capture_output=True, text=True)
@@ -148,7 +149,8 @@ def sim_logs(replay_test_flight, tmp_path_factory):
 def test_sim_logs_give_the_tlogs_samples(sim_logs):
     """Each format, read by its own reader, samples the frames as the .tlog does: the same capture times, positions
     within their rounding (the SRT's 5 decimals, as a Mavic 3 writes them), and camera attitudes within their
-    rounding (DataFlash's centidegrees; the SRT's tenths of a degree)."""
+    rounding (DataFlash's centidegrees; the SRT's tenths of a degree). The ULog carries the tlog's float samples as
+    they are: positions, heights and the stated accuracy to float precision."""
     from pomar.rotations import quat_wxyz_to_rotation
     from sim.logs import SRT_LAYOUTS
 
@@ -157,19 +159,19 @@ def test_sim_logs_give_the_tlogs_samples(sim_logs):
     ref = read_log(flight.tlog)
     t_ref, _ = ref.frame_times(meta.frame_count, meta.video_start_utc, meta.fps)
     s_ref = ref.at(t_ref)
-    for path, fmt in ((binf, "dataflash"), (srtf, "srt")):
+    for path, fmt in ((binf, "dataflash"), (binf.with_name("telemetry.ulg"), "ulog"), (srtf, "srt")):
         tl = read_log(path)
         assert tl.format == fmt
         t, flags = tl.frame_times(meta.frame_count, meta.video_start_utc, meta.fps)
         np.testing.assert_allclose(t, t_ref, atol=2e-3)
         assert not (flags & 64).any()  # every frame timed by the log itself (CAM events, subtitles)
         s = tl.at(t)
-        deg = 1e-6 if fmt == "dataflash" else 0.5 * 10.0 ** -SRT_LAYOUTS["mavic3"][1] + 1e-9
-        for k, tol in (("lat", deg), ("lon", deg), ("alt", 0.01)):
+        deg = {"dataflash": 1e-6, "ulog": 1e-9}.get(fmt, 0.5 * 10.0 ** -SRT_LAYOUTS["mavic3"][1] + 1e-9)
+        for k, tol in (("lat", deg), ("lon", deg), ("alt", 1e-3 if fmt == "ulog" else 0.01)):
             np.testing.assert_allclose(s[k], s_ref[k], atol=tol)
         ang = (quat_wxyz_to_rotation(s["q_gimbal"]).inv() * quat_wxyz_to_rotation(s_ref["q_gimbal"])).magnitude()
-        assert np.degrees(ang).max() < (0.05 if fmt == "dataflash" else 0.1), (fmt, np.degrees(ang).max())
-        if fmt == "dataflash":  # the receiver's stated accuracy in metres (GPA's HAcc), as the tlog states it
+        assert np.degrees(ang).max() < {"dataflash": 0.05, "ulog": 1e-4}.get(fmt, 0.1), (fmt, np.degrees(ang).max())
+        if fmt in ("dataflash", "ulog"):  # the receiver's stated accuracy in metres (GPA's HAcc, eph), as the tlog's
             np.testing.assert_allclose(s["h_acc"], s_ref["h_acc"], atol=0.01)
             assert np.nanmin(s["h_acc"]) > 0
 
