@@ -273,7 +273,8 @@ def test_a_stopped_training_resumes_bit_for_bit_from_its_kept_state_on_a_new_mac
     data = ["--add256", str(add), "--sim-flight", str(pack), "--applebbch76", str(bbch), "--val-flight", str(pack),
             "--threads", "1"]
     run = ["--backbone", "mobilenet_v2", "--freeze-stages", "1", "--fpn-channels", "16", "--head-width", "32",
-           "--epochs", "2", "--batch", "2", "--sim-crops", "2", "--bbch-tiles", "1", "--seed", "3", "--lr", "0.005"]
+           "--epochs", "2", "--batch", "2", "--sim-crops", "2", "--bbch-tiles", "1", "--bbch-scale", "0.75", "1.5",
+           "--seed", "3", "--lr", "0.005"]  # a resume takes back every one of these, the AppleBBCH76 scale too
 
     def train(out, *extra):
         cmd = [sys.executable, "-m", "export", "train", "--out", str(out), *data, *extra]
