@@ -129,3 +129,24 @@ def clip_segment(poly: np.ndarray, p: np.ndarray, q: np.ndarray) -> tuple[float,
         else:
             k += 1
     return best
+
+
+def distance_to_edge(poly: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Each of ``pts``' (M, 2) distance (m) to the nearest edge of ``poly``."""
+    pts = np.atleast_2d(pts)
+    a, b = poly, np.roll(poly, -1, axis=0)
+    e = b - a
+    t = np.clip(((pts[:, None, :] - a) * e).sum(-1) / np.maximum((e * e).sum(-1), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(pts[:, None, :] - (a + t[..., None] * e), axis=-1).min(axis=1)
+
+
+def outside_m(poly: np.ndarray, p: np.ndarray, q: np.ndarray, tol_m: float = 0.5, step_m: float = 0.1) -> float:
+    """How many metres of the straight line p-q lie outside ``poly`` (sampled every ``step_m``); 0 where no part lies
+    more than ``tol_m`` outside (a line along an edge, as a pass cut at the boundary and the hop from its end)."""
+    length = float(np.linalg.norm(q - p))
+    n = max(1, int(np.ceil(length / step_m)))
+    pts = p + ((np.arange(n) + 0.5) / n)[:, None] * (q - p)
+    out = ~inside(poly, pts)
+    if not out.any() or distance_to_edge(poly, pts[out]).max() <= tol_m:
+        return 0.0
+    return length * float(out.mean())

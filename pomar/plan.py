@@ -12,7 +12,8 @@ The speed follows from geometry: every apple in at least ``views`` frames at the
 under ``blur_px``; then the drone's limits. The passes run serpentine, across the rows in order, each extended by half
 the frame's width past the row's ends (so that the end trees get their views), turns outside the rows. A plan that
 one battery cannot fly is split into flights of whole rows. Within a ``boundary`` (pomar.boundary) each pass keeps
-its longest stretch inside; a pass with none is left out, and the plan says which, and the trees that lose a side.
+its longest stretch inside; a pass with none is left out, and the plan says which, the trees that lose a side, and
+each hop between passes that leaves it.
 
 What it will give is measured with the same geometry the ground uses for ``trees.csv``'s coverage
 (:mod:`pomar.coverage`): the planned cameras, every frame, against the layout's trees, a hedge of DEFAULT_HEDGE.
@@ -27,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from pomar.apple_scale import APPLE_RADIUS_M, CANOPY_MID_M, envelope_height_m, expected_radius_px
-from pomar.boundary import clip_segment, read_boundary
+from pomar.boundary import clip_segment, outside_m, read_boundary
 from pomar.cli import InputError
 from pomar.coverage import DEFAULT_HEDGE
 from pomar.drones import Drone
@@ -258,7 +259,7 @@ class Plan:
     flights: list[list[Pass]]
     trees: list[dict]
     minutes: list[float]
-    #: What the plan cannot do as asked, one line each (a pass cut short or left out by the boundary).
+    #: What the plan cannot do as asked, one line each (a pass cut short or left out by the boundary, a hop leaving it).
     problems: list[str] = field(default_factory=list)
 
     def as_dict(self) -> dict:
@@ -314,12 +315,14 @@ def make_plan(layout: list[LayoutRow], camera, drone: Drone, detector: dict, set
     speed = pass_speed(geom, camera.fx, fps, s.views, s.blur_px, s.shutter_s or drone.shutter_s, drone)
     passes = row_passes(rows, origin, geom["offset_m"], geom["footprint_m"] / 2)
     problems = []
+    fence = read_boundary(s.boundary, origin) if s.boundary else None
     if s.boundary:
-        passes, problems = within_boundary(passes, read_boundary(s.boundary, origin), s.boundary,
-                                           geom["footprint_m"] / 2)
+        passes, problems = within_boundary(passes, fence, s.boundary, geom["footprint_m"] / 2)
         if not passes:
             raise PlanError(f"{s.boundary}: no pass of the rows asked lies inside the boundary")
     flights = split_flights(passes, speed["speed_mps"], geom["height_m"], drone)
+    if s.boundary:
+        problems += hops_outside(flights, fence, s.boundary)
     minutes = [flight_time_s(f, speed["speed_mps"], geom["height_m"], drone) / 60 for f in flights]
     cams = plan_cameras(flights, speed["speed_mps"], fps, geom["height_m"], s.pitch_deg)
     lrows, trees = layout_trees_enu(rows, origin)
@@ -372,6 +375,21 @@ def within_boundary(passes: list[Pass], poly: np.ndarray, name: str, run_in_m: f
                              f"inside the row's {where}")
         kept.append(Pass(p.row, p.side, p.start + t0 * d, p.start + t1 * d, p.look))
     return kept, lines
+
+
+def hops_outside(flights: list[list[Pass]], poly: np.ndarray, name: str) -> list[str]:
+    """A line for each hop between two passes (a straight line from one's end to the next's start) that leaves
+    ``poly`` (pomar.boundary.outside_m): a boundary with a notch between the rows' ends, which the waypoints alone do
+    not show."""
+    lines = []
+    for k, passes in enumerate(flights, start=1):
+        for p, q in zip(passes, passes[1:]):
+            out_m = outside_m(poly, p.end, q.start)
+            if out_m > 0:
+                sides = ["left" if x.side > 0 else "right" for x in (p, q)]
+                lines.append(f"flight {k}: the hop from row {p.row}'s {sides[0]} side to row {q.row}'s {sides[1]} "
+                             f"side leaves the boundary {name} for {out_m:.1f} m: fly it by hand, or add a waypoint")
+    return lines
 
 
 def write_plan(plan: Plan, out: Path) -> list[Path]:

@@ -156,6 +156,7 @@ def test_a_boundary_keeps_the_flight_inside_and_says_what_it_costs(tmp_path):
     assert len(stops) == 6, d["problems"]  # both sides of three rows
     lost = [x for x in d["problems"] if "not seen from both sides" in x]
     assert len(lost) == 3 and all(x in r.stdout for x in d["problems"]), (d["problems"], r.stdout)
+    assert not [x for x in d["problems"] if "hop" in x]  # a convex boundary holds every hop between its waypoints
     cov = {(int(t["row"]), int(t["tree"])): int(t["sides_seen"]) for t in csv.DictReader(open(out / "coverage.csv"))}
     assert all(cov[(k, t)] == 2 for k in (1, 2, 3) for t in range(1, 9)) and cov[(2, 30)] < 2
     # a boundary the rows lie outside, a file that is no polygon, one with two vertices
@@ -174,6 +175,23 @@ def test_a_boundary_keeps_the_flight_inside_and_says_what_it_costs(tmp_path):
                             "--boundary", str(bad_file), "--out", str(bad)], capture_output=True, text=True, cwd=ROOT)
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and says in r.stderr, r.stderr
         assert not bad.exists()
+
+
+def test_a_hop_between_passes_that_leaves_a_notched_boundary_is_named():
+    """Two passes 4 m apart whose rows end by a notch cut into the boundary: the hop from one's end to the next's start
+    crosses the notch (2 m of it outside), which no waypoint shows; the plan names that hop, and no other."""
+    from pomar.plan import Pass, hops_outside
+
+    look = np.array([0.0, 1.0])
+    a = Pass(1, 1, np.array([0.0, 0.0]), np.array([30.0, 0.0]), look)
+    b = Pass(1, -1, np.array([30.0, 4.0]), np.array([0.0, 4.0]), -look)
+    c = Pass(2, 1, np.array([0.0, 5.0]), np.array([30.0, 5.0]), look)
+    notched = np.array([[-5, -2], [35, -2], [35, 1], [28, 1], [28, 3], [35, 3], [35, 6], [-5, 6]], float)
+    lines = hops_outside([[a, b, c]], notched, "fence.csv")
+    assert lines == ["flight 1: the hop from row 1's left side to row 1's right side leaves the boundary fence.csv "
+                     "for 2.0 m: fly it by hand, or add a waypoint"]
+    box = np.array([[-5, -2], [35, -2], [35, 6], [-5, 6]], float)
+    assert hops_outside([[a, b, c]], box, "fence.csv") == []
 
 
 def test_each_flight_is_written_for_the_apps_and_reads_back(tmp_path):
