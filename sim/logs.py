@@ -86,23 +86,29 @@ def _euler_deg(q_wxyz: np.ndarray) -> np.ndarray:
     return np.degrees(quat_wxyz_to_rotation(q_wxyz).as_euler("ZYX")[:, ::-1])
 
 
-def write_dataflash(tlog: Path, out: Path) -> dict:
-    """The tlog's samples as an ArduPilot DataFlash .bin; returns message counts."""
+def tlog_messages(tlog: Path, kind: str) -> tuple[list, float]:
+    """The tlog's messages, and its autopilot's boot clock in unix seconds (its first SYSTEM_TIME with UTC; without
+    one a ValueError: a ``kind`` log's boot clock cannot be placed)."""
     from pomar.mavlink import dialect
 
     dialect()
     from pymavlink import mavutil
 
     conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
-    msgs = []
-    boot_to_unix = None
+    msgs, boot_to_unix = [], None
     while (m := conn.recv_match()) is not None:
         if m.get_type() == "SYSTEM_TIME" and m.time_unix_usec and boot_to_unix is None:
             boot_to_unix = m.time_unix_usec / 1e6 - m.time_boot_ms / 1e3
         msgs.append(m)
     conn.close()
     if boot_to_unix is None:
-        raise ValueError(f"{tlog}: no SYSTEM_TIME with UTC: cannot place a DataFlash log's boot clock")
+        raise ValueError(f"{tlog}: no SYSTEM_TIME with UTC: cannot place a {kind} log's boot clock")
+    return msgs, boot_to_unix
+
+
+def write_dataflash(tlog: Path, out: Path) -> dict:
+    """The tlog's samples as an ArduPilot DataFlash .bin; returns message counts."""
+    msgs, boot_to_unix = tlog_messages(tlog, "DataFlash")
     w = DataFlashWriter(out)
     counts: dict[str, int] = {}
 
@@ -205,21 +211,9 @@ class ULogWriter:
 def write_ulog(tlog: Path, out: Path) -> dict:
     """The tlog's samples as a PX4 .ulg (boot-time stamps; UTC in the GPS's time_utc_usec and the captures'
     timestamp_utc); returns record counts."""
-    from pomar.mavlink import dialect
     from pomar.rotations import ned_euler_to_rotation, rotation_to_quat_wxyz
 
-    dialect()
-    from pymavlink import mavutil
-
-    conn = mavutil.mavlink_connection(str(tlog), dialect="ardupilotmega")
-    msgs, boot_to_unix = [], None
-    while (m := conn.recv_match()) is not None:
-        if m.get_type() == "SYSTEM_TIME" and m.time_unix_usec and boot_to_unix is None:
-            boot_to_unix = m.time_unix_usec / 1e6 - m.time_boot_ms / 1e3
-        msgs.append(m)
-    conn.close()
-    if boot_to_unix is None:
-        raise ValueError(f"{tlog}: no SYSTEM_TIME with UTC: cannot place a ULog's boot clock")
+    msgs, boot_to_unix = tlog_messages(tlog, "ULog")
 
     def boot_us(us):  # a MAVLink time_usec (boot or unix) as PX4's boot-time stamp
         return int(round(us - boot_to_unix * 1e6)) if us > 1e15 else int(us)
