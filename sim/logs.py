@@ -173,7 +173,7 @@ class ULogWriter:
     """A PX4 ULog (version 1): header, flag bits, a format and a subscription per topic, then data records in time
     order. The record types and the header are pyulog's; each record is a uint16 size, a uint8 type, its bytes."""
 
-    def __init__(self, path, start_us: int):
+    def __init__(self, path, start_us: int = 0):
         import struct
 
         from pyulog import ULog
@@ -218,7 +218,10 @@ def write_ulog(tlog: Path, out: Path) -> dict:
     def boot_us(us):  # a MAVLink time_usec (boot or unix) as PX4's boot-time stamp
         return int(round(us - boot_to_unix * 1e6)) if us > 1e15 else int(us)
 
-    w = ULogWriter(out, 0)
+    def unix_us(t_boot_us):  # ... and that stamp in UTC, as PX4's GPS and camera topics carry it
+        return int(round(t_boot_us + boot_to_unix * 1e6))
+
+    w = ULogWriter(out)
     counts: dict[str, int] = {}
     home = False
     for m in msgs:
@@ -237,8 +240,8 @@ def write_ulog(tlog: Path, out: Path) -> dict:
             t = boot_us(m.time_usec)
             eph = getattr(m, "h_acc", 0) / 1e3 or m.eph / 100  # PX4's eph is metres; MAVLink's eph is HDOP x 100
             epv = getattr(m, "v_acc", 0) / 1e3 or m.epv / 100
-            w.write("vehicle_gps_position", t, int(round((boot_to_unix + t / 1e6) * 1e6)), m.lat, m.lon, m.alt,
-                    eph, epv, m.fix_type, m.satellites_visible)
+            w.write("vehicle_gps_position", t, unix_us(t), m.lat, m.lon, m.alt, eph, epv, m.fix_type,
+                    m.satellites_visible)
             topic = "vehicle_gps_position"
         elif kind == "ATTITUDE":
             q = rotation_to_quat_wxyz(ned_euler_to_rotation(m.roll, m.pitch, m.yaw, degrees=False))
@@ -249,8 +252,8 @@ def write_ulog(tlog: Path, out: Path) -> dict:
             topic = "gimbal_device_attitude_status"
         elif kind in ("CAMERA_FEEDBACK", "CAMERA_TRIGGER"):
             idx = m.img_idx if kind == "CAMERA_FEEDBACK" else m.seq
-            w.write("camera_capture", boot_us(m.time_usec), int(m.time_usec if m.time_usec > 1e15 else
-                                                                 m.time_usec + boot_to_unix * 1e6), idx)
+            t = boot_us(m.time_usec)
+            w.write("camera_capture", t, unix_us(t), idx)
             topic = "camera_capture"
         else:
             continue
