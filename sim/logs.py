@@ -2,11 +2,12 @@
 
 - ``telemetry.bin``: ArduPilot's on-board DataFlash log, the same samples as the tlog's messages (GLOBAL_POSITION_INT
   -> POS, GPS_RAW_INT -> GPS with GPS week and ms, ATTITUDE -> ATT, the gimbal -> MNT with an earth-frame yaw,
-  CAMERA_FEEDBACK -> CAM with Img = frame + 1), timed by the autopilot's boot clock. Written with pymavlink's
+  CAMERA_FEEDBACK -> CAM with Img = frame + 1, PARAM_VALUE -> PARM), timed by the autopilot's boot clock. Written with pymavlink's
   DataFlash support (``DFReader.DFFormat`` and ``DFMessage.get_msgbuf``), with an FMT record for each type.
 - ``telemetry.ulg``: PX4's ULog of the same samples (GLOBAL_POSITION_INT -> vehicle_global_position and home_position,
   GPS_RAW_INT -> vehicle_gps_position with its accuracy in metres, ATTITUDE -> vehicle_attitude, the gimbal ->
-  gimbal_device_attitude_status, the camera's events -> camera_capture), read back by pyulog.
+  gimbal_device_attitude_status, the camera's events -> camera_capture; the EKF's height source as the initial
+  parameter EKF2_HGT_REF), read back by pyulog.
 - ``video.SRT``: a DJI subtitle per video frame, in the Mavic 3 layout (date, ``[latitude: …] [longitude: …]
   [rel_alt: … abs_alt: …] [gb_yaw: … gb_pitch: … gb_roll: …]``), from the tlog's samples at each frame's capture
   time; ``--srt-layout`` writes another DJI layout (``SRT_LAYOUTS``, each as a real file has it), and
@@ -24,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from pomar.rotations import quat_wxyz_to_rotation
+from pomar.telemetry.base import height_source, height_source_param
 from sim.telemetry import BARO_DRIFT_M  # a barometer's drift: one definition, the EKF's and a DJI SRT's
 
 log = logging.getLogger(__name__)
@@ -41,6 +43,7 @@ DF_FORMATS = {
     "CAM": (133, "QBHIHLLeefccC", "TimeUS,I,Img,GPSTime,GPSWeek,Lat,Lng,Alt,RelAlt,GPSAlt,R,P,Y"),
     # the receiver's stated accuracy beside each GPS record (centimetres: C is uint16 x 100 of metres)
     "GPA": (134, "QBCCCCfBIH", "TimeUS,I,VDop,HAcc,VAcc,SAcc,YAcc,VV,SMS,Delta"),
+    "PARM": (135, "QNff", "TimeUS,Name,Value,Default"),
 }
 
 
@@ -141,6 +144,9 @@ def write_dataflash(tlog: Path, out: Path) -> dict:
             r, p, y = _euler_deg(np.array([m.q]))[0]
             w.write("MNT", [us(m.time_boot_ms), 0, r, r, p, p, 0.0, 0.0, y % 360, y % 360])
             name = "MNT"
+        elif kind == "PARAM_VALUE":  # ArduPilot logs its parameters as the log starts
+            w.write("PARM", [0, m.param_id.encode(), m.param_value, m.param_value])
+            name = "PARM"
         elif kind == "CAMERA_FEEDBACK":
             t_boot = m.time_usec / 1e6 - boot_to_unix
             week, ms = _gps_week_ms(m.time_usec / 1e6)
@@ -173,7 +179,7 @@ class ULogWriter:
     """A PX4 ULog (version 1): header, flag bits, a format and a subscription per topic, then data records in time
     order. The record types and the header are pyulog's; each record is a uint16 size, a uint8 type, its bytes."""
 
-    def __init__(self, path, start_us: int = 0):
+    def __init__(self, path, start_us: int = 0, params: dict | None = None):
         import struct
 
         from pyulog import ULog
@@ -189,6 +195,9 @@ class ULogWriter:
             codes = "".join(ULog._UNPACK_TYPES[t.split("[")[0]][0] * (int(t[t.index("[") + 1:-1]) if "[" in t else 1)
                             for t, _ in fields)
             self._packers[name] = (len(self._packers), struct.Struct("<H" + codes))
+        for name, value in (params or {}).items():  # the initial parameters (int32), in the definitions section
+            key = f"int32_t {name}".encode()
+            self._put(ULog.MSG_TYPE_PARAMETER, struct.pack("<B", len(key)) + key + struct.pack("<i", int(value)))
         for name, (msg_id, _) in self._packers.items():
             self._put(ULog.MSG_TYPE_ADD_LOGGED_MSG, struct.pack("<BH", 0, msg_id) + name.encode())
 
@@ -221,7 +230,9 @@ def write_ulog(tlog: Path, out: Path) -> dict:
     def unix_us(t_boot_us):  # ... and that stamp in UTC, as PX4's GPS and camera topics carry it
         return int(round(t_boot_us + boot_to_unix * 1e6))
 
-    w = ULogWriter(out)
+    # the EKF's height source, as PX4 names it, from whichever autopilot's parameter the tlog carries
+    src = height_source({str(m.param_id): m.param_value for m in msgs if m.get_type() == "PARAM_VALUE"})
+    w = ULogWriter(out, params=dict([height_source_param(src[0], "px4")]) if src else None)
     counts: dict[str, int] = {}
     home = False
     for m in msgs:

@@ -17,6 +17,7 @@ import numpy as np
 from pomar.geo import Origin
 from pomar.mavlink import TlogWriter, dialect
 from pomar.rotations import ned_euler_to_rotation, rotation_to_quat_wxyz
+from pomar.telemetry.base import height_source_param
 from sim.config import SimConfig
 from sim.trajectory import MARGIN_S, Trajectory, smooth_noise
 
@@ -56,6 +57,11 @@ def write_tlog(cfg: SimConfig, traj: Trajectory, origin: Origin, start_unix: flo
         base = m.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | m.MAV_MODE_FLAG_SAFETY_ARMED | m.MAV_MODE_FLAG_GUIDED_ENABLED
         events.append((ts, 0, AUTOPILOT_COMPONENT, enc.heartbeat_encode(m.MAV_TYPE_QUADROTOR, ap, base, 3, m.MAV_STATE_ACTIVE)))
         events.append((ts + 0.001, 1, AUTOPILOT_COMPONENT, enc.system_time_encode(int(round((start_unix + ts) * 1e6)), boot_ms(ts))))
+
+    # the EKF's height source, as a ground station downloads the parameters on connecting (PARAM_VALUE)
+    name, value = height_source_param(tel.height_source, "px4" if px4 else "ardupilot")
+    events.append((t0, -1, AUTOPILOT_COMPONENT, enc.param_value_encode(
+        name.encode(), float(value), m.MAV_PARAM_TYPE_INT32 if px4 else m.MAV_PARAM_TYPE_INT8, 1, 0)))
 
     # GPS error: a bias wandering over ~20 s plus white noise; shared by GPS_RAW_INT and the EKF output
     sigma = np.array([tel.gps_noise_m, tel.gps_noise_m, tel.gps_alt_noise_m])

@@ -176,6 +176,41 @@ def test_sim_logs_give_the_tlogs_samples(sim_logs):
             assert np.nanmin(s["h_acc"]) > 0
 
 
+@needs_logs
+def test_real_autopilot_logs_say_where_their_height_comes_from():
+    """The EKF's height source is read from each real log's parameters: a barometer's height is trusted to
+    BARO_HEIGHT_SIGMA_M, a GPS's to its stated vertical accuracy (the ULog's epv)."""
+    from pomar.telemetry.base import BARO_HEIGHT_SIGMA_M
+
+    want = {"ardupilot-tlog/ardusub_2023-05-04_small.tlog": "baro, EK3_SRC1_POSZ = 1",
+            "px4-ulog/sample_log_small.ulg": "baro, EKF2_HGT_MODE = 0",
+            "px4-ulog/sample_px4_events.ulg": "gps, EKF2_HGT_REF = 1"}
+    for name, source in want.items():
+        tl = read_log(LOGS / name)
+        assert tl.height_from == source, name
+        if source.startswith("baro"):
+            assert tl.height_sigma_m == BARO_HEIGHT_SIGMA_M
+        else:
+            epv = tl.gps.values[:, 2]
+            assert tl.height_sigma_m == pytest.approx(np.median(epv[epv > 0])) and 0.2 < tl.height_sigma_m < 5
+
+
+def test_sim_logs_carry_the_ekfs_height_source(sim_logs):
+    """The simulated autopilot's parameter survives into each log it writes (the tlog's PARAM_VALUE, DataFlash's
+    PARM, the ULog's initial parameters, in PX4's name there): each reader gives the same source and accuracy, the
+    receiver's stated vertical accuracy for GPS heights."""
+    from sim.config import rendered_config
+
+    flight, binf, _ = sim_logs
+    tel = rendered_config(flight.path).telemetry
+    logs = {"tlog": read_log(flight.tlog), "dataflash": read_log(binf), "ulog": read_log(binf.with_name("telemetry.ulg"))}
+    for fmt, tl in logs.items():
+        assert tl.height_from is not None and tl.height_from.split(",")[0] == "gps", (fmt, tl.height_from)
+        assert tl.height_sigma_m == pytest.approx(logs["tlog"].height_sigma_m, abs=0.01), fmt
+    assert tel.height_source == "gps" and logs["tlog"].height_sigma_m == pytest.approx(tel.gps_alt_noise_m, abs=0.001)
+    assert logs["ulog"].height_from == "gps, EKF2_HGT_REF = 1" and "EK3_SRC1_POSZ = 3" in logs["dataflash"].height_from
+
+
 def test_a_dataflash_log_without_gpa_states_no_accuracy(sim_logs, tmp_path):
     """A DataFlash log whose receiver's accuracy is not logged (no GPA): the positions' accuracy is unstated (NaN, so
     the ground takes its default), never GPS's HDop, which is no distance."""

@@ -233,8 +233,13 @@ def test_an_autopilot_that_takes_its_height_from_the_barometer(bundled_flight, t
     err_baro = np.abs(s_baro["height"] - true_h)
     err_gps = np.abs(s_gps["height"] - true_h)
     assert np.median(err_baro) < 4 * BARO_DRIFT_M < np.median(err_gps)
-    # one drone, one barometer: a DJI SRT written for this flight carries the same heights as its tlog
+    # its log says so (EK3_SRC1_POSZ = 1), and the heights are trusted to a barometer's accuracy
     from pomar.telemetry import read_log
+    from pomar.telemetry.base import BARO_HEIGHT_SIGMA_M
+
+    tl = read_log(baro.tlog)
+    assert tl.height_from == "baro, EK3_SRC1_POSZ = 1" and tl.height_sigma_m == BARO_HEIGHT_SIGMA_M
+    # one drone, one barometer: a DJI SRT written for this flight carries the same heights as its tlog
     from sim.__main__ import main as sim_main
 
     assert sim_main(["logs", str(baro.path), "--out", str(tmp_path / "dji")]) == 0

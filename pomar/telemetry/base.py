@@ -66,6 +66,49 @@ UNSTATED_H_ACC_M = 2.0
 #: GPS's vertical as well as from a barometer): a GPS's vertical error, so that such heights scale the map only where
 #: the positions know it worse (ground.poses.scale).
 UNSTATED_HEIGHT_ACC_M = 1.5
+#: The accuracy (m) of a barometer's height above take-off: its drift over a flight's minutes. A DJI's height (the
+#: SRT's) and an autopilot's EKF height where its parameters say it is the barometer's (:func:`height_source`).
+BARO_HEIGHT_SIGMA_M = 0.1
+#: Where an autopilot's EKF takes its height from, by the parameter that says it: parameter -> {value: source}.
+#: ArduPilot's EKF3 and EKF2 (the one AHRS_EKF_TYPE names; EKF3 where it names none), PX4's EKF2 (HGT_REF since 1.14,
+#: HGT_MODE before). Heights from a rangefinder or vision are not above the take-off point: not a source here.
+HEIGHT_SOURCE_PARAMS = {
+    "EK3_SRC1_POSZ": {1: "baro", 2: "rangefinder", 3: "gps", 4: "beacon", 6: "external"},
+    "EK2_ALT_SOURCE": {0: "baro", 1: "rangefinder", 2: "gps", 3: "beacon"},
+    "EKF2_HGT_REF": {0: "baro", 1: "gps", 2: "rangefinder", 3: "vision"},
+    "EKF2_HGT_MODE": {0: "baro", 1: "gps", 2: "rangefinder", 3: "vision"},
+}
+
+
+def height_source(params: dict) -> tuple[str, str] | None:
+    """(source, the parameter that says it, as "NAME = value") of an autopilot's EKF height, from the log's parameters
+    (name -> value); None where none of HEIGHT_SOURCE_PARAMS is there."""
+    order = ["EK2_ALT_SOURCE", "EK3_SRC1_POSZ"] if params.get("AHRS_EKF_TYPE") == 2 else ["EK3_SRC1_POSZ", "EK2_ALT_SOURCE"]
+    for name in order + ["EKF2_HGT_REF", "EKF2_HGT_MODE"]:
+        if name in params and params[name] is not None and np.isfinite(float(params[name])):
+            value = int(round(float(params[name])))
+            return HEIGHT_SOURCE_PARAMS[name].get(value, "other"), f"{name} = {value}"
+    return None
+
+
+def height_source_param(source: str, autopilot: str) -> tuple[str, int]:
+    """The parameter (name, value) by which an autopilot ("ardupilot" or "px4") says its EKF takes its height from
+    ``source``: what a log of it carries (the simulator writes it)."""
+    name = {"ardupilot": "EK3_SRC1_POSZ", "px4": "EKF2_HGT_REF"}[autopilot]
+    return name, next(v for v, s in HEIGHT_SOURCE_PARAMS[name].items() if s == source)
+
+
+def height_sigma(source: str | None, v_acc) -> float | None:
+    """The accuracy (m) of an autopilot's height above take-off from its EKF's height source: a barometer's
+    BARO_HEIGHT_SIGMA_M; the GPS's stated vertical accuracy (median of ``v_acc``, metres; 0 or NaN: none stated);
+    None (unstated) otherwise."""
+    if source == "baro":
+        return BARO_HEIGHT_SIGMA_M
+    if source == "gps":
+        v = np.asarray(v_acc, float).ravel()
+        v = v[np.isfinite(v) & (v > 0)]
+        return float(np.median(v)) if len(v) else None
+    return None
 
 
 class TelemetryError(InputError, ValueError):
@@ -132,8 +175,10 @@ class TelemetryLog:
     #: beside the absolute one): the height above the ground is alt - home_alt. None where the log does not say.
     home_alt: float | None = None
     #: The accuracy (m) of the height above take-off where the log states it or its source is known (a DJI
-    #: barometer's); None: unstated (an autopilot's relative altitude, whose error is the EKF's).
+    #: barometer's, an autopilot's EKF height by its parameters); None: unstated.
     height_sigma_m: float | None = None
+    #: Where the height above take-off comes from and what says so ("baro, EK3_SRC1_POSZ = 1"); None: not said.
+    height_from: str | None = None
     #: Steps of the position stream further than a drone can fly (see MAX_SPEED_MPS): (start, end) times.
     jumps: list[Gap] = field(default_factory=list)
 
@@ -175,6 +220,9 @@ class TelemetryLog:
     def summary(self) -> str:
         lines = [f"{self.path}: {self.format}, {sum(self.counts.values())} messages read in {self.parse_seconds:.2f} s; "
                  f"clock {self.clock}; altitude {self.altitude_reference}"]
+        if self.height_from:
+            sigma = f"{self.height_sigma_m:.2f} m" if self.height_sigma_m is not None else "accuracy unstated"
+            lines.append(f"  height above take-off: {self.height_from} ({sigma})")
         for name, s in (("position", self.position), ("gps", self.gps), ("attitude", self.attitude), ("gimbal", self.gimbal)):
             rate = (len(s) - 1) / (s.t[-1] - s.t[0]) if len(s) > 1 and s.t[-1] > s.t[0] else 0.0
             lines.append(f"  {name:<9} {len(s):>6} samples" + (f", {rate:5.1f} Hz" if len(s) > 1 else ""))
@@ -197,7 +245,7 @@ class TelemetryLog:
             if self._streams() else None
         return {
             "path": self.path, "format": self.format, "clock": self.clock, "altitude_reference": self.altitude_reference,
-            "home_alt": self.home_alt,
+            "home_alt": self.home_alt, "height_from": self.height_from, "height_sigma_m": self.height_sigma_m,
             "positions": int(len(pos)),
             "lat_range": [float(pos.values[ok, 0].min()), float(pos.values[ok, 0].max())] if ok.any() else None,
             "lon_range": [float(pos.values[ok, 1].min()), float(pos.values[ok, 1].max())] if ok.any() else None,

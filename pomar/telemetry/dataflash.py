@@ -24,11 +24,11 @@ from pathlib import Path
 import numpy as np
 
 from pomar.rotations import ned_euler_to_rotation, rotation_to_quat_wxyz
-from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing
+from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing, height_sigma, height_source
 
 log = logging.getLogger(__name__)
 
-TYPES = ["POS", "GPS", "GPA", "ATT", "MNT", "GIMB", "CAM", "TRIG"]
+TYPES = ["POS", "GPS", "GPA", "ATT", "MNT", "GIMB", "CAM", "TRIG", "PARM"]
 
 
 def read_dataflash(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
@@ -43,6 +43,7 @@ def read_dataflash(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
     problems: list[str] = []
     rows: dict[str, list] = {k: [] for k in TYPES}
     counts: Counter = Counter()
+    params: dict[str, float] = {}
     try:
         while True:
             m = df.recv_match(type=TYPES)
@@ -52,6 +53,9 @@ def read_dataflash(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
             counts[kind] += 1
             if getattr(m, "I", 0) not in (0, None) and kind in ("GPS", "GPA", "CAM", "TRIG", "MNT"):
                 continue  # the first instance of each (GPS 0, camera 0, mount 0)
+            if kind == "PARM":
+                params[m.Name] = m.Value  # the last value logged (a parameter set in flight is logged again)
+                continue
             rows[kind].append((m._timestamp, m))
     except Exception as exc:  # a damaged record DFReader cannot step over: keep what was read
         problems.append(f"stopped at a damaged record ({exc}): everything before it is used")
@@ -117,9 +121,13 @@ def read_dataflash(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
         problems.append("no CAM or TRIG events: frame times come from the video's clock")
     # POS's RelHomeAlt beside its Alt gives the home point's altitude
     home = [m.Alt - m.RelHomeAlt for _, m in rows["POS"] if "RelHomeAlt" in m.get_fieldnames() and m.RelHomeAlt]
+    # the EKF's height source, by its parameters: how far the height above take-off can be trusted
+    src = height_source(params)
     tl = TelemetryLog(str(path), position, gps_s, attitude, gimbal, captures, cap_kind, clock, None, counts,
                       max_gap_s=max_gap_s, format="dataflash", altitude_reference="msl", problems=problems,
-                      home_alt=float(np.median(home)) if home else None)
+                      home_alt=float(np.median(home)) if home else None,
+                      height_sigma_m=height_sigma(src[0], gps_s.values[:, 2]) if src else None,
+                      height_from=", ".join(src) if src else None)
     tl.parse_seconds = time.perf_counter() - t0
     return tl
 

@@ -36,7 +36,9 @@ from pathlib import Path
 import numpy as np
 
 from pomar.rotations import ned_euler_to_rotation, rotation_to_quat_wxyz
-from pomar.telemetry.base import UNSTATED_H_ACC_M, Series, TelemetryError, TelemetryLog, existing
+# a DJI height above take-off is barometric (written to 0.01 m): BARO_HEIGHT_SIGMA_M, weighed against the positions
+# when the ground scales the map (ground.poses.mapper)
+from pomar.telemetry.base import BARO_HEIGHT_SIGMA_M, UNSTATED_H_ACC_M, Series, TelemetryError, TelemetryLog, existing
 
 log = logging.getLogger(__name__)
 
@@ -67,11 +69,6 @@ def _decimals(text: str, prefix: str) -> int:
     """The fewest decimals among the numbers that follow ``prefix`` (a regex) in the text."""
     found = re.findall(prefix + rf"({NUM})", text)
     return min(len((g.split(".") + [""])[1]) for g in found) if found else 0
-
-
-#: The accuracy assumed of a DJI height above take-off (barometric; written to 0.01 m): its drift over a flight's
-#: minutes. The ground weighs it against the positions when it scales the map (ground.poses.mapper).
-BARO_HEIGHT_SIGMA_M = 0.1
 
 
 def _pry(text: str, name: str) -> tuple[float, float, float] | None:
@@ -270,7 +267,8 @@ def read_srt(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
                       video_clock=Series.of(video_t, t[:, None], 1),
                       home_alt=float(np.median(home)) if home else None,
                       # the height above take-off is barometric wherever the layout gives it (H, BAROMETER, rel_alt)
-                      height_sigma_m=BARO_HEIGHT_SIGMA_M if reference == "takeoff" or home else None)
+                      height_sigma_m=BARO_HEIGHT_SIGMA_M if reference == "takeoff" or home else None,
+                      height_from="baro, the SRT's height above take-off" if reference == "takeoff" or home else None)
     if not g and not len(attitude):
         problems.append("no gimbal or vehicle attitude in the subtitles: the camera's attitude needs a fixed mount "
                         "tilt (--camera-tilt-deg), and its heading from the track (--camera-yaw-deg)")

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from pomar.rotations import ned_euler_to_rotation, quat_wxyz_to_rotation, rotation_to_quat_wxyz
-from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing
+from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing, height_sigma, height_source
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +53,7 @@ class MavlinkAccumulator:
         self.pos_systems: Counter = Counter()
         self.home_alts: deque = deque(maxlen=2000)  # alt - relative_alt (m): the home point's altitude
         self.cap_msg = None
+        self.params: dict[str, float] = {}  # PARAM_VALUE: name -> value, the last one sent
 
     def _bad(self, m) -> None:
         self.bad += 1
@@ -95,6 +96,8 @@ class MavlinkAccumulator:
                 boot = np.nan
             self.gps.append((src, boot, unix, ts, m.fix_type, getattr(m, "h_acc", 0) / 1e3, getattr(m, "v_acc", 0) / 1e3,
                              m.satellites_visible))
+        elif kind == "PARAM_VALUE":
+            self.params[str(m.param_id).rstrip("\x00")] = float(m.param_value)
         elif kind == "ATTITUDE":
             self.att.append((src, m.time_boot_ms / 1e3, np.nan, ts, m.roll, m.pitch, m.yaw))
         elif kind == "GIMBAL_DEVICE_ATTITUDE_STATUS":
@@ -184,6 +187,9 @@ class MavlinkAccumulator:
                           offsets.get(vehicle), Counter(self.counts), self.bad, truncated, max_gap_s,
                           format="tlog", problems=problems, bad_by_type=Counter(self.bad_by_type),
                           home_alt=float(np.median(self.home_alts)) if self.home_alts else None)
+        src = height_source(self.params)  # the EKF's height source, where the link sent its parameters
+        if src:
+            tl.height_sigma_m, tl.height_from = height_sigma(src[0], gps.values[:, 2]), ", ".join(src)
         if not quiet:
             for g in tl.gaps:
                 log.warning("%s: %.1f s gap in %s telemetry (frames in it are flagged)", source, g.seconds, g.stream)

@@ -1,7 +1,8 @@
 """PX4's ``.ulg`` logs, through pyulog (PX4's own parser).
 
 - position: ``vehicle_global_position`` (lat, lon, alt MSL); without it, the GPS topic's own position.
-- home: ``home_position`` (alt): heights above the take-off point.
+- home: ``home_position`` (alt): heights above the take-off point; their accuracy from the EKF's height source
+  (parameters ``EKF2_HGT_REF`` or ``EKF2_HGT_MODE``: a barometer's, or the GPS's epv).
 - GPS: ``vehicle_gps_position`` or ``sensor_gps`` (fix type, eph/epv, satellites; old logs give lat/lon in
   1e-7 degrees and alt in mm, new ones ``latitude_deg`` and ``altitude_msl_m``).
 - attitude: ``vehicle_attitude`` (q, wxyz, NED from FRD body); gimbal: ``gimbal_device_attitude_status``.
@@ -21,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing
+from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing, height_sigma, height_source
 
 log = logging.getLogger(__name__)
 
@@ -119,8 +120,13 @@ def read_ulog(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
         problems.append("no position (neither vehicle_global_position nor a GPS topic)")
     home = _topic(u, "home_position")
     home_alt = float(np.median(home["alt"])) if home is not None and len(home["alt"]) else None
+    # the EKF's height source (EKF2_HGT_REF, EKF2_HGT_MODE before PX4 1.14): the parameters' last values
+    params = dict(u.initial_parameters)
+    params.update({name: value for _, name, value in u.changed_parameters})
+    src = height_source(params)
     tl = TelemetryLog(str(path), position, gps_s, attitude, gimbal, captures, cap_msg, clock, boot_to_unix, counts,
                       max_gap_s=max_gap_s, format="ulog", altitude_reference="msl", problems=problems,
-                      home_alt=home_alt)
+                      home_alt=home_alt, height_sigma_m=height_sigma(src[0], gps_s.values[:, 2]) if src else None,
+                      height_from=", ".join(src) if src else None)
     tl.parse_seconds = time.perf_counter() - t0
     return tl
