@@ -104,11 +104,15 @@ def test_apples_take_the_layouts_row_and_nearest_tree_and_those_off_every_row_ar
     pts += [s - 1.5 * u, s + 14.0 * u, s - 30.0 * n, s + 5.0 * u + 1.6 * n]  # before, past, far off; 1.6 m toward 22
     want_row += [OUTSIDE, OUTSIDE, OUTSIDE, 21]
     want_tree += [0, 0, 0, 5]
+    # an apple touching the row's end (its centre 2 cm past) is in it; one 10 cm past is not (END_TOLERANCE_M)
+    pts += [s + 12.02 * u, s + 12.10 * u]
+    want_row += [21, OUTSIDE]
+    want_tree += [10, 0]
     P = np.array(pts)
     table = {"id": np.arange(len(P)), "x": P[:, 0], "y": P[:, 1], "z": np.full(len(P), 2.0)}
     row_of, rows, trees = orchard_rows(table, layout, origin)
     assert list(row_of) == want_row
-    assert [r["row"] for r in rows] == [21, 22, 23] and sum(r["count"] for r in rows) == len(P) - 3
+    assert [r["row"] for r in rows] == [21, 22, 23] and sum(r["count"] for r in rows) == len(P) - 4
     assert all(abs(r["length_m"] - 12.0) < 0.01 for r in rows)
     assert len(trees) == 30 and [t["tree"] for t in trees[:10]] == list(range(1, 11))
     got = {(t["row"], t["tree"]): t["count"] for t in trees}

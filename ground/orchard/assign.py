@@ -3,8 +3,9 @@ apple belongs to the row whose strip it lies in and to that row's nearest tree, 
 the grower's numbering, and the same tree keeps its ``row,tree`` from flight to flight.
 
 A row's strip is its line from end to end (and half a tree spacing past its first and last trees, where they stand
-that close to its ends), and half the way to the nearest other row on each side (a lone row: any distance). An apple in no strip (past a row's ends, or in a
-part of the orchard the layout leaves out) is outside: row 0 in apples.csv, in no row's count.
+that close to its ends; an apple's radius more, END_TOLERANCE_M), and half the way to the nearest other row on each
+side (a lone row: any distance). An apple in no strip (past a row's ends, or in a part of the orchard the layout
+leaves out) is outside: row 0 in apples.csv, in no row's count.
 """
 
 from __future__ import annotations
@@ -15,6 +16,10 @@ from pomar.layout import LayoutRow, row_ends_enu, tree_positions
 
 #: The row number of an apple that lies in no row's strip.
 OUTSIDE = 0
+#: An apple whose centre lies this far past a strip's end (m) still belongs to it: about an apple's radius, an apple
+#: that touches the row's end. A layout made from a map's rows (pomar.layout.layout_from_rows) ends each row at its
+#: outermost apples, which would otherwise fall in or out by a rounding.
+END_TOLERANCE_M = 0.04
 
 
 def _lines(layout: list[LayoutRow], origin) -> list[dict]:
@@ -47,7 +52,8 @@ def _place(xy: np.ndarray, lines: list[dict]) -> tuple[np.ndarray, np.ndarray, n
         s = L["row"].tree_spacing_m
         along, off = (xy - L["a"]) @ L["u"], (xy - L["a"]) @ L["n"]
         across = np.abs(off)
-        inside = ((along >= min(0.0, L["along"][0] - s / 2)) & (along <= max(L["length"], L["along"][-1] + s / 2))
+        inside = ((along >= min(0.0, L["along"][0] - s / 2) - END_TOLERANCE_M)
+                  & (along <= max(L["length"], L["along"][-1] + s / 2) + END_TOLERANCE_M)
                   & (across <= L["half_width"]) & (across < best))
         row_of[inside], best[inside], signed[inside] = L["row"].row, across[inside], off[inside]
         tree_of[inside] = np.clip(np.rint((along[inside] - L["along"][0]) / s), 0, len(L["along"]) - 1).astype(int)
