@@ -111,6 +111,15 @@ def height_sigma(source: str | None, v_acc) -> float | None:
     return None
 
 
+def height_fields(params: dict, v_acc) -> dict:
+    """TelemetryLog's ``height_sigma_m`` and ``height_from`` for an autopilot's log, from its parameters (name ->
+    value) and its receiver's stated vertical accuracies (m): both None where the parameters do not say."""
+    src = height_source(params)
+    if src is None:
+        return {"height_sigma_m": None, "height_from": None}
+    return {"height_sigma_m": height_sigma(src[0], v_acc), "height_from": ", ".join(src)}
+
+
 class TelemetryError(InputError, ValueError):
     """A telemetry file is missing, unreadable, or holds nothing usable."""
 

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from pomar.rotations import ned_euler_to_rotation, rotation_to_quat_wxyz
-from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing, height_sigma, height_source
+from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing, height_fields
 
 log = logging.getLogger(__name__)
 
@@ -122,12 +122,9 @@ def read_dataflash(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
     # POS's RelHomeAlt beside its Alt gives the home point's altitude
     home = [m.Alt - m.RelHomeAlt for _, m in rows["POS"] if "RelHomeAlt" in m.get_fieldnames() and m.RelHomeAlt]
     # the EKF's height source, by its parameters: how far the height above take-off can be trusted
-    src = height_source(params)
     tl = TelemetryLog(str(path), position, gps_s, attitude, gimbal, captures, cap_kind, clock, None, counts,
                       max_gap_s=max_gap_s, format="dataflash", altitude_reference="msl", problems=problems,
-                      home_alt=float(np.median(home)) if home else None,
-                      height_sigma_m=height_sigma(src[0], gps_s.values[:, 2]) if src else None,
-                      height_from=", ".join(src) if src else None)
+                      home_alt=float(np.median(home)) if home else None, **height_fields(params, gps_s.values[:, 2]))
     tl.parse_seconds = time.perf_counter() - t0
     return tl
 

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from pomar.rotations import ned_euler_to_rotation, quat_wxyz_to_rotation, rotation_to_quat_wxyz
-from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing, height_sigma, height_source
+from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing, height_fields
 
 log = logging.getLogger(__name__)
 
@@ -186,10 +186,9 @@ class MavlinkAccumulator:
         tl = TelemetryLog(source, position, gps, attitude, gimbal, captures, self.cap_msg, clock,
                           offsets.get(vehicle), Counter(self.counts), self.bad, truncated, max_gap_s,
                           format="tlog", problems=problems, bad_by_type=Counter(self.bad_by_type),
-                          home_alt=float(np.median(self.home_alts)) if self.home_alts else None)
-        src = height_source(self.params)  # the EKF's height source, where the link sent its parameters
-        if src:
-            tl.height_sigma_m, tl.height_from = height_sigma(src[0], gps.values[:, 2]), ", ".join(src)
+                          home_alt=float(np.median(self.home_alts)) if self.home_alts else None,
+                          # the EKF's height source, where the link sent its parameters
+                          **height_fields(self.params, gps.values[:, 2]))
         if not quiet:
             for g in tl.gaps:
                 log.warning("%s: %.1f s gap in %s telemetry (frames in it are flagged)", source, g.seconds, g.stream)

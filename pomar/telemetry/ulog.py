@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing, height_sigma, height_source
+from pomar.telemetry.base import Series, TelemetryError, TelemetryLog, existing, height_fields
 
 log = logging.getLogger(__name__)
 
@@ -123,10 +123,8 @@ def read_ulog(path: str | Path, max_gap_s: float = 1.0) -> TelemetryLog:
     # the EKF's height source (EKF2_HGT_REF, EKF2_HGT_MODE before PX4 1.14): the parameters' last values
     params = dict(u.initial_parameters)
     params.update({name: value for _, name, value in u.changed_parameters})
-    src = height_source(params)
     tl = TelemetryLog(str(path), position, gps_s, attitude, gimbal, captures, cap_msg, clock, boot_to_unix, counts,
                       max_gap_s=max_gap_s, format="ulog", altitude_reference="msl", problems=problems,
-                      home_alt=home_alt, height_sigma_m=height_sigma(src[0], gps_s.values[:, 2]) if src else None,
-                      height_from=", ".join(src) if src else None)
+                      home_alt=home_alt, **height_fields(params, gps_s.values[:, 2]))
     tl.parse_seconds = time.perf_counter() - t0
     return tl
