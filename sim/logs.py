@@ -2,8 +2,9 @@
 
 - ``telemetry.bin``: ArduPilot's on-board DataFlash log, the same samples as the tlog's messages (GLOBAL_POSITION_INT
   -> POS, GPS_RAW_INT -> GPS with GPS week and ms, ATTITUDE -> ATT, the gimbal -> MNT with an earth-frame yaw,
-  CAMERA_FEEDBACK -> CAM with Img = frame + 1, PARAM_VALUE -> PARM), timed by the autopilot's boot clock. Written with pymavlink's
-  DataFlash support (``DFReader.DFFormat`` and ``DFMessage.get_msgbuf``), with an FMT record for each type.
+  CAMERA_FEEDBACK -> CAM with Img = frame + 1, PARAM_VALUE -> PARM), timed by the autopilot's boot clock. Written
+  with pymavlink's DataFlash support (``DFReader.DFFormat`` and ``DFMessage.get_msgbuf``), with an FMT record for
+  each type.
 - ``telemetry.ulg``: PX4's ULog of the same samples (GLOBAL_POSITION_INT -> vehicle_global_position and home_position,
   GPS_RAW_INT -> vehicle_gps_position with its accuracy in metres, ATTITUDE -> vehicle_attitude, the gimbal ->
   gimbal_device_attitude_status, the camera's events -> camera_capture; the EKF's height source as the initial

@@ -203,7 +203,8 @@ def test_sim_logs_carry_the_ekfs_height_source(sim_logs):
 
     flight, binf, _ = sim_logs
     tel = rendered_config(flight.path).telemetry
-    logs = {"tlog": read_log(flight.tlog), "dataflash": read_log(binf), "ulog": read_log(binf.with_name("telemetry.ulg"))}
+    logs = {"tlog": read_log(flight.tlog), "dataflash": read_log(binf),
+            "ulog": read_log(binf.with_name("telemetry.ulg"))}
     for fmt, tl in logs.items():
         assert tl.height_from is not None and tl.height_from.split(",")[0] == "gps", (fmt, tl.height_from)
         assert tl.height_sigma_m == pytest.approx(logs["tlog"].height_sigma_m, abs=0.01), fmt

@@ -83,8 +83,10 @@ HEIGHT_SOURCE_PARAMS = {
 def height_source(params: dict) -> tuple[str, str] | None:
     """(source, the parameter that says it, as "NAME = value") of an autopilot's EKF height, from the log's parameters
     (name -> value); None where none of HEIGHT_SOURCE_PARAMS is there."""
-    order = ["EK2_ALT_SOURCE", "EK3_SRC1_POSZ"] if params.get("AHRS_EKF_TYPE") == 2 else ["EK3_SRC1_POSZ", "EK2_ALT_SOURCE"]
-    for name in order + ["EKF2_HGT_REF", "EKF2_HGT_MODE"]:
+    ardupilot = ["EK3_SRC1_POSZ", "EK2_ALT_SOURCE"]
+    if params.get("AHRS_EKF_TYPE") == 2:  # EKF2 is the one running
+        ardupilot.reverse()
+    for name in ardupilot + ["EKF2_HGT_REF", "EKF2_HGT_MODE"]:
         if name in params and params[name] is not None and np.isfinite(float(params[name])):
             value = int(round(float(params[name])))
             return HEIGHT_SOURCE_PARAMS[name].get(value, "other"), f"{name} = {value}"
