@@ -224,18 +224,21 @@ def load_pack(path) -> list[Sample]:
         raise DataError(f"{path}: not a pack of export pack ({e})") from e
 
 
-def load_sim_frames(flight_dir, min_visible: float = MIN_VISIBLE, every: int = 1, limit: int | None = None) -> list[Sample]:
-    """Whole frames of a simulated flight (or of a pack of ``save_pack``) with their truth and ignore boxes."""
+def load_sim_frames(flight_dir, min_visible: float = MIN_VISIBLE, every: int = 1, limit: int | None = None,
+                    min_ignore: float = IGNORE_ABOVE) -> list[Sample]:
+    """Whole frames of a simulated flight (or of a pack of ``save_pack``) with their truth boxes and the ignore boxes of
+    the apples from ``min_ignore`` up to ``min_visible`` visible."""
     if str(flight_dir).endswith(".npz"):
-        if min_visible != MIN_VISIBLE:
+        if (min_visible, min_ignore) != (MIN_VISIBLE, IGNORE_ABOVE):
             raise DataError(f"{flight_dir}: a pack keeps the labels it was packed with (apples from {MIN_VISIBLE} "
-                            f"visible); give the flight folder to label from {min_visible}")
+                            f"visible, ignored from {IGNORE_ABOVE}); give the flight folder to label from "
+                            f"{min_visible}, ignored from {min_ignore}")
         return load_pack(flight_dir)[::every][:limit]
     from pomar.video import iter_frames
     from pomar.flight import FlightDir
 
     flight = FlightDir(flight_dir)
-    boxes = sim_frame_boxes(flight.path, min_visible)
+    boxes = sim_frame_boxes(flight.path, min_visible, min_ignore)
     out = []
     for idx, bgr in iter_frames(flight.video):
         if idx % every:
@@ -274,8 +277,11 @@ class Augment:
         self.scale = scale
         self.rng = rng or np.random.default_rng()
 
-    def __call__(self, img: np.ndarray, boxes: np.ndarray, scale=None):
+    def __call__(self, img: np.ndarray, boxes: np.ndarray, scale=None, ignore: np.ndarray | None = None):
+        """(image, boxes), or (image, boxes, ignore boxes) where ``ignore`` is given: those go through the same
+        geometry (and draw nothing from the generator, so that a run without them augments as before)."""
         r = self.rng
+        ig = np.zeros((0, 4), np.float32) if ignore is None else np.asarray(ignore, np.float32).reshape(-1, 4)
         lo, hi = scale or self.scale
         s = float(np.exp(r.uniform(np.log(lo), np.log(hi))))
         if abs(s - 1) > 0.02:
@@ -283,7 +289,8 @@ class Augment:
             nw, nh = max(16, round(w * s)), max(16, round(h * s))
             img = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)
             # OpenCV convention: pixel centres scale about (-0.5, -0.5).
-            boxes = (boxes + 0.5) * np.array([nw / w, nh / h] * 2, np.float32) - 0.5
+            k = np.array([nw / w, nh / h] * 2, np.float32)
+            boxes, ig = (boxes + 0.5) * k - 0.5, (ig + 0.5) * k - 0.5
         h, w = img.shape[:2]
         if h > self.size or w > self.size:
             # Prefer crops with apples in them: centre on a random apple half of the time.
@@ -296,21 +303,25 @@ class Augment:
                 x0 = int(r.integers(0, max(0, w - self.size) + 1))
                 y0 = int(r.integers(0, max(0, h - self.size) + 1))
             img, boxes = crop(img, boxes, x0, y0, self.size)
+            ig = clip_boxes(ig - np.array([x0, y0, x0, y0], np.float32), img.shape[1], img.shape[0], min_keep=0.0)
         h, w = img.shape[:2]
         if r.random() < 0.5:  # horizontal flip
             img = img[:, ::-1]
-            boxes = np.stack([w - 1 - boxes[:, 2], boxes[:, 1], w - 1 - boxes[:, 0], boxes[:, 3]], 1)
+            boxes, ig = (np.stack([w - 1 - b[:, 2], b[:, 1], w - 1 - b[:, 0], b[:, 3]], 1) for b in (boxes, ig))
         if r.random() < 0.5:  # vertical flip
             img = img[::-1]
-            boxes = np.stack([boxes[:, 0], h - 1 - boxes[:, 3], boxes[:, 2], h - 1 - boxes[:, 1]], 1)
+            boxes, ig = (np.stack([b[:, 0], h - 1 - b[:, 3], b[:, 2], h - 1 - b[:, 1]], 1) for b in (boxes, ig))
         if r.random() < 0.5:  # transpose: with the flips, all eight 90° rotations/reflections
             img = img.transpose(1, 0, 2)
-            boxes = boxes[:, [1, 0, 3, 2]]
+            boxes, ig = boxes[:, [1, 0, 3, 2]], ig[:, [1, 0, 3, 2]]
         img = np.ascontiguousarray(img)
         img = self.colour(img)
         boxes = boxes.astype(np.float32).reshape(-1, 4)
         keep = (boxes[:, 2] - boxes[:, 0] >= 1) & (boxes[:, 3] - boxes[:, 1] >= 1)  # the model refuses empty boxes
-        return img, boxes[keep]
+        if ignore is None:
+            return img, boxes[keep]
+        ig = ig.astype(np.float32).reshape(-1, 4)
+        return img, boxes[keep], ig[(ig[:, 2] > ig[:, 0]) & (ig[:, 3] > ig[:, 1])]
 
     def colour(self, img: np.ndarray) -> np.ndarray:
         """Other cameras and light: hue, saturation and value, white balance, exposure (gamma), contrast, then the

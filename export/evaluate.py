@@ -63,9 +63,11 @@ def applebbch76_held_out(root):
 
 
 def evaluate(model=None, add256=None, sim_flights=(), sim_every: int = 5, min_visible: float = MIN_VISIBLE,
-             score_thresh: float | None = None, detector_scale: str = "auto", applebbch76=None) -> dict:
-    """Scores on ADD256's test split (its patches at their own size) and on simulated flights, whose frames are
-    rescaled as the onboard node does (``detector_scale``: auto from each frame's telemetry, off, or a factor)."""
+             score_thresh: float | None = None, detector_scale: str = "auto", applebbch76=None,
+             test: bool = True) -> dict:
+    """Scores on ADD256's test split (its patches at their own size; not with ``test`` False), AppleBBCH76's held-out
+    photos and simulated flights, whose frames are rescaled as the onboard node does (``detector_scale``: auto from
+    each frame's telemetry, off, or a factor)."""
     from onboard.detector import OnnxDetector
     from pomar.apple_scale import flight_radius_px, policy_for
     from pomar.flight import FlightDir
@@ -74,8 +76,9 @@ def evaluate(model=None, add256=None, sim_flights=(), sim_every: int = 5, min_vi
     thresh = det.score_thresh if score_thresh is None else score_thresh
     policy = policy_for(det, detector_scale)
     out = {"model": str(det.path), "score_thresh": thresh, "detector_scale": detector_scale}
-    test = ((read_rgb(p), b, None) for p, b in add256_split(add256, "test"))
-    out["add256_test"] = score(det, test, thresh, "ADD256 test")
+    if test:
+        photos = ((read_rgb(p), b, None) for p, b in add256_split(add256, "test"))
+        out["add256_test"] = score(det, photos, thresh, "ADD256 test")
     bbch = applebbch76_held_out(applebbch76)
     if bbch is not None:
         out["applebbch76_held_out"] = score(det, bbch, thresh, "AppleBBCH76 held out")
@@ -176,7 +179,7 @@ def run(args) -> int:
         samples, chosen_on = validation_samples(args)
         thresh = choose_threshold(args.model, samples, chosen_on)
     res = evaluate(args.model, args.add256, args.sim_flight, args.sim_every, args.min_visible, thresh,
-                   args.detector_scale, args.applebbch76)
+                   args.detector_scale, args.applebbch76, args.test)
     if chosen_on:
         res["score_thresh_chosen_on"] = chosen_on
     print_table(res)

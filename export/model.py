@@ -26,7 +26,10 @@ from torchvision.models.detection import FasterRCNN
 from torchvision.models.detection.anchor_utils import AnchorGenerator
 from torchvision.models.detection.backbone_utils import BackboneWithFPN
 from torchvision.models.detection.faster_rcnn import FastRCNNPredictor, TwoMLPHead
+from torchvision.models.detection.roi_heads import RoIHeads
+from torchvision.models.detection.rpn import RegionProposalNetwork
 from torchvision.models.detection.transform import GeneralizedRCNNTransform
+from torchvision.ops import box_iou
 from torchvision.ops.feature_pyramid_network import LastLevelMaxPool
 
 IMAGENET_MEAN, IMAGENET_STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
@@ -83,6 +86,43 @@ class NativeResolutionTransform(GeneralizedRCNNTransform):
         return image, target
 
 
+def leave_out_ignored(labels, boxes, targets, thresh: float):
+    """Set to -1 (out of the sampled losses) the background ``labels`` of the anchors or proposals ``boxes`` that
+    overlap a target's ``ignore`` box by IoU ``thresh`` or more: what would not be background, were that box an apple."""
+    for lab, b, t in zip(labels, boxes, targets):
+        ig = t.get("ignore")
+        if ig is not None and len(ig) and len(b):
+            lab[(lab == 0) & (box_iou(ig, b).amax(0) >= thresh)] = -1
+
+
+class IgnoringRPN(RegionProposalNetwork):
+    """The RPN, with the anchors on a target's ``ignore`` boxes left out of its losses."""
+
+    def assign_targets_to_anchors(self, anchors, targets):
+        labels, matched = super().assign_targets_to_anchors(anchors, targets)
+        leave_out_ignored(labels, anchors, targets, self.proposal_matcher.low_threshold)
+        return labels, matched
+
+
+class IgnoringRoIHeads(RoIHeads):
+    """The box head, with the proposals on a target's ``ignore`` boxes left out of its losses."""
+
+    _targets = None
+
+    def select_training_samples(self, proposals, targets):
+        self._targets = targets
+        try:
+            return super().select_training_samples(proposals, targets)
+        finally:
+            self._targets = None
+
+    def assign_targets_to_proposals(self, proposals, gt_boxes, gt_labels):
+        matched, labels = super().assign_targets_to_proposals(proposals, gt_boxes, gt_labels)
+        if self._targets is not None:
+            leave_out_ignored(labels, proposals, self._targets, self.proposal_matcher.low_threshold)
+        return matched, labels
+
+
 class AppleRCNN(FasterRCNN):
     """Faster R-CNN whose pretrained body keeps ImageNet's BatchNorm (statistics and affine terms) in training too."""
 
@@ -126,6 +166,8 @@ def build_model(backbone: str = "resnet18", fpn_channels: int = 128, detections_
                       box_score_thresh=score_thresh, box_head=head, box_predictor=FastRCNNPredictor(head_width, 2),
                       image_mean=list(mean), image_std=list(std), **extra)
     model.frozen_bn = pretrained
+    # the same heads (same parameters and state dict), whose losses honour targets' "ignore" boxes
+    model.rpn.__class__, model.roi_heads.__class__ = IgnoringRPN, IgnoringRoIHeads
     t = model.transform
     model.transform = NativeResolutionTransform(t.min_size, t.max_size, t.image_mean, t.image_std,
                                                 size_divisible=t.size_divisible)

@@ -70,6 +70,10 @@ class TrainSettings:
     #: Simulated apples at least this visible are boxes to find, the rest background (default: the definition's,
     #: pomar.countable.MIN_VISIBLE; another for a study). Flight folders only: a pack keeps the labels it was packed with.
     min_visible: float = MIN_VISIBLE
+    #: Simulated apples from this visible fraction up to --min-visible are neither apples nor background in training
+    #: (the anchors and proposals on them are left out of the losses), as the barely visible ones cost nothing in
+    #: validation; unset: they are background. Flight folders only.
+    ignore_from: float | None = field(default=None, metadata={"type": float, "metavar": "FRACTION"})
     #: Random scale range of ADD256 patches (0.45 1.3: down to the simulated flights' apple sizes; 0.8 1.25 to train
     #: for ADD256-like imagery alone).
     add256_scale: tuple[float, float] = field(default=(0.45, 1.3), metadata={"nargs": 2, "type": float,
@@ -158,6 +162,8 @@ class EvaluateSettings:
     val_sets: bool = False
     #: Choose the operating threshold as the best F1 on N ADD256 training patches instead (never the test split).
     val_add256: int | None = field(default=None, metadata={"type": int, "metavar": "N"})
+    #: Score ADD256's test split too: once per shipped model (--no-test while candidates are compared).
+    test: bool = True
     #: Write the metrics here.
     json: Path | None = field(default=None, metadata={"type": Path})
     #: Also store the metrics (and the score threshold used) in the model's metadata file.

@@ -63,9 +63,12 @@ def to_tensor(img: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(img)).permute(2, 0, 1).float().div_(255.0)
 
 
-def target(boxes: np.ndarray) -> dict:
+def target(boxes: np.ndarray, ignore: np.ndarray | None = None) -> dict:
     b = torch.from_numpy(np.asarray(boxes, np.float32).reshape(-1, 4))
-    return {"boxes": b, "labels": torch.ones(len(b), dtype=torch.int64)}
+    t = {"boxes": b, "labels": torch.ones(len(b), dtype=torch.int64)}
+    if ignore is not None:  # export.model's heads leave the anchors and proposals on these out of their losses
+        t["ignore"] = torch.from_numpy(np.asarray(ignore, np.float32).reshape(-1, 4))
+    return t
 
 
 class EpochPlan:
@@ -112,9 +115,10 @@ class EpochItems(torch.utils.data.Dataset):
     """One epoch's augmented training items, each from its own seed (seed, epoch, position): the same on a resume,
     whatever the number of loader processes."""
 
-    def __init__(self, items, add, sim, seed: int, epoch: int, add256_scale, bbch=(), bbch_scale=None):
+    def __init__(self, items, add, sim, seed: int, epoch: int, add256_scale, bbch=(), bbch_scale=None,
+                 sim_ignore: bool = False):
         self.items, self.add, self.sim, self.seed, self.epoch, self.add256_scale = items, add, sim, seed, epoch, add256_scale
-        self.bbch, self.bbch_scale = bbch, bbch_scale or add256_scale
+        self.bbch, self.bbch_scale, self.sim_ignore = bbch, bbch_scale or add256_scale, sim_ignore
 
     def __len__(self):
         return len(self.items)
@@ -126,6 +130,9 @@ class EpochItems(torch.utils.data.Dataset):
             img, b = aug(self.add[i].image, self.add[i].boxes, scale=self.add256_scale)
         elif kind == "bbch":  # resized by its curators to ADD256's apple size: the same scales unless told
             img, b = aug(self.bbch[i].image, self.bbch[i].boxes, scale=self.bbch_scale)
+        elif self.sim_ignore:
+            img, b, ig = aug(self.sim[i].image, self.sim[i].boxes, scale=(0.8, 1.25), ignore=self.sim[i].ignore)
+            return to_tensor(img), target(b, ig)
         else:
             img, b = aug(self.sim[i].image, self.sim[i].boxes, scale=(0.8, 1.25))
         return to_tensor(img), target(b)
@@ -175,7 +182,7 @@ FIT_AFTER, FIT_SHARE = 60, 0.85
 #: The settings that make a run what it is: a resumed run takes them from its checkpoint, and refuses an option that
 #: asks for another value (the others, such as the paths to the data, the threads or the device, may change).
 RUN_FIELDS = ("backbone", "fpn_channels", "head_width", "epochs", "batch", "lr", "sim_crops", "bbch_tiles", "seed",
-              "min_visible", "add256_scale", "freeze_stages", "bbch_scale")
+              "min_visible", "add256_scale", "freeze_stages", "bbch_scale", "ignore_from")
 
 
 def _plain(v):
@@ -281,7 +288,12 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
         weights_path(s.backbone)  # missing or different ImageNet weights stop the run before the data is read
     add = load_add256(s.add256, "training")
     bbch = load_applebbch76(s.applebbch76, "training") if s.bbch_tiles else []
-    sim = [x for f in s.sim_flight for x in load_sim_frames(f, s.min_visible)]
+    if s.ignore_from is not None and not 0 < s.ignore_from < s.min_visible:
+        raise TrainingError(f"--ignore-from {s.ignore_from}: give a visible fraction between 0 and --min-visible "
+                            f"({s.min_visible})")
+    sim = [x for f in s.sim_flight
+           for x in (load_sim_frames(f, s.min_visible, min_ignore=s.ignore_from) if s.ignore_from is not None
+                     else load_sim_frames(f, s.min_visible))]
     val = validation_sets(s.add256, s.applebbch76, s.val_flight, bool(s.bbch_tiles))
     fingerprint = data_fingerprint(add, bbch, sim)
     log.info("data: %d ADD256 patches, %d AppleBBCH76 tiles (%d/epoch), %d simulated frames (%d crops/epoch); "
@@ -333,7 +345,7 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
                     validation={k: len(v) for k, v in val.items()}, imagenet=is_pretrained(config["backbone"]),
                     init=str(s.init) if s.init is not None else None, add256_scale=list(add256_scale),
                     min_visible=s.min_visible, freeze_stages=s.freeze_stages,
-                    bbch_scale=list(bbch_scale) if bbch_scale else None)
+                    bbch_scale=list(bbch_scale) if bbch_scale else None, ignore_from=s.ignore_from)
     if source is not None:  # where the run began, not this call's --init
         run_info["init"] = (ckpt.get("run") or {}).get("init")
     run_settings_now = {k: _plain(getattr(s, k)) for k in RUN_FIELDS}
@@ -361,7 +373,8 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
     with StopRequest() as request:
         while it < total and stopping is None:
             epoch, pos = divmod(it, per_epoch)
-            items = EpochItems(plan.items(epoch), add, sim, seed, epoch, add256_scale, bbch, bbch_scale)
+            items = EpochItems(plan.items(epoch), add, sim, seed, epoch, add256_scale, bbch, bbch_scale,
+                               sim_ignore=s.ignore_from is not None)
             rest = torch.utils.data.Subset(items, range(pos * batch, len(items)))
             # its own generator: a loader drawing its seed from torch's would shift the RNG on every resume
             loader = torch.utils.data.DataLoader(rest, batch_size=batch, num_workers=workers, collate_fn=collate,

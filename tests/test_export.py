@@ -569,7 +569,8 @@ def test_the_held_out_photos_are_fixed_by_their_number_and_never_trained_on():
 
 def test_export_evaluate_scores_the_held_out_applebbch76_photos(tiny_onnx, tmp_path):
     """``export evaluate`` scores AppleBBCH76's held-out photos beside ADD256's test split (through onnxruntime, the
-    file that ships); a folder that is not AppleBBCH76 is one line naming it."""
+    file that ships), the test split left out with ``--no-test``; a folder that is not AppleBBCH76 is one line naming
+    it."""
     import subprocess
     import sys
 
@@ -597,6 +598,44 @@ def test_export_evaluate_scores_the_held_out_applebbch76_photos(tiny_onnx, tmp_p
     m = json.loads((tmp_path / "m.json").read_text())
     assert "add256_held_back (1 images" in m["score_thresh_chosen_on"]
     assert "applebbch76_held_out (1 images" in m["score_thresh_chosen_on"] and 0.3 <= m["score_thresh"] <= 0.95
+    # comparing candidates leaves the test split alone (it is scored once per shipped model)
+    r = evaluate(bbch, "--no-test")
+    assert r.returncode == 0, r.stderr[-2000:]
+    m = json.loads((tmp_path / "m.json").read_text())
+    assert "add256_test" not in m and m["applebbch76_held_out"]["images"] == 1 and "add256_test" not in r.stdout
     r = evaluate(tmp_path / "nowhere")
     assert r.returncode == 2 and r.stderr.strip() == (f"error: {tmp_path / 'nowhere'}: not an AppleBBCH76 "
                                                       "folder (needs images/ and labels/)")
+
+
+def test_ignored_simulated_apples_are_neither_apples_nor_background_in_training():
+    """``--ignore-from``: the augmentation moves the ignore boxes as it moves the apples' (drawing nothing more from
+    its generator), and the RPN's anchors and the box head's proposals on them leave the losses (label -1) where they
+    would be background without them."""
+    from export.data import Augment
+    from export.model import build_model
+    from export.train import target
+
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 255, (300, 400, 3), np.uint8)
+    boxes = np.array([[100, 100, 112, 112], [200, 150, 210, 160], [30, 40, 44, 54]], np.float32)
+    for seed in range(6):
+        plain = Augment(rng=np.random.default_rng(seed))(img, boxes, scale=(0.8, 1.25))
+        img2, b2, ig2 = Augment(rng=np.random.default_rng(seed))(img, boxes, scale=(0.8, 1.25), ignore=boxes)
+        assert np.array_equal(plain[0], img2) and np.array_equal(plain[1], b2)
+        # the same boxes given as ignore boxes come out where the apples' do (and partly cut ones are kept too)
+        assert len(ig2) >= len(b2) and all(np.abs(ig2 - b).sum(1).min() < 1e-4 for b in b2)
+
+    model = build_model("mobilenet_v3_large", 32, head_width=64)
+    apple, hidden = np.array([[20, 20, 32, 32]], np.float32), np.array([[80, 80, 92, 92]], np.float32)
+    with_ig, without = target(apple, hidden), target(apple)
+    anchors = [torch.tensor([[20, 20, 32, 32], [80, 80, 92, 92], [82, 82, 94, 94], [60, 10, 72, 22]], dtype=torch.float32)]
+    lab_ig = model.rpn.assign_targets_to_anchors(anchors, [with_ig])[0][0]
+    lab = model.rpn.assign_targets_to_anchors(anchors, [without])[0][0]
+    assert lab.tolist() == [1, 0, 0, 0] and lab_ig.tolist() == [1, -1, -1, 0]
+    heads = model.roi_heads
+    heads._targets = [with_ig]
+    _, (roi_ig,) = heads.assign_targets_to_proposals(anchors, [with_ig["boxes"]], [with_ig["labels"]])
+    heads._targets = None
+    _, (roi,) = heads.assign_targets_to_proposals(anchors, [without["boxes"]], [without["labels"]])
+    assert roi.tolist() == [1, 0, 0, 0] and roi_ig.tolist() == [1, -1, -1, 0]
