@@ -227,7 +227,7 @@ class GroundNode:
                                wall_s=time.monotonic() - self.t_start, latency=self.latency, memory=self.memory,
                                progress=self.progress, link=self.link_stats(), errors=self.errors,
                                harvest=self.harvest, orchard=maps.orchard,
-                               load=maps.load)
+                               load=maps.load, scale=maps.scale)
         rr = self._rerun()
         if rr is not None and self.pipe.arrivals.released >= 0:
             from ground.outputs.summary import summary_markdown

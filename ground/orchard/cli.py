@@ -54,8 +54,7 @@ def _cmd_load(args) -> int:
     report = json.loads(report_path.read_text()) if report_path.is_file() else {}
     # the kilograms carry the map scale's uncertainty, as the replay's did (ground.poses.scale)
     scale = (report.get("registration") or {}).get("georeference_scale") or {}
-    spacing = (report.get("orchard") or {}).get("row_spacing") or {}  # the sizes' scale with the layout's spacing
-    row_kilograms(rows, float(spacing.get("scale_sigma_pct_after") or scale.get("sigma_pct") or "nan") / 100.0)
+    row_kilograms(rows, float(scale.get("sigma_pct") or "nan") / 100.0)
     fmt = {"load": ".1f", "load_lo": ".1f", "load_hi": ".1f", "kg": ".1f", "kg_lo": ".1f", "kg_hi": ".1f"}
     write_atomic(folder / "trees.csv", records_csv(trees, [c for c in trees[0] if c not in LOAD_COLUMNS] + LOAD_COLUMNS,
                                                    fmt))

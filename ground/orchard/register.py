@@ -61,6 +61,8 @@ def map_spacing(across: np.ndarray, side: np.ndarray, shift: float, spacing: flo
         return none
     used = sorted(set(sides))
     X = np.column_stack([np.array(ks)] + [np.array(sides) == sd for sd in used]).astype(float)
+    if np.linalg.matrix_rank(X) < X.shape[1]:  # e.g. two rows, each seen from its own side: spacing and faces confound
+        return none
     W = 1.0 / np.array(vs)
     cov = np.linalg.inv(X.T @ (X * W[:, None]))
     beta = cov @ (X.T @ (W * np.array(ys)))
@@ -87,8 +89,8 @@ def layout_shift(apples_xy: np.ndarray, cameras_xy: np.ndarray, lines: list[dict
             "how": "not shifted: fewer than two parallel rows, or too few apples seen from the cameras"}
     if len(lines) < 2 or len(apples_xy) < MIN_APPLES:
         return none
-    n = np.array([L["n"] * np.sign(L["n"] @ lines[0]["n"]) for L in lines]).mean(0)
-    n /= np.linalg.norm(n)
+    u = _mean_direction(lines)
+    n = np.array([-u[1], u[0]])  # the rows' mean normal, turned from their mean direction as each row's is
     # the rows' spacing, from their lines' offsets along the normal (rows in any order, some perhaps left out)
     offsets = np.sort([(L["a"] - lines[0]["a"]) @ n for L in lines])
     gaps = np.diff(offsets)
@@ -126,15 +128,17 @@ def layout_shift(apples_xy: np.ndarray, cameras_xy: np.ndarray, lines: list[dict
 
 
 def register_to_layout(table: dict, cams: dict, layout, origin) -> tuple[dict, dict, dict]:
-    """The map's apples (apple_table's columns) and cameras (pose_table's) shifted onto the layout's rows
-    (:func:`layout_shift`; copies, the map's own positions are left as they are), and report.json's record of the
-    shift."""
+    """The map's apples (apple_table's columns) and cameras (pose_table's) shifted onto the layout's rows: across them
+    by one shift (:func:`layout_shift`), along them pass by pass where a pass filmed the rows' ends
+    (:func:`pass_shifts`); copies, the map's own positions are left as they are. And report.json's record of the
+    shift (``passes``: each pass's first and last frame, the rows that placed it and its shift along them)."""
     from ground.orchard.assign import _lines
 
     lines = _lines(layout, origin)
     xy = np.column_stack([table["x"], table["y"]]) if len(table["id"]) else np.zeros((0, 2))
     cam_xy = np.full_like(xy, np.nan)
     drop = np.full(len(xy), np.nan)
+    k = np.zeros(len(xy), int)
     if len(cams["frame"]) and len(xy):
         # the camera midway through each apple's frames: the side it was seen from
         frames = np.asarray(cams["frame"])
@@ -147,11 +151,101 @@ def register_to_layout(table: dict, cams: dict, layout, origin) -> tuple[dict, d
     record = {"east_m": round(float(dx), 3), "north_m": round(float(dy), 3),
               **{k: (round(v, 3) if isinstance(v, float) and np.isfinite(v) else v if not isinstance(v, float)
                      else None) for k, v in found.items()}}
-    if dx == 0 and dy == 0:
+    moved_xy = xy - np.array([dx, dy])
+    cams_xy = np.column_stack([cams["x"], cams["y"]]) - np.array([dx, dy]) if len(cams["frame"]) else np.zeros((0, 2))
+    if len(cams["frame"]) and len(xy):
+        along = pass_shifts(moved_xy, k, cams_xy, lines)
+        record["passes"] = [{"first_frame": int(frames[p["first"]]), "last_frame": int(frames[p["last"]]),
+                             "rows": p["rows"], "along_m": p["along_m"]} for p in along]
+        u = _mean_direction(lines)
+        for p in along:
+            if p["along_m"] is not None:
+                moved_xy[np.isin(k, p["cams"])] -= p["along_m"] * u
+                cams_xy[p["cams"]] -= p["along_m"] * u
+    if not len(xy) or (dx == 0 and dy == 0 and not any(p["along_m"] for p in record.get("passes", []))):
         return table, cams, record
-    moved = {**table, "x": np.asarray(table["x"]) - dx, "y": np.asarray(table["y"]) - dy}
-    cams = {**cams, "x": np.asarray(cams["x"]) - dx, "y": np.asarray(cams["y"]) - dy}
+    moved = {**table, "x": moved_xy[:, 0], "y": moved_xy[:, 1]}
+    if len(cams["frame"]):
+        cams = {**cams, "x": cams_xy[:, 0], "y": cams_xy[:, 1]}
     return moved, cams, record
+
+
+#: Frames either side over which a camera's run along the rows tells which way it flies (passes turn back at the ends).
+PASS_SMOOTH_FRAMES = 5
+#: Frames a pass has at least; shorter runs (turns, hops between passes) are in none.
+MIN_PASS_FRAMES = 10
+#: Apples a pass saw on a row, at least, for where they start and stop to place the pass along the rows.
+MIN_END_APPLES = 20
+#: A row places a pass where the pass saw at least this share of the apples of the row it saw most of (the row whose
+#: face it filmed; on plan-eval b the rows further off showed 10-11 m of their 19).
+NEAR_ROW_SHARE = 0.5
+
+
+def _mean_direction(lines: list[dict]) -> np.ndarray:
+    """The rows' mean direction (unit, ENU), each row's taken the way the first row's runs."""
+    u = np.array([L["u"] * np.sign(L["u"] @ lines[0]["u"]) for L in lines]).mean(0)
+    return u / np.linalg.norm(u)
+
+
+def pass_shifts(xy: np.ndarray, k: np.ndarray, cams_xy: np.ndarray, lines: list[dict]) -> list[dict]:
+    """Each pass's shift along the rows (issue 72): a sub-model, placed by its own stretch of GPS, can lie metres off
+    along the rows, where every row looks the same, except at its ends. A pass is a run of cameras (``cams_xy``, in
+    frame order) flying one way along the rows; where its cameras run past both ends of a row whose apples (``xy``,
+    each seen midway by camera ``k``) it saw, the middle of those apples' extent (their 2nd to 98th percentile along
+    the row) against the middle of the row's trees is its offset; the pass's shift is the median over such rows that
+    hold at least NEAR_ROW_SHARE of the apples of the one it saw most of
+    (``along_m``; None where no row's ends were filmed). Each pass: ``first`` and ``last`` camera index, ``rows``,
+    ``along_m`` and its cameras (``cams``)."""
+    if len(cams_xy) < MIN_PASS_FRAMES or not lines:
+        return []
+    u = _mean_direction(lines)
+    s = cams_xy @ u
+    w = PASS_SMOOTH_FRAMES
+    ahead = np.concatenate([s[w:], np.repeat(s[-1], w)]) - np.concatenate([np.repeat(s[0], w), s[:-w]])
+    way = np.sign(ahead)
+    cuts = np.nonzero(np.diff(way) != 0)[0] + 1
+    out = []
+    for run in np.split(np.arange(len(s)), cuts):
+        if len(run) < MIN_PASS_FRAMES or way[run[0]] == 0:
+            continue
+        mine = np.isin(k, run)
+        seen = []  # (apples, offset) of each row the pass filmed end to end
+        for L in lines:
+            t_cam = (cams_xy[run] - L["a"]) @ L["u"]
+            if not (t_cam.min() <= L["along"][0] and t_cam.max() >= L["along"][-1]):
+                continue
+            on = mine & (np.abs((xy - L["a"]) @ L["n"]) < L["half_width"])
+            if on.sum() < MIN_END_APPLES:
+                continue
+            lo, hi = np.percentile((xy[on] - L["a"]) @ L["u"], [2, 98])
+            seen.append((int(on.sum()), ((lo + hi) / 2 - (L["along"][0] + L["along"][-1]) / 2) * float(L["u"] @ u)))
+        # the rows whose face the pass filmed: a row further off shows over the near one's top in part only, and its
+        # apples stop short of its ends
+        most = max((n for n, _ in seen), default=0)
+        offsets = [o for n, o in seen if n >= NEAR_ROW_SHARE * most]
+        out.append({"first": int(run[0]), "last": int(run[-1]), "rows": len(offsets),
+                    "along_m": round(float(np.median(offsets)), 3) if offsets else None, "cams": run})
+    return out
+
+
+def scaled_to_layout(snap, table: dict, cams: dict, layout):
+    """The map ``snap`` (ground.outputs.snapshot.MapSnapshot, whose apples and cameras are ``table`` and ``cams``,
+    apple_table's and pose_table's) with the layout's row spacing as one more source of its scale: the spacing between
+    the map's rows (:func:`register_to_layout`) against the layout's, combined with the map's own sources by their
+    variances (ground.poses.scale), and the map stretched by what that changes (left out where it disagrees with
+    them, and said so in the scale's sources). ``snap`` as it is where the spacing was not measured or the map has no
+    scale yet."""
+    from ground.outputs.snapshot import rescaled
+    from ground.poses.scale import row_spacing_source, with_source
+
+    if not snap.scale or snap.to_enu is None or snap.origin is None:
+        return snap
+    _, _, shift = register_to_layout(table, cams, layout, snap.origin)
+    src = row_spacing_source(snap.scale["scale"], shift.get("spacing_m") or 0.0,
+                             *(float("nan") if shift.get(k) is None else float(shift[k])
+                               for k in ("map_spacing_m", "map_spacing_sigma_m")))
+    est = with_source(snap.scale, src) if src is not None else None
+    return rescaled(snap, est.as_dict()) if est is not None else snap
 
 
 #: The map's row spacing disagrees with the layout's beyond this many sigmas of their joint uncertainty (the
@@ -161,9 +255,11 @@ SPACING_SIGMAS = 3.0
 
 def spacing_check(shift: dict, scale_sigma_rel: float) -> dict | None:
     """report.json's ``orchard.row_spacing``: the layout's row spacing against the map's (``shift``: the record
-    :func:`register_to_layout` gives), the factor the map's sizes would take to match the layout (``layout / map``)
+    :func:`register_to_layout` gives), the factor the map would take to match the layout alone (``layout / map``)
     and its relative 1-sigma, and whether the two agree within SPACING_SIGMAS of their joint uncertainty (the map
-    scale's ``scale_sigma_rel``, NaN: not known, taken as 0). None where the map's spacing was not measured."""
+    scale's ``scale_sigma_rel``, NaN: not known, taken as 0). Measured on the map as scaled with the spacing
+    (:func:`scaled_to_layout`), so where the two agree what is left is small. None where the map's spacing was not
+    measured."""
     layout_m, map_m, sd = (shift.get(k) for k in ("spacing_m", "map_spacing_m", "map_spacing_sigma_m"))
     if not layout_m or map_m is None or sd is None or not np.isfinite(map_m) or map_m <= 0:
         return None

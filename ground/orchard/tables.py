@@ -60,24 +60,5 @@ def orchard_tables(table: dict, direction: float, snap, cams: dict, sight, growe
     from ground.orchard.size import row_sizes
 
     cultivars = {r.row: r.cultivar for r in layout} if info["numbering"] == "layout" else {}
-    factor, sigma = sizes_scale(info.get("row_spacing"), snap.scale_sigma_rel)
-    sized = {**table, "radius_m": np.asarray(table["radius_m"], float) * factor} if factor != 1.0 else table
-    info["size"] = row_sizes(sized, rows, cultivars, sigma)
+    info["size"] = row_sizes(table, rows, cultivars, snap.scale_sigma_rel)
     return rows, trees, info, load
-
-
-def sizes_scale(row_spacing: dict | None, scale_sigma_rel: float) -> tuple[float, float]:
-    """(the factor the map's sizes take, their scale's relative 1-sigma): the map's own scale (factor 1, its
-    ``scale_sigma_rel``) and, where the layout's row spacing was measured and agrees, the factor it asks for
-    (ground.orchard.register.spacing_check), weighed by their inverse variances in log scale; the weight, the factor
-    and the sigma after go into ``row_spacing``. Without an agreeing row spacing: 1 and ``scale_sigma_rel``."""
-    if not row_spacing or not row_spacing["agrees"] or not row_spacing["factor_sigma_pct"]:
-        return 1.0, scale_sigma_rel
-    f_rel = row_spacing["factor_sigma_pct"] / 100.0
-    w_rs = 1.0 / f_rel ** 2
-    w_map = 1.0 / scale_sigma_rel ** 2 if np.isfinite(scale_sigma_rel) and scale_sigma_rel > 0 else 0.0
-    weight = w_rs / (w_rs + w_map)
-    factor = float(np.exp(weight * np.log(row_spacing["factor"])))
-    sigma = float(1.0 / np.sqrt(w_rs + w_map))
-    row_spacing.update(weight=round(weight, 3), sizes_factor=round(factor, 4), scale_sigma_pct_after=round(100 * sigma, 3))
-    return factor, sigma

@@ -32,6 +32,9 @@ class MapTables:
     trees: list[dict]
     #: The load estimated from the hand counts (report.json's ``load``); None without them.
     load: dict | None = None
+    #: The map's scale the tables were made at (ground.poses.scale.ScaleEstimate.as_dict: with the layout's row
+    #: spacing where one was given); None before the map is scaled.
+    scale: dict | None = None
 
     def drone_latlon(self) -> list[float] | None:
         return [self.cameras["lat"][-1], self.cameras["lon"][-1]] if len(self.cameras["frame"]) else None
@@ -60,6 +63,14 @@ class MapFiles:
         out = out or self.out
         table, direction = apple_table(snap)
         cams = pose_table(snap)
+        if self.growers is not None and self.growers.layout is not None:
+            from ground.orchard.register import scaled_to_layout
+
+            scaled = scaled_to_layout(snap, table, cams, self.growers.layout)  # the layout's row spacing scales it too
+            if scaled is not snap:
+                snap = scaled
+                table, direction = apple_table(snap)
+                cams = pose_table(snap)
         rows, trees, orchard, load = orchard_tables(table, direction, snap, cams, sight, self.growers,
                                                     self.tree_spacing_m, self.load_model)
         self._was_failing, self.failed = self.failed is not None, None
@@ -68,7 +79,7 @@ class MapFiles:
         if snap.checks is not None:
             candidates = candidate_table(snap)
             self._written(lambda: write_atomic(out / "candidates.csv", candidates_csv(candidates)))
-        return MapTables(table, direction, rows, cams, orchard, trees, load)
+        return MapTables(table, direction, rows, cams, orchard, trees, load, snap.scale)
 
     def write_report(self, report: dict, out: Path | None = None) -> None:
         out = out or self.out

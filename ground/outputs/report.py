@@ -46,9 +46,17 @@ def map_section(p) -> dict:
                         + ("is its height above take-off" if ref == "takeoff" else "is not above sea level"))}
 
 
+def scale_figures(scale: dict | None) -> dict:
+    """report.json's ``registration.georeference_scale`` and ``georeference_scale_from`` for the map's ``scale``
+    (ScaleEstimate.as_dict's); nothing where it is None (the mapper's stand)."""
+    from ground.poses.scale import heaviest_source
+
+    return {"georeference_scale": scale, "georeference_scale_from": heaviest_source(scale)} if scale else {}
+
+
 def flight_report(p, table, rows, final: bool, *, apples_seen, wall_s: float, latency: list[float],
                   memory: list, progress: list, link: dict, errors: list[str], harvest=None, orchard=None,
-                  load=None) -> dict:
+                  load=None, scale=None) -> dict:
     """The report of pipeline ``p`` with its apple ``table`` and ``rows``; the rest comes from the ground's program:
     the detections' envelope (``apples_seen``), its wall time, the frames' latency, memory and progress samples, the
     link's figures and the errors it caught; ``orchard``: whose numbering the rows and trees use (MapTables.orchard);
@@ -72,7 +80,7 @@ def flight_report(p, table, rows, final: bool, *, apples_seen, wall_s: float, la
         # what share of the mapped frames got each kind of pose
         "pose_shares": {k: counters[k] / posed for k in POSE_SOURCES},
         # the mapping as the stream asked for it (or as set)
-        "registration": {**poses["registration"], "mapping": p.s.mapping},
+        "registration": {**poses["registration"], "mapping": p.s.mapping, **scale_figures(scale)},
         "tracking": poses["tracking"],
         # poses given earlier, corrected as the mapper moved the keyframes about them; the apples triangulated again
         "corrections": dict(p.corrections),

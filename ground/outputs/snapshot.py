@@ -3,11 +3,11 @@ them reaches into the pipeline's parts."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from pomar.align import Similarity
+from pomar.align import Similarity, compose
 from pomar.geo import Origin
 from pomar.wire import above_sea_level
 
@@ -37,8 +37,14 @@ class MapSnapshot:
     checks: dict | None = None
     #: What the frames' altitudes were measured from (pomar.wire.ALTITUDE_REFERENCES; None: not said, sea level).
     altitude_reference: str | None = None
-    #: The map scale's relative 1-sigma (ground.poses.scale), which every size carries; NaN where not known.
-    scale_sigma_rel: float = float("nan")
+    #: The map's scale, its 1-sigma and each source's estimate and weight (ground.poses.scale.ScaleEstimate.as_dict);
+    #: None before the map is scaled.
+    scale: dict | None = None
+
+    @property
+    def scale_sigma_rel(self) -> float:
+        """The map scale's relative 1-sigma, which every size carries; NaN where not known."""
+        return float(self.scale["sigma_pct"]) / 100.0 if self.scale else float("nan")
 
     @property
     def above_sea_level(self) -> bool:
@@ -61,4 +67,15 @@ def snapshot(pipe, final: bool = False) -> MapSnapshot:
                        frame_times=pipe.arrivals.frame_times, metres_per_unit=pipe.metres_per_unit(),
                        checks=count.checks(all_expected=True) if final else None,
                        altitude_reference=pipe.altitude_reference,
-                       scale_sigma_rel=pipe.poses.scale_sigma_rel() if pipe.poses is not None else float("nan"))
+                       scale=pipe.poses.scale_estimate() if pipe.poses is not None else None)
+
+
+def rescaled(snap: MapSnapshot, scale: dict) -> MapSnapshot:
+    """The map ``snap`` at another estimate of its scale (``scale``, ScaleEstimate.as_dict's, e.g. with one more
+    source): stretched by the ratio of the two about its cameras' centre in ENU, where the GPS track holds it."""
+    if snap.to_enu is None or not snap.scale or not snap.poses:
+        return replace(snap, scale=scale)
+    f = float(scale["scale"]) / float(snap.scale["scale"])
+    c = snap.to_enu.apply(np.array([p.centre for p in snap.poses.values()], float).reshape(-1, 3)).mean(0)
+    about = Similarity(f, np.eye(3), (1.0 - f) * c)  # x -> c + f (x - c)
+    return replace(snap, to_enu=compose(about, snap.to_enu), metres_per_unit=snap.metres_per_unit * f, scale=scale)

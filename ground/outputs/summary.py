@@ -27,8 +27,8 @@ def summary_markdown(report: dict, live: dict) -> str:
     reg = report.get("registration", {})
     gps = reg.get("georeference_gps_rms_m")
     gps_txt = f", GPS fit {gps:.2f} m" if gps is not None and np.isfinite(gps) else ""
-    if reg.get("georeference_scale_from") == "heights":
-        gps_txt += ", scaled by the heights above take-off"
+    gps_txt += {"heights": ", scaled by the heights above take-off",
+                "row_spacing": ", scaled by the layout's row spacing"}.get(reg.get("georeference_scale_from"), "")
     lines.append("")
     trk = report.get("tracking", {})
     lines.append(f"**Registration** {reg.get('registered', 0)} of {reg.get('keyframes_processed', 0)} mapping "

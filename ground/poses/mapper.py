@@ -242,7 +242,7 @@ class Mapper:
                     sources.append(hs)
         est = combine(sources)
         if est is not None:
-            self.scale_source = max(est.weights, key=est.weights.get)
+            self.scale_source = est.heaviest
             self.scale_estimate = est
             for name, why in est.left_out.items():  # said once while it stays out, again if it comes back and goes
                 if name not in self._left_out_said:

@@ -11,10 +11,12 @@ A source is an estimate of the factor from the map's units to metres and its rel
   point (a barometer's, good to a decimetre or so over a short flight): the floor's spread and the heights' accuracy,
   over the height. It takes the take-off point to be level with the orchard's floor.
 - **row spacing**: the map's distance between neighbouring rows against the layout's (``--orchard``), where a layout is
-  given.
+  given: measured on the map's apples at each refresh, it scales the map's outputs (ground.orchard.register
+  .scaled_to_layout), not the mapper's own frame.
 
 :func:`combine` weighs them by their inverse variances (in log scale), leaves out a source that disagrees with the
-others by more than ``AGREE_SIGMAS`` of their joint uncertainty (the one furthest out first), and says which and why.
+others by more than ``AGREE_SIGMAS`` of their joint uncertainty (the one furthest out first; of two, the less certain),
+and says which and why.
 """
 
 from __future__ import annotations
@@ -63,6 +65,24 @@ class ScaleEstimate:
                 "sources": [{**s.as_dict(), "weight": self.weights.get(s.name, 0.0),
                              **({"left_out": self.left_out[s.name]} if s.name in self.left_out else {})}
                             for s in self.sources]}
+
+    @property
+    def heaviest(self) -> str | None:
+        """The source that weighs most."""
+        return heaviest_source(self.as_dict())
+
+
+def heaviest_source(scale: dict) -> str | None:
+    """The name of the source that weighs most in an estimate as :meth:`ScaleEstimate.as_dict` gives it (report.json's
+    ``georeference_scale_from``); None where none weighs."""
+    used = [s for s in scale.get("sources", []) if s.get("weight")]
+    return max(used, key=lambda s: s["weight"])["name"] if used else None
+
+
+def sources_of(scale: dict) -> list[ScaleSource]:
+    """The sources of a ScaleEstimate as :meth:`ScaleEstimate.as_dict` gives it (report.json's)."""
+    return [ScaleSource(s["name"], float(s["scale"]), float(s["sigma_pct"]) / 100.0, bool(s.get("stated", True)),
+                        s.get("note", "")) for s in scale.get("sources", [])]
 
 
 def positions_sigma_rel(g: np.ndarray, t: np.ndarray, sigma_m: np.ndarray | float,
@@ -114,10 +134,25 @@ def heights_source(scale: float, h: np.ndarray, h_sigma: np.ndarray, centres: np
                        "" if stated else "the log states no height accuracy: the default was assumed")
 
 
+def row_spacing_source(scale: float, layout_m: float, map_m: float, map_sigma_m: float) -> ScaleSource | None:
+    """The scale that brings the map's spacing between neighbouring rows (``map_m`` +- ``map_sigma_m``, measured in
+    metres at ``scale``: ground.orchard.register) to the layout's ``layout_m``, the measurement's spread over the
+    spacing as its uncertainty. None where it was not measured."""
+    if not (layout_m and layout_m > 0 and np.isfinite(map_m) and map_m > 0 and np.isfinite(map_sigma_m)
+            and map_sigma_m > 0):
+        return None
+    return ScaleSource("row_spacing", float(scale) * layout_m / map_m, float(map_sigma_m / map_m))
+
+
+def with_source(scale: dict, source: ScaleSource) -> ScaleEstimate | None:
+    """The estimate ``scale`` (ScaleEstimate.as_dict's) combined again with ``source`` (replacing one of its name)."""
+    return combine([s for s in sources_of(scale) if s.name != source.name] + [source])
+
+
 def combine(sources: list[ScaleSource], agree_sigmas: float = AGREE_SIGMAS) -> ScaleEstimate | None:
     """The sources' inverse-variance mean in log scale. While two or more are used and one lies further than
-    ``agree_sigmas`` joint sigmas from the mean of the others, the furthest is left out, with why. None without a
-    usable source."""
+    ``agree_sigmas`` joint sigmas from the mean of the others, the furthest is left out, with why (of two, which lie
+    equally far, the less certain). None without a usable source."""
     use = [s for s in sources if np.isfinite(s.scale) and s.scale > 0 and np.isfinite(s.sigma_rel) and s.sigma_rel > 0]
     left = {s.name: "no estimate (too little seen)" for s in sources if s not in use}
     if not use:
@@ -130,7 +165,8 @@ def combine(sources: list[ScaleSource], agree_sigmas: float = AGREE_SIGMAS) -> S
 
     while len(use) >= 2:
         worst, worst_z = None, agree_sigmas
-        for s in use:
+        # the less certain first: two sources lie equally far from each other, and the one claiming less goes
+        for s in sorted(use, key=lambda s: -s.sigma_rel):
             m, sd, _ = mean([o for o in use if o is not s])
             z = abs(np.log(s.scale) - m) / np.hypot(s.sigma_rel, sd)
             if z > worst_z:

@@ -194,10 +194,10 @@ class PoseStage:
                         "mapping_seconds": float(sum(reg["seconds"]))},
         }
 
-    def scale_sigma_rel(self) -> float:
-        """The map scale's relative 1-sigma (ground.poses.scale); NaN before the map is scaled."""
-        est = self.mapper.stats().get("scale")
-        return float(est["sigma_pct"]) / 100.0 if est else float("nan")
+    def scale_estimate(self) -> dict | None:
+        """The map's scale, its 1-sigma and its sources (ground.poses.scale.ScaleEstimate.as_dict); None before the map
+        is scaled."""
+        return self.mapper.stats().get("scale")
 
     # -- inputs
     def add_telemetry(self, frame: int, lat: float, lon: float, alt: float, q_gimbal, h_acc: float,
