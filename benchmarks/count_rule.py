@@ -9,7 +9,9 @@ shape (ground.evaluation.scoring.label_candidates): countable, partial (a true a
 or none. The table gives the countable apples the replay counted, those the checks left out, those no candidate
 found (and the median of their countable views), and the partial and false apples counted: a count error is what is
 left of these. ``misp``: candidates counted / left out that no apple lies within 0.10 m of but that lie on a real
-apple's rays (placed off in depth); ``on ray``: the countable apples no candidate found that such a one lies on. Of
+apple's rays (placed off in depth; below the table, how many of those counted lie on an apple the definition does
+not count, and how many on one another candidate also counts); ``on ray``: the countable apples no candidate found
+that such a one lies on. Of
 the countable apples no candidate found, ``strong 3+`` had a detection scored at the count's confirm_score or more (a
 box centre within the apple's radius, at least 2 px) in 3 or more of their countable views (the stream's
 journal.bin): the ground lost or misplaced those (below the table: the angle their strong views meet at, from the
@@ -108,6 +110,7 @@ def main(argv=None) -> int:
         print("error: --replay: give at least 3 (a rule is fitted on all but one)", file=sys.stderr)
         return 2
     data, partial = {}, []
+    misp_rays = {"partial": 0, "countable": 0, "twice": 0}  # what the counted misplaced apples lie on
     lost_parallax, lost_at_ends = [], 0  # the countable apples detected strongly 3+ times that no candidate found
     found_parallax = []  # ... and those a candidate found
     from ground.apples.counting import CountingSettings
@@ -150,6 +153,14 @@ def main(argv=None) -> int:
               flush=True)
         data[out.name] = (features(cands), (L == "countable").astype(float), n, 100.0 * (counted.sum() - n) / n)
         partial += [(FlightDir(path), a) for a in lab["apple_id"][counted & (L == "partial")]]
+        rays = lab["ray_apple"][counted & (L == "misplaced")]
+        on_countable = np.isin(rays, lab["countable"])
+        misp_rays["countable"] += int(on_countable.sum())
+        misp_rays["partial"] += int((~on_countable).sum())
+        misp_rays["twice"] += int(np.isin(rays, lab["apple_id"][counted]).sum())
+    print(f"\nmisplaced and counted: {sum(misp_rays[k] for k in ('partial', 'countable'))}; on the rays of a partial "
+          f"apple (one the definition does not count) {misp_rays['partial']}, of a countable one "
+          f"{misp_rays['countable']}; of an apple another counted candidate matched too {misp_rays['twice']}")
     if lost_parallax:
         print(f"\ndetected strongly 3+ times, no candidate: {len(lost_parallax)}; their strong views meet at a median "
               f"{np.median(lost_parallax):.1f} deg (10th-90th percentile {np.percentile(lost_parallax, 10):.1f}-"
