@@ -11,8 +11,7 @@ found (and the median of their countable views), and the partial and false apple
 left of these. ``misp``: candidates counted / left out that no apple lies within 0.10 m of but that lie on a real
 apple's rays (placed off in depth; below the table, how many of those counted lie on an apple the definition does
 not count, and how many on one another candidate also counts); ``on ray``: the countable apples no candidate found
-that such a one lies on. Of
-the countable apples no candidate found, ``strong 3+`` had a detection scored at the count's confirm_score or more (a
+that such a one lies on. Of the countable apples no candidate found, ``strong 3+`` had a detection scored at the count's confirm_score or more (a
 box centre within the apple's radius, at least 2 px) in 3 or more of their countable views (the stream's
 journal.bin): the ground lost or misplaced those (below the table: the angle their strong views meet at, from the
 true cameras, and how many lie at the flight's ends); the detector, the rest. ``share``: the share of those apples'
