@@ -394,12 +394,9 @@ def test_export_options_are_the_settings_fields():
             assert str(args[f.name]) == str(want), (cls.__name__, f.name)
 
 
-@pytest.mark.parametrize("parts,onnx", [("export/checkpoint", "apple-detector"),
-                                         ("export/checkpoint-mv2", "apple-detector-mv2")])
-def test_the_kept_checkpoint_is_the_shipped_models_weights(parts, onnx):
-    """``export/checkpoint`` (fp16 parts) is the run the shipped ONNX came from, ``export/checkpoint-mv2`` the real-orchard
-    model's: same history, and on a bundled frame its torch boxes are the int8 file's (quantization moves them by a
-    fraction of a pixel, not to other apples)."""
+def test_the_kept_checkpoint_is_the_shipped_models_weights(parts="export/checkpoint", onnx="apple-detector"):
+    """``export/checkpoint`` (fp16 parts) is the run the shipped ONNX came from: same history, and on a bundled frame
+    its torch boxes are the int8 file's (quantization moves them by a fraction of a pixel, not to other apples)."""
     from pathlib import Path
 
     from export.model import load_checkpoint
@@ -443,9 +440,14 @@ def test_the_visibility_probe_judges_rules_on_the_flight_left_out(small_flight, 
     assert len(rows) == 6 and sum("fitted" in line for line in rows) == 4, r.stdout
     caches = sorted((tmp_path / "cache").iterdir())
     assert len(caches) == 2
+    # the box head's features: its width is the kept checkpoint's (torchvision's 1024 where the config sets none)
+    from pathlib import Path
+
+    kept = Path(__file__).resolve().parents[1] / "export" / "checkpoint" / "checkpoint.json"
+    width = json.loads(kept.read_text())["config"].get("head_width", 1024)
     for c in caches:
         z = np.load(c)
-        assert z["feat"].shape == (len(z["score"]), 1024) and (z["score"] >= 0.3).all()
+        assert z["feat"].shape == (len(z["score"]), width) and (z["score"] >= 0.3).all()
         # each truth apple-frame's detection, where it has one, is one of that flight's detections, and it lies on
         # an apple: the visible share recorded for the detection is the apple's, or another's it also lies on
         assert len(z["t_vis"]) == len(z["t_apple"]) == len(z["t_det"]) and z["t_det"].max() < len(z["score"])

@@ -895,10 +895,9 @@ def test_one_lock_step_stream_gives_the_same_map_through_every_entry_point(repla
     apples.csv, byte for byte, through `ground replay`, `onboard run` + `ground run`, and its recording played at
     --speed 0; the ground says at start which profile the stream asked for. (The bundled flight gave 221 apples one
     way and 202 the other when the start chose.) With the shipped detector too: every entry point's onboard node
-    publishes the same detections (pomar.countable.PUBLISH_SCORE; `ground replay` once published from 0.7 and
-    `onboard run` from the model's 0.9, 207 apples against 196 on the bundled flight)."""
+    publishes the same detections (pomar.countable.publish_score of the model's threshold; `ground replay` once
+    published from 0.7 and `onboard run` from the model's 0.9, 207 apples against 196 on the bundled flight)."""
     from ground.replay import free_port
-    from pomar.countable import PUBLISH_SCORE
 
     flight = replay_test_flight.path
     r = subprocess.run([sys.executable, "-m", "ground", "replay", str(flight), "--detector", detector,
@@ -942,8 +941,12 @@ def test_one_lock_step_stream_gives_the_same_map_through_every_entry_point(repla
     assert (tmp_path / "played" / "apples.csv").read_bytes() == first
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     assert report["registration"]["mapping"] == "inline"
-    if detector == "onnx":  # the drone said what it sent, and it was what the tracks need
-        assert report["detections"] == {"published_from": pytest.approx(PUBLISH_SCORE), "needed_from": PUBLISH_SCORE,
+    if detector == "onnx":  # the drone said what it sent (from under its model's own threshold), what the tracks need
+        from onboard.detector import DEFAULT_MODEL
+        from pomar.countable import publish_score
+
+        sent = publish_score(json.loads(DEFAULT_MODEL.with_suffix(".json").read_text())["score_thresh"])
+        assert report["detections"] == {"published_from": pytest.approx(sent), "needed_from": pytest.approx(sent),
                                         "short": False}
         assert json.loads((tmp_path / "replay" / "report.json").read_text())["detections"] == report["detections"]
 
