@@ -31,8 +31,11 @@ def _lines(layout: list[LayoutRow], origin) -> list[dict]:
         u = (b - a) / length
         trees = tree_positions(r, origin)
         along = (trees - a) @ u
+        s = r.tree_spacing_m
+        # where along the line its apples may lie: end to end, and half a spacing past its end trees
+        span = (min(0.0, along[0] - s / 2), max(length, along[-1] + s / 2)) if len(along) else (0.0, length)
         out.append({"row": r, "a": a, "b": b, "u": u, "n": np.array([-u[1], u[0]]), "length": length,
-                    "trees": trees, "along": along})
+                    "trees": trees, "along": along, "span": span})
     for i, L in enumerate(out):  # half the way to the nearest other row, measured from this row's middle
         mid = (L["a"] + L["b"]) / 2
         gaps = [abs((mid - M["a"]) @ M["n"]) for j, M in enumerate(out) if j != i]
@@ -52,8 +55,7 @@ def _place(xy: np.ndarray, lines: list[dict]) -> tuple[np.ndarray, np.ndarray, n
         s = L["row"].tree_spacing_m
         along, off = (xy - L["a"]) @ L["u"], (xy - L["a"]) @ L["n"]
         across = np.abs(off)
-        inside = ((along >= min(0.0, L["along"][0] - s / 2) - END_TOLERANCE_M)
-                  & (along <= max(L["length"], L["along"][-1] + s / 2) + END_TOLERANCE_M)
+        inside = ((along >= L["span"][0] - END_TOLERANCE_M) & (along <= L["span"][1] + END_TOLERANCE_M)
                   & (across <= L["half_width"]) & (across < best))
         row_of[inside], best[inside], signed[inside] = L["row"].row, across[inside], off[inside]
         tree_of[inside] = np.clip(np.rint((along[inside] - L["along"][0]) / s), 0, len(L["along"]) - 1).astype(int)

@@ -192,7 +192,9 @@ def pass_shifts(xy: np.ndarray, k: np.ndarray, cams_xy: np.ndarray, lines: list[
     along the rows, where every row looks the same, except at its ends. A pass is a run of cameras (``cams_xy``, in
     frame order) flying one way along the rows; where its cameras run past both ends of a row whose apples (``xy``,
     each seen midway by camera ``k``) it saw, the middle of those apples' extent (their 2nd to 98th percentile along
-    the row) against the middle of the row's trees is its offset; the pass's shift is the median over such rows that
+    the row) against the middle of the row's strip (where its apples belong, ground.orchard.assign: its ends, or half
+    a spacing past its end trees where those stand that close; the trees' middle, where they stand evenly, and a layout
+    made from a map's rows, which ends at its outermost apples, alike) is its offset; the pass's shift is the median over such rows that
     hold at least NEAR_ROW_SHARE of the apples of the one it saw most of
     (``along_m``; None where no row's ends were filmed). Each pass: ``first`` and ``last`` camera index, ``rows``,
     ``along_m`` and its cameras (``cams``)."""
@@ -218,7 +220,7 @@ def pass_shifts(xy: np.ndarray, k: np.ndarray, cams_xy: np.ndarray, lines: list[
             if on.sum() < MIN_END_APPLES:
                 continue
             lo, hi = np.percentile((xy[on] - L["a"]) @ L["u"], [2, 98])
-            seen.append((int(on.sum()), ((lo + hi) / 2 - (L["along"][0] + L["along"][-1]) / 2) * float(L["u"] @ u)))
+            seen.append((int(on.sum()), ((lo + hi) / 2 - sum(L["span"]) / 2) * float(L["u"] @ u)))
         # the rows whose face the pass filmed: a row further off shows over the near one's top in part only, and its
         # apples stop short of its ends
         most = max((n for n, _ in seen), default=0)
