@@ -250,6 +250,11 @@ class GroundNode:
             log.exception("finishing the flight failed: %s", exc)
             self.errors.append(f"finish: {exc}")
         report = self.refresh(final=True)
+        from ground.outputs.summary import remap_advice
+
+        advice = remap_advice(report, self.out / "journal.bin")
+        if advice:
+            log.warning(advice)
         if self.files.failed:
             report = self.files.rescue(self.pipe.flight_id, lambda out: self.refresh(final=True, out=out))
         if self.pipe.poses is not None and self.pipe.poses.submodels() and not self.files.failed:

@@ -884,9 +884,12 @@ def test_a_mapping_process_killed_mid_flight_is_restarted_and_the_map_holds(tmp_
     assert mapper.stats()["keyframes_processed"] > restart["keyframes_mapped"] + restart["keyframes_remapped"]
     assert abs(ev["f1"] - clean["f1"]) <= 0.03, (ev["f1"], clean["f1"])
     assert abs(ev["count"] - clean["count"]) <= 0.03 * clean["count"], (ev["count"], clean["count"])
-    text = summary_markdown({"apples": 0, "registration": {"mapper_died": mapper.died,
-                                                            "mapper_restarts": mapper.restarts}}, {})
-    assert "restarted" in text and "became the map" in text
+    reg = {"mapper_died": mapper.died, "mapper_restarts": mapper.restarts}
+    text = summary_markdown({"apples": 0, "registration": reg}, {})
+    assert "restarted" in text and "became the map" in text and "lock-step" not in text
+    # at the flight's end, the summary (and the ground's log) says how to get the map as if nothing had died
+    text = summary_markdown({"apples": 0, "final": True, "registration": reg}, {})
+    assert "replay the journal lock-step (`python -m ground replay --recorded OUT/journal.bin --speed 0" in text
 
 
 @pytest.mark.parametrize("detector", ["truth-replay", "onnx"])

@@ -6,6 +6,19 @@ from __future__ import annotations
 import numpy as np
 
 
+def remap_advice(report: dict, journal="OUT/journal.bin") -> str | None:
+    """Where the mapping process died and was restarted during the flight, the map kept what the restarted one could
+    rebuild in the flight left; the flight's journal played lock-step maps every keyframe in order, as if nothing had
+    died (issue 74). The command that does it, for the log and the summary; None where no restart happened."""
+    n = len((report.get("registration") or {}).get("mapper_restarts") or [])
+    if not n:
+        return None
+    times = "once" if n == 1 else f"{n} times"
+    return (f"the mapping process was restarted {times} in this flight: for the map as if it had not, replay the "
+            f"journal lock-step (`python -m ground replay --recorded {journal} --speed 0 --out DIR`, with this "
+            f"flight's --orchard and --sample-counts, if any)")
+
+
 def summary_markdown(report: dict, live: dict) -> str:
     """The glanceable summary: total, per-row table, mapping progress, delay, link and registration health."""
     head = "flight finished" if report.get("final") else "flying"
@@ -52,6 +65,9 @@ def summary_markdown(report: dict, live: dict) -> str:
         lines.append(f"\n**The mapping process died** (exit code {r.get('exit_code')}) after "
                      f"{r.get('keyframes_mapped', 0)} keyframes, {r.get('keyframes_lost', 0)} lost; **restarted** "
                      f"and given the map's {r.get('keyframes_remapped', r.get('resent', 0))} keyframes to map again: {how}")
+    advice = remap_advice(report) if report.get("final") else None
+    if advice:
+        lines.append(f"\n{advice[0].upper()}{advice[1:]}")
     if reg.get("in_memory_from_keyframe") is not None:
         lines.append(f"\n**The mapping folder refused a write** (a full disk?) at keyframe "
                      f"{reg['in_memory_from_keyframe']}: mapping went on in memory; the model files mapped since are "
