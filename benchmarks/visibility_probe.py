@@ -5,8 +5,9 @@
 
 Each FLIGHT:EVERY is a simulated flight, run every EVERY-th frame through the kept torch checkpoint at the scale the
 onboard node gives the frame (pomar.apple_scale). For each detection scored 0.3 or more it keeps the box head's
-features (256 for the shipped MobileNetV2's head, 1024 for a ResNet-18's) and the visible share of the truth apple it lies on (0 where none). Then, leaving each flight out in
-turn, two logistic rules are fitted on the others' detections to tell apples at least MIN_VISIBLE visible
+features (256 for the shipped MobileNetV2's head, 1024 for a ResNet-18's) and the visible share of the truth apple it
+lies on (0 where none). Then, leaving each flight out in turn, two logistic rules are fitted on the others'
+detections to tell apples at least MIN_VISIBLE visible
 (pomar.countable) from the rest: on the score alone (a threshold), and on the box features with the score (what a
 visibility head on the shipped features could learn). Each is judged on the flight left out, against the score at
 the count's confirm_score:

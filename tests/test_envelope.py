@@ -77,9 +77,9 @@ def test_a_drone_that_publishes_fewer_detections_than_the_tracks_need_is_said_on
 
 
 def test_the_publish_score_follows_the_models_operating_score(caplog):
-    """A model that stands by its detections from 0.75 (the shipped one) publishes from PUBLISH_BELOW under it, as one at 0.9
-    publishes from 0.7: the band of weak views the tracks extend with. The onboard node takes it from the model's
-    JSON; a ground whose drone's model says 0.75 but publishes from 0.7 says it fell short."""
+    """A model that stands by its detections from 0.75 (the shipped one) publishes from PUBLISH_BELOW under it, as
+    one at 0.9 publishes from 0.7: the band of weak views the tracks extend with. The onboard node takes it from the
+    model's JSON; a ground whose drone's model says 0.75 but publishes from 0.7 says it fell short."""
     from argparse import Namespace
 
     from onboard.__main__ import _detector
@@ -88,11 +88,11 @@ def test_the_publish_score_follows_the_models_operating_score(caplog):
     assert publish_score(None) == PUBLISH_SCORE and publish_score(0.9) == PUBLISH_SCORE
     assert abs(publish_score(0.75) - (0.75 - PUBLISH_BELOW)) < 1e-9 and publish_score(0.1) == 0.0
     models = Path(__file__).resolve().parents[1] / "onboard" / "models"
-    for name in ("apple-detector.onnx",):
-        own = json.loads((models / name).with_suffix(".json").read_text())["score_thresh"]
-        det = _detector(Namespace(detector="onnx", model=str(models / name), providers=None, score_thresh=None,
-                                  tile_size=1344, threads=1))
-        assert abs(det.score_thresh - publish_score(own)) < 1e-9, name
+    name = "apple-detector.onnx"
+    own = json.loads((models / name).with_suffix(".json").read_text())["score_thresh"]
+    det = _detector(Namespace(detector="onnx", model=str(models / name), providers=None, score_thresh=None,
+                              tile_size=1344, threads=1))
+    assert abs(det.score_thresh - publish_score(own)) < 1e-9, name
     seen = ApplesSeen()
     seen.take(wire.decode(wire.CameraMessage("f", "d", CAM, 10.0, score_thresh=publish_score(0.75),
                                              operating_score=0.75).encode()))

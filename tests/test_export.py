@@ -394,7 +394,7 @@ def test_export_options_are_the_settings_fields():
             assert str(args[f.name]) == str(want), (cls.__name__, f.name)
 
 
-def test_the_kept_checkpoint_is_the_shipped_models_weights(parts="export/checkpoint", onnx="apple-detector"):
+def test_the_kept_checkpoint_is_the_shipped_models_weights():
     """``export/checkpoint`` (fp16 parts) is the run the shipped ONNX came from: same history, and on a bundled frame
     its torch boxes are the int8 file's (quantization moves them by a fraction of a pixel, not to other apples)."""
     from pathlib import Path
@@ -403,6 +403,7 @@ def test_the_kept_checkpoint_is_the_shipped_models_weights(parts="export/checkpo
     from onboard.detector import OnnxDetector
     from tests.conftest import BUNDLED
 
+    parts, onnx = "export/checkpoint", "apple-detector"
     root = Path(__file__).resolve().parents[1]
     meta = json.loads((root / f"onboard/models/{onnx}.json").read_text())
     model, ckpt = load_checkpoint(root / parts)  # checks each part's sha256

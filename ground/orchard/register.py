@@ -194,8 +194,8 @@ def pass_shifts(xy: np.ndarray, k: np.ndarray, cams_xy: np.ndarray, lines: list[
     each seen midway by camera ``k``) it saw, the middle of those apples' extent (their 2nd to 98th percentile along
     the row) against the middle of the row's strip (where its apples belong, ground.orchard.assign: its ends, or half
     a spacing past its end trees where those stand that close; the trees' middle, where they stand evenly, and a layout
-    made from a map's rows, which ends at its outermost apples, alike) is its offset; the pass's shift is the median over such rows that
-    hold at least NEAR_ROW_SHARE of the apples of the one it saw most of
+    made from a map's rows, which ends at its outermost apples, alike) is its offset; the pass's shift is the median
+    over such rows that hold at least NEAR_ROW_SHARE of the apples of the one it saw most of
     (``along_m``; None where no row's ends were filmed). Each pass: ``first`` and ``last`` camera index, ``rows``,
     ``along_m`` and its cameras (``cams``)."""
     if len(cams_xy) < MIN_PASS_FRAMES or not lines:
