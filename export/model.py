@@ -186,6 +186,38 @@ def make(config: dict, imagenet: bool = False) -> FasterRCNN:
     return model
 
 
+def widen_pyramid(model: FasterRCNN, channels: int) -> FasterRCNN:
+    """``model`` with its pyramid (and so its RPN and the box head's input) widened to ``channels``, computing exactly
+    what it computed: the old channels keep their weights, the new ones start from a fresh layer's, and every weight
+    reading a new channel starts at 0, so that the new channels are silent until training gives them a use (issue 70:
+    more room for small apples without losing what earlier cycles learnt). The body and the rest are copied."""
+    config = model_config(model)
+    old = config["fpn_channels"]
+    if channels < old:
+        raise ValueError(f"a pyramid of {old} channels cannot be widened to {channels}")
+    config = dict(config, fpn_channels=channels)
+    wide = make(config)
+    src = model.state_dict()
+    out = {}
+    for k, w in wide.state_dict().items():
+        v = src[k]
+        if v.shape == w.shape:
+            out[k] = v.clone()
+            continue
+        w = w.clone()
+        if k.startswith("roi_heads.box_head.fc6.weight"):  # reads (channels, 7, 7) flattened, channel-major
+            w.zero_()
+            w.view(w.shape[0], channels, 49)[:, :old] = v.view(v.shape[0], old, 49)
+        elif w.dim() == 1:  # a bias: new output channels keep their fresh init
+            w[:v.shape[0]] = v
+        else:  # a convolution: the old block copied; new inputs read with 0, new outputs fresh
+            w[:, v.shape[1]:] = 0
+            w[:v.shape[0], :v.shape[1]] = v
+        out[k] = w
+    wide.load_state_dict(out)
+    return wide
+
+
 def freeze_stages(model: FasterRCNN, stages: int) -> int:
     """Keep the body's first ``stages`` pyramid stages (strides 4, 8, 16, 32), and the stem before them, as they are
     (no gradient); returns the number of parameters frozen. The early stages hold few weights but run at the highest

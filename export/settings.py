@@ -67,6 +67,9 @@ class TrainSettings:
     keep: Path | None = field(default=None, metadata={"type": Path, "metavar": "FOLDER"})
     #: Start from this checkpoint's weights (a .pt, or a folder of fp16 parts) with a fresh optimiser and schedule.
     init: Path | None = field(default=None, metadata={"type": Path, "metavar": "CKPT"})
+    #: With --init: widen its pyramid to this many channels first, the new ones silent until trained, so that the run
+    #: starts from what the init computes (more room for small apples).
+    widen_fpn: int | None = field(default=None, metadata={"type": int, "metavar": "CHANNELS"})
     #: Simulated apples at least this visible are boxes to find, the rest background (default: the definition's,
     #: pomar.countable.MIN_VISIBLE; another for a study). Flight folders only: a pack keeps the labels it was packed with.
     min_visible: float = MIN_VISIBLE

@@ -49,7 +49,7 @@ import torch
 
 from export.data import Augment, load_add256, load_applebbch76, load_sim_frames, validation_sets
 from export.metrics import evaluate_detections
-from export.model import freeze_stages, is_pretrained, load_checkpoint, make
+from export.model import freeze_stages, is_pretrained, load_checkpoint, make, model_config, widen_pyramid
 from export.parts import is_state, save_state, state_manifest
 from export.pretrained import weights_path
 from export.settings import TRAIN_FIELDS, TrainSettings
@@ -269,6 +269,8 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
         s = run_settings(s, ckpt, source)
     elif s.init is not None:
         model, ckpt = load_checkpoint(s.init)
+    elif s.widen_fpn is not None:
+        raise TrainingError(f"--widen-fpn {s.widen_fpn}: it widens an --init model's pyramid; give --init")
     elif s.freeze_stages and not is_pretrained(s.backbone):
         raise TrainingError(f"--freeze-stages {s.freeze_stages}: {s.backbone} starts from random weights, which "
                             f"freezing would keep random (pretrained: mobilenet_v2, efficientnet_lite0)")
@@ -318,6 +320,13 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
     elif s.init is not None:
         config = ckpt["config"]
         log.info("initialised from %s (%s, trained %d iterations)", s.init, config, ckpt["iteration"])
+        if s.widen_fpn is not None:
+            try:
+                model = widen_pyramid(model, s.widen_fpn)
+            except ValueError as e:
+                raise TrainingError(f"--widen-fpn {s.widen_fpn}: {e}") from None
+            config = model_config(model)
+            log.info("its pyramid widened to %d channels, the new ones silent", s.widen_fpn)
         it, history, best, cpu_s, wall_s = 0, [], -1.0, 0.0, 0.0
     else:
         model = make(config, imagenet=is_pretrained(s.backbone))
@@ -345,7 +354,8 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
                     validation={k: len(v) for k, v in val.items()}, imagenet=is_pretrained(config["backbone"]),
                     init=str(s.init) if s.init is not None else None, add256_scale=list(add256_scale),
                     min_visible=s.min_visible, freeze_stages=s.freeze_stages,
-                    bbch_scale=list(bbch_scale) if bbch_scale else None, ignore_from=s.ignore_from)
+                    bbch_scale=list(bbch_scale) if bbch_scale else None, ignore_from=s.ignore_from,
+                    widen_fpn=s.widen_fpn)
     if source is not None:  # where the run began, not this call's --init
         run_info["init"] = (ckpt.get("run") or {}).get("init")
     run_settings_now = {k: _plain(getattr(s, k)) for k in RUN_FIELDS}

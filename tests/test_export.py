@@ -71,6 +71,28 @@ def tiny_onnx(tmp_path_factory):
     return model, path, report, img
 
 
+def test_a_widened_pyramid_computes_what_the_narrow_one_did_and_can_learn():
+    """``widen_pyramid``: the same boxes and scores, bit for bit, with more channels whose weights get gradients."""
+    from export.model import model_config, widen_pyramid
+
+    model, frames = _tiny_model_with_bn_stats()
+    wide = widen_pyramid(model, 48).eval()
+    assert model_config(wide)["fpn_channels"] == 48
+    x = torch.from_numpy(frames[0].image[100:400, 200:620].transpose(2, 0, 1).copy()).float() / 255
+    model.roi_heads.score_thresh = wide.roi_heads.score_thresh = 0.0
+    with torch.no_grad():
+        a, b = model([x])[0], wide([x])[0]
+    assert len(a["boxes"]) > 0 and torch.equal(a["boxes"], b["boxes"]) and torch.equal(a["scores"], b["scores"])
+    fc6 = wide.roi_heads.box_head.fc6.weight
+    assert fc6.shape[1] == 48 * 49 and (fc6.view(-1, 48, 49)[:, 32:] == 0).all()
+    wide.train()
+    target = {"boxes": torch.tensor([[50.0, 50.0, 70.0, 70.0]]), "labels": torch.tensor([1])}
+    sum(wide([x], [target]).values()).backward()
+    assert fc6.grad.view(-1, 48, 49)[:, 32:].abs().sum() > 0
+    with pytest.raises(ValueError, match="cannot be widened"):
+        widen_pyramid(model, 16)
+
+
 def test_tiny_model_onnx_matches_torch(tiny_onnx):
     model, path, report, img = tiny_onnx
     assert report["image_hw"] != [256, 320]  # not the trace size
@@ -245,9 +267,14 @@ def test_training_runs_with_mixed_precision_on_the_cpu_from_a_pack_and_continues
     assert all(torch.isfinite(v).all() for v in ckpt["model"].values() if v.is_floating_point())
     save_parts(ckpt, tmp_path / "kept", part_bytes=4_000_000)
     assert len(list((tmp_path / "kept").glob("part-*.bin"))) >= 2
-    r = train(tmp_path / "cycle2", "--init", str(tmp_path / "kept"))
+    r = train(tmp_path / "cycle2", "--init", str(tmp_path / "kept"), "--widen-fpn", "40")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "initialised from" in r.stderr and "trained 3 iterations" in r.stderr
+    assert "widened to 40 channels" in r.stderr
+    assert torch.load(tmp_path / "cycle2" / "last.pt", weights_only=False)["config"]["fpn_channels"] == 40
+    r = train(tmp_path / "narrow", "--init", str(tmp_path / "kept"), "--widen-fpn", "16")
+    last = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 2 and last.startswith("error: --widen-fpn 16: ") and "32 channels" in last, r.stderr[-2000:]
     # a study's other visibility needs the flight's truth: a pack keeps the labels it was packed with
     r = train(tmp_path / "v04", "--min-visible", "0.4")
     assert r.returncode == 2 and r.stderr.startswith("error: ") and "sim.npz" in r.stderr, r.stderr[-2000:]
