@@ -340,8 +340,12 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
     if source is not None:
         opt.load_state_dict(ckpt["optimizer"])
         torch.set_rng_state(ckpt["torch_rng"])
-        log.info("resumed %s at iteration %d/%d (epoch %d of %d), %.2f CPU-hours so far", source, it, total,
-                 it // per_epoch + 1, epochs, cpu_s / 3600)
+        if it >= total:
+            log.info("%s is finished (iteration %d of %d, %d epochs), %.2f CPU-hours: nothing left to train", source,
+                     it, total, epochs, cpu_s / 3600)
+        else:
+            log.info("resumed %s at iteration %d/%d (epoch %d of %d), %.2f CPU-hours so far", source, it, total,
+                     it // per_epoch + 1, epochs, cpu_s / 3600)
     model.to(dev)
     for state in opt.state.values():  # a resumed optimiser's momenta go where the weights are
         for k, v in state.items():

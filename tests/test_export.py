@@ -337,6 +337,9 @@ def test_a_stopped_training_resumes_bit_for_bit_from_its_kept_state_on_a_new_mac
         [{k: v for k, v in h.items() if k not in drop} for h in whole["history"]]
     assert resumed["cpu_s"] > 0 and resumed["history"][-1]["cpu_hours"] > 0
     assert load_state(keep)["iteration"] == 6
+    r = train(tmp_path / "e", "--keep", str(keep), "--resume")  # what `make train` does once the run is over
+    assert r.returncode == 0 and "is finished (iteration 6 of 6, 2 epochs)" in r.stderr, r.stderr[-2000:]
+    assert load_state(keep)["iteration"] == 6
 
     r = train(tmp_path / "d", "--keep", str(keep), "--resume", "--backbone", "resnet18")
     assert r.returncode == 2 and r.stderr.strip().splitlines() == [
