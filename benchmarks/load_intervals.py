@@ -9,6 +9,14 @@ flights whose interval holds the true load (goal 0.85-0.95 for rows and flights)
 the rows' and the flight's intervals, and the share of fits that held a coefficient at 0.
 
     python benchmarks/load_intervals.py --orchards 200 --mean 120 --k 5 10 20 40
+
+With ``--maps RUN FLIGHT ...`` the orchards are mapped flights instead (RUN: a ``benchmarks/yield_flights.py``
+folder whose ``map/`` holds the flight's trees.csv; FLIGHT: the simulated flight, for its trees' true loads): the
+trees ``ground choose-trees`` names, and ``--orchards`` random draws of k trees, each calibrated, and the same
+figures pooled over the draws, with the fit's tree and row spread (``residual_sd``, ``row_sd``) beside the true
+ones (the rows' and trees' errors of the estimate from every tree counted).
+
+    python benchmarks/load_intervals.py --maps out/yield/runs/heavy-tune-1 out/yield/heavy-tune-1 --orchards 200
 """
 
 from __future__ import annotations
@@ -33,19 +41,71 @@ def one(trees, load, k: int, model: str) -> dict:
     index = {(t["row"], t["tree"]): i for i, t in enumerate(trees)}
     picked = [index[(t["row"], t["tree"])] for t in choose_trees(trees, k, model)]
     est = estimate_load(trees, {(trees[i]["row"], trees[i]["tree"]): int(load[i]) for i in picked}, model)
+    return score(trees, load, picked, est)
+
+
+def score(trees, load, picked, est) -> dict:
+    """Which of the trees not counted, the rows and the flight the estimate's intervals hold, and their widths."""
     rows = np.array([t["row"] for t in trees])
     free = np.setdiff1d(np.arange(len(trees)), picked)
     tree_in = [est["trees"][i]["load_lo"] <= load[i] <= est["trees"][i]["load_hi"] for i in free]
-    row_in, row_hw = [], []
+    row_in, row_hw, row_err = [], [], []
     for r, e in est["rows"].items():
         truth = load[rows == r].sum()
         row_in.append(e["load_lo"] <= truth <= e["load_hi"])
         row_hw.append((e["load_hi"] - e["load_lo"]) / 2 / max(e["load"], 1.0))
+        row_err.append(abs(e["load"] - truth) / max(truth, 1.0))
     f = est["flight"]
-    return {"trees": float(np.mean(tree_in)), "rows": row_in, "row_hw": row_hw,
+    return {"trees": float(np.mean(tree_in)), "rows": row_in, "row_hw": row_hw, "row_err": row_err,
             "flight": f["load_lo"] <= load.sum() <= f["load_hi"],
             "flight_hw": (f["load_hi"] - f["load_lo"]) / 2 / max(f["load"], 1.0),
             "flight_err": (f["load"] - load.sum()) / load.sum(), "held": bool(est["constraints"]["held_at_0"])}
+
+
+def mapped(run: Path, flight: Path) -> tuple[list[dict], np.ndarray]:
+    """A mapped flight's trees (trees.csv, numbers) and their true loads."""
+    from yield_flights import numeric
+
+    from ground.evaluation.yield_score import read_map, truth_of
+    from pomar.flight import FlightDir
+
+    trees = numeric(read_map(run / "map")[0])
+    truth = truth_of(FlightDir(flight))["trees"]
+    return trees, np.array([truth.get((t["row"], t["tree"]), (0, 0.0))[0] for t in trees], float)
+
+
+def maps_main(a) -> int:
+    """--maps: the intervals over draws of trees on mapped flights."""
+    pairs = list(zip(a.maps[::2], a.maps[1::2]))
+    print(f"{'flight':>16} {'k':>3} {'draws':>5} | {'trees':>5} {'rows':>5} {'flight':>6} | {'row hw':>6} {'flt hw':>6}"
+          f" {'|row err|':>9} | {'tree sd':>7} {'row sd':>6} | chosen: {'rows':>5} {'flight':>6} {'row hw':>6}")
+    pooled = []
+    for run, flight in pairs:
+        trees, load = mapped(Path(run), Path(flight))
+        every = estimate_load(trees, {(t["row"], t["tree"]): int(n) for t, n in zip(trees, load)}, a.model)
+        for k in a.k:
+            rng = np.random.default_rng(a.seed)
+            got, sds = [], []
+            for _ in range(a.orchards):
+                picked = rng.choice(len(trees), k, replace=False)
+                est = estimate_load(trees, {(trees[i]["row"], trees[i]["tree"]): int(load[i]) for i in picked}, a.model)
+                got.append(score(trees, load, picked, est))
+                sds.append((est["residual_sd"], est["row_sd"]))
+            mine = one(trees, load, k, a.model)
+            rows = [x for g in got for x in g["rows"]]
+            pooled.extend(rows)
+            print(f"{Path(flight).name:>16} {k:>3} {a.orchards:>5} | {np.mean([g['trees'] for g in got]):>5.2f} "
+                  f"{np.mean(rows):>5.2f} {np.mean([g['flight'] for g in got]):>6.2f} | "
+                  f"{np.median([x for g in got for x in g['row_hw']]):>6.2f} "
+                  f"{np.median([g['flight_hw'] for g in got]):>6.2f} "
+                  f"{np.median([x for g in got for x in g['row_err']]):>9.3f} | "
+                  f"{np.median([s[0] for s in sds]):>7.1f} {np.median([s[1] for s in sds]):>6.1f} | "
+                  f"{np.mean(mine['rows']):>13.2f} {int(mine['flight']):>6d} {np.median(mine['row_hw']):>6.2f}",
+                  flush=True)
+        print(f"{'':>16} (every tree counted: residual sd {every['residual_sd']:.1f}, row sd {every['row_sd']:.1f}; "
+              f"mean load {load.mean():.1f})")
+    print(f"pooled rows' intervals holding: {np.mean(pooled):.2f} of {len(pooled)}")
+    return 0
 
 
 def main(argv=None) -> int:
@@ -58,7 +118,13 @@ def main(argv=None) -> int:
     p.add_argument("--k", type=int, nargs="+", default=[5, 10, 20, 40], help="trees counted by hand")
     p.add_argument("--model", default="linear")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--maps", nargs="+", metavar="RUN FLIGHT", help="mapped flights instead of made-up orchards: pairs "
+                   "of a yield_flights.py folder and its simulated flight")
     a = p.parse_args(argv)
+    if a.maps:
+        if len(a.maps) % 2:
+            p.error("--maps takes pairs: RUN FLIGHT ...")
+        return maps_main(a)
     print(f"{a.rows} rows of {a.trees} trees, {a.mean:g} apples a tree, seen share {a.share:g}, model {a.model}, "
           f"{a.orchards} orchards a line")
     print(f"{'unseen':>6} {'row sd':>6} {'vis sd':>6} {'k':>3} | {'trees':>5} {'rows':>5} {'flight':>6} | "
