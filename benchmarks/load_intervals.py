@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from choice_power import orchard  # noqa: E402
 
-from ground.orchard.calibration import estimate_load  # noqa: E402
+from ground.orchard.calibration import estimate_load, never_seen, regressor  # noqa: E402
 from ground.orchard.choose import choose_trees  # noqa: E402
 
 
@@ -74,37 +74,65 @@ def mapped(run: Path, flight: Path) -> tuple[list[dict], np.ndarray]:
     return trees, np.array([truth.get((t["row"], t["tree"]), (0, 0.0))[0] for t in trees], float)
 
 
+def rule_draw(rng, trees: list[dict], k: int, model: str) -> np.ndarray:
+    """k trees drawn as ``ground choose-trees``' rule draws them, at random where the rule takes a middle: a tree of
+    each row (a seen one where the row was seen), the rest from strata of the regressor over the seen trees."""
+    x, seen = regressor(trees, model), ~never_seen(trees)
+    rows = np.array([t["row"] for t in trees])
+    out = []
+    for r in np.unique(rows)[:k]:
+        pool = np.nonzero((rows == r) & seen)[0]
+        out.append(int(rng.choice(pool if len(pool) else np.nonzero(rows == r)[0])))
+    left = np.setdiff1d(np.nonzero(seen)[0], out)
+    strata = min(k - len(out), len(left))
+    if strata > 0:
+        out += [int(rng.choice(st)) for st in np.array_split(left[np.argsort(x[left], kind="stable")], strata)]
+    return np.array(out)
+
+
 def maps_main(a) -> int:
     """--maps: the intervals over draws of trees on mapped flights."""
     pairs = list(zip(a.maps[::2], a.maps[1::2]))
-    print(f"{'flight':>16} {'k':>3} {'draws':>5} | {'trees':>5} {'rows':>5} {'flight':>6} | {'row hw':>6} {'flt hw':>6}"
-          f" {'|row err|':>9} | {'tree sd':>7} {'row sd':>6} | chosen: {'rows':>5} {'flight':>6} {'row hw':>6}")
-    pooled = []
+    print(f"{'flight':>16} {'draw':>6} {'k':>3} | {'trees':>5} {'rows':>5} {'seen':>5} {'unseen':>6} {'flight':>6} | "
+          f"{'row hw':>6} {'flt hw':>6} {'|row err|':>9} | {'tree sd':>7} {'row sd':>6}")
+    pooled = {}
     for run, flight in pairs:
         trees, load = mapped(Path(run), Path(flight))
         every = estimate_load(trees, {(t["row"], t["tree"]): int(n) for t, n in zip(trees, load)}, a.model)
+        rows_of = np.array([t["row"] for t in trees])
+        seen_rows = sorted(set(rows_of[~never_seen(trees)].tolist()))
         for k in a.k:
-            rng = np.random.default_rng(a.seed)
-            got, sds = [], []
-            for _ in range(a.orchards):
-                picked = rng.choice(len(trees), k, replace=False)
-                est = estimate_load(trees, {(trees[i]["row"], trees[i]["tree"]): int(load[i]) for i in picked}, a.model)
-                got.append(score(trees, load, picked, est))
-                sds.append((est["residual_sd"], est["row_sd"]))
-            mine = one(trees, load, k, a.model)
-            rows = [x for g in got for x in g["rows"]]
-            pooled.extend(rows)
-            print(f"{Path(flight).name:>16} {k:>3} {a.orchards:>5} | {np.mean([g['trees'] for g in got]):>5.2f} "
-                  f"{np.mean(rows):>5.2f} {np.mean([g['flight'] for g in got]):>6.2f} | "
-                  f"{np.median([x for g in got for x in g['row_hw']]):>6.2f} "
-                  f"{np.median([g['flight_hw'] for g in got]):>6.2f} "
-                  f"{np.median([x for g in got for x in g['row_err']]):>9.3f} | "
-                  f"{np.median([s[0] for s in sds]):>7.1f} {np.median([s[1] for s in sds]):>6.1f} | "
-                  f"{np.mean(mine['rows']):>13.2f} {int(mine['flight']):>6d} {np.median(mine['row_hw']):>6.2f}",
-                  flush=True)
+            for how in ("random", "rule", "chosen"):
+                rng = np.random.default_rng(a.seed)
+                got, sds = [], []
+                for _ in range(1 if how == "chosen" else a.orchards):
+                    if how == "chosen":
+                        index = {(t["row"], t["tree"]): i for i, t in enumerate(trees)}
+                        picked = [index[(t["row"], t["tree"])] for t in choose_trees(trees, k, a.model)]
+                    else:
+                        picked = rng.choice(len(trees), k, replace=False) if how == "random" else \
+                            rule_draw(rng, trees, k, a.model)
+                    est = estimate_load(trees, {(trees[i]["row"], trees[i]["tree"]): int(load[i]) for i in picked},
+                                        a.model)
+                    got.append(score(trees, load, picked, est))
+                    sds.append((est["residual_sd"], est["row_sd"]))
+                names = sorted(np.unique(rows_of).tolist())
+                rows = [x for g in got for x in g["rows"]]
+                seen = [x for g in got for r, x in zip(names, g["rows"]) if r in seen_rows]
+                unseen = [x for g in got for r, x in zip(names, g["rows"]) if r not in seen_rows]
+                pooled.setdefault(how, []).extend(rows)
+                print(f"{Path(flight).name:>16} {how:>6} {k:>3} | {np.mean([g['trees'] for g in got]):>5.2f} "
+                      f"{np.mean(rows):>5.2f} {np.mean(seen) if seen else float('nan'):>5.2f} "
+                      f"{np.mean(unseen) if unseen else float('nan'):>6.2f} "
+                      f"{np.mean([g['flight'] for g in got]):>6.2f} | "
+                      f"{np.median([x for g in got for x in g['row_hw']]):>6.2f} "
+                      f"{np.median([g['flight_hw'] for g in got]):>6.2f} "
+                      f"{np.median([x for g in got for x in g['row_err']]):>9.3f} | "
+                      f"{np.median([s[0] for s in sds]):>7.1f} {np.median([s[1] for s in sds]):>6.1f}", flush=True)
         print(f"{'':>16} (every tree counted: residual sd {every['residual_sd']:.1f}, row sd {every['row_sd']:.1f}; "
-              f"mean load {load.mean():.1f})")
-    print(f"pooled rows' intervals holding: {np.mean(pooled):.2f} of {len(pooled)}")
+              f"mean load {load.mean():.1f}; rows seen {seen_rows})")
+    for how, rows in pooled.items():
+        print(f"pooled, {how}: rows' intervals holding {np.mean(rows):.2f} of {len(rows)}")
     return 0
 
 
