@@ -74,6 +74,7 @@ test-latest:
 # stage frozen, 2 epochs at lr 0.001, 2,000 simulated crops and 600 AppleBBCH76 tiles an epoch, seed 8, and simulated
 # apples 40-50 % visible neither apples nor background in the losses (--ignore-from 0.4). It goes on from
 # export/training, which holds it (the --init is read only at its start).
+# A ninth cycle from it, its pyramid widened to 64 channels (--widen-fpn 64), was tried and not kept (the model card).
 TRAIN_SIM := out/sim/detector-train out/sim/detector-train-b out/sim/detector-train-c
 TRAIN_RUN := --init out/export/mv2-3-state --freeze-stages 1 --epochs 2 --batch 4 --lr 0.001 --sim-crops 2000 \
 	--bbch-tiles 600 --seed 8 --ignore-from 0.4

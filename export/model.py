@@ -205,7 +205,7 @@ def widen_pyramid(model: FasterRCNN, channels: int) -> FasterRCNN:
             out[k] = v.clone()
             continue
         w = w.clone()
-        if k.startswith("roi_heads.box_head.fc6.weight"):  # reads (channels, 7, 7) flattened, channel-major
+        if k == "roi_heads.box_head.fc6.weight":  # reads (channels, 7, 7) flattened, channel-major
             w.zero_()
             w.view(w.shape[0], channels, 49)[:, :old] = v.view(v.shape[0], old, 49)
         elif w.dim() == 1:  # a bias: new output channels keep their fresh init
