@@ -12,8 +12,9 @@ the rows' and the flight's intervals, and the share of fits that held a coeffici
 
 With ``--maps RUN FLIGHT ...`` the orchards are mapped flights instead (RUN: a ``benchmarks/yield_flights.py``
 folder whose ``map/`` holds the flight's trees.csv; FLIGHT: the simulated flight, for its trees' true loads): the
-trees ``ground choose-trees`` names, and ``--orchards`` random draws of k trees, each calibrated, and the same
-figures pooled over the draws, with the fit's tree and row spread (``residual_sd``, ``row_sd``) beside the true
+trees ``ground choose-trees`` names, ``--orchards`` draws of k trees at random (``random``) and as its rule draws
+them at random where it takes a middle (``rule``), each calibrated, and the same figures pooled over the draws (rows
+seen and never seen apart), with the fit's tree and row spread (``residual_sd``, ``row_sd``) beside the true
 ones (the rows' and trees' errors of the estimate from every tree counted).
 
     python benchmarks/load_intervals.py --maps out/yield/runs/heavy-tune-1 out/yield/heavy-tune-1 --orchards 200
@@ -33,13 +34,18 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from choice_power import orchard  # noqa: E402
 
-from ground.orchard.calibration import estimate_load, never_seen, regressor  # noqa: E402
+from ground.orchard.calibration import estimate_load, never_seen  # noqa: E402
 from ground.orchard.choose import choose_trees  # noqa: E402
 
 
-def one(trees, load, k: int, model: str) -> dict:
+def chosen(trees, k: int, model: str, rng=None) -> list[int]:
+    """The indices of the trees ``ground choose-trees`` names (``rng``: its design drawn at random)."""
     index = {(t["row"], t["tree"]): i for i, t in enumerate(trees)}
-    picked = [index[(t["row"], t["tree"])] for t in choose_trees(trees, k, model)]
+    return [index[(t["row"], t["tree"])] for t in choose_trees(trees, k, model, rng=rng)]
+
+
+def one(trees, load, k: int, model: str) -> dict:
+    picked = chosen(trees, k, model)
     est = estimate_load(trees, {(trees[i]["row"], trees[i]["tree"]): int(load[i]) for i in picked}, model)
     return score(trees, load, picked, est)
 
@@ -74,22 +80,6 @@ def mapped(run: Path, flight: Path) -> tuple[list[dict], np.ndarray]:
     return trees, np.array([truth.get((t["row"], t["tree"]), (0, 0.0))[0] for t in trees], float)
 
 
-def rule_draw(rng, trees: list[dict], k: int, model: str) -> np.ndarray:
-    """k trees drawn as ``ground choose-trees``' rule draws them, at random where the rule takes a middle: a tree of
-    each row (a seen one where the row was seen), the rest from strata of the regressor over the seen trees."""
-    x, seen = regressor(trees, model), ~never_seen(trees)
-    rows = np.array([t["row"] for t in trees])
-    out = []
-    for r in np.unique(rows)[:k]:
-        pool = np.nonzero((rows == r) & seen)[0]
-        out.append(int(rng.choice(pool if len(pool) else np.nonzero(rows == r)[0])))
-    left = np.setdiff1d(np.nonzero(seen)[0], out)
-    strata = min(k - len(out), len(left))
-    if strata > 0:
-        out += [int(rng.choice(st)) for st in np.array_split(left[np.argsort(x[left], kind="stable")], strata)]
-    return np.array(out)
-
-
 def maps_main(a) -> int:
     """--maps: the intervals over draws of trees on mapped flights."""
     pairs = list(zip(a.maps[::2], a.maps[1::2]))
@@ -106,12 +96,8 @@ def maps_main(a) -> int:
                 rng = np.random.default_rng(a.seed)
                 got, sds = [], []
                 for _ in range(1 if how == "chosen" else a.orchards):
-                    if how == "chosen":
-                        index = {(t["row"], t["tree"]): i for i, t in enumerate(trees)}
-                        picked = [index[(t["row"], t["tree"])] for t in choose_trees(trees, k, a.model)]
-                    else:
-                        picked = rng.choice(len(trees), k, replace=False) if how == "random" else \
-                            rule_draw(rng, trees, k, a.model)
+                    picked = rng.choice(len(trees), k, replace=False) if how == "random" else \
+                        chosen(trees, k, a.model, rng if how == "rule" else None)
                     est = estimate_load(trees, {(trees[i]["row"], trees[i]["tree"]): int(load[i]) for i in picked},
                                         a.model)
                     got.append(score(trees, load, picked, est))

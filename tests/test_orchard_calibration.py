@@ -243,6 +243,12 @@ def test_every_row_gets_a_tree_to_count_the_unseen_ones_placed_along_them():
     assert sorted(t["tree"] for t in chosen if t["row"] not in (4, 5)) == [3, 7, 11, 15, 19, 23]
     assert sum(t["row"] in (4, 5) for t in chosen) == 4
     assert [t["row"] for t in choose_trees(trees, 4)] == [1, 3, 6, 8]
+    # drawn at random where the rule takes a middle (the benchmark's many samples): the same design, other trees
+    draws = [choose_trees(trees, 10, rng=np.random.default_rng(s)) for s in range(5)]
+    for d in draws:
+        assert sorted({t["row"] for t in d}) == list(range(1, 9)) and len(d) == 10
+        assert sum(t["row"] in (4, 5) for t in d) == 4 and all(t["coverage"] > 0 for t in d if t["row"] in (4, 5))
+    assert len({tuple((t["row"], t["tree"]) for t in d) for d in draws}) == 5
 
 
 def test_each_rows_fruit_size_and_kilograms_follow_its_apples_diameters():

@@ -17,11 +17,11 @@ import numpy as np
 from ground.orchard.calibration import DEFAULT_MODEL, never_seen, regressor
 
 
-def _one_per_row(trees: list[dict], x: np.ndarray, seen: np.ndarray, k: int) -> list[int]:
+def _one_per_row(trees: list[dict], x: np.ndarray, seen: np.ndarray, k: int, rng=None) -> list[int]:
     """A tree of each row (of k rows spread evenly where there are more): the seen tree nearest the row's median
     regressor; in a row the camera never saw, a tree placed systematically along it, the m such rows' trees at 1/2m,
     3/2m, ... of their rows' lengths, so that a gradient along the rows (a slope, the irrigation, the headland) does
-    not put every such tree on the same side of it."""
+    not put every such tree on the same side of it. With ``rng``, a tree drawn at random from the same pool instead."""
     rows = sorted({t["row"] for t in trees})
     if k < len(rows):
         rows = [rows[int(i)] for i in np.round(np.linspace(0, len(rows) - 1, k))]
@@ -30,6 +30,10 @@ def _one_per_row(trees: list[dict], x: np.ndarray, seen: np.ndarray, k: int) -> 
     out = []
     for r in rows:
         idx = of_row[r]
+        if rng is not None:
+            pool = idx[seen[idx]] if r not in unseen else idx
+            out.append(int(rng.choice(pool)))
+            continue
         if r in unseen:
             place = (unseen.index(r) + 0.5) / len(unseen)
             out.append(int(idx[np.argsort([trees[i]["tree"] for i in idx], kind="stable")][int(place * len(idx))]))
@@ -41,10 +45,12 @@ def _one_per_row(trees: list[dict], x: np.ndarray, seen: np.ndarray, k: int) -> 
 
 
 def choose_trees(trees: list[dict], k: int = 10, model: str = DEFAULT_MODEL,
-                 counted: set[tuple[int, int]] = frozenset()) -> list[dict]:
+                 counted: set[tuple[int, int]] = frozenset(), rng=None) -> list[dict]:
     """``k`` of ``trees`` (trees.csv's records with count and coverage) to count by hand, in row and tree order;
     ``counted``: (row, tree) of trees already counted, kept among the ``k`` (more trees asked for after a first
-    sample): a row with one of them gets no other by the first rule, and the strata are drawn over the rest."""
+    sample): a row with one of them gets no other by the first rule, and the strata are drawn over the rest.
+    ``rng`` (a numpy Generator): the same design drawn at random where the rule takes a middle (a row's tree, a
+    stratum's), for judging the rule over many samples (``benchmarks/load_intervals.py``)."""
     if k <= 0:
         raise ValueError(f"k must be at least 1, got {k}")
     x = regressor(trees, model)
@@ -53,10 +59,11 @@ def choose_trees(trees: list[dict], k: int = 10, model: str = DEFAULT_MODEL,
     if kept:
         rows_kept = {trees[i]["row"] for i in kept}
         free = [i for i, t in enumerate(trees) if t["row"] not in rows_kept]
-        more = _one_per_row([trees[i] for i in free], x[free], seen[free], max(min(k, len(trees)) - len(kept), 0))
+        more = _one_per_row([trees[i] for i in free], x[free], seen[free], max(min(k, len(trees)) - len(kept), 0),
+                            rng)
         chosen = kept + [free[i] for i in more]
     else:
-        chosen = _one_per_row(trees, x, seen, min(k, len(trees)))
+        chosen = _one_per_row(trees, x, seen, min(k, len(trees)), rng)
     left = np.setdiff1d(np.nonzero(seen)[0], chosen)
     if len(left) < k - len(chosen):  # too few seen trees: any tree not chosen yet
         left = np.setdiff1d(np.arange(len(trees)), chosen)
@@ -64,6 +71,9 @@ def choose_trees(trees: list[dict], k: int = 10, model: str = DEFAULT_MODEL,
     if strata > 0:
         order = left[np.argsort(x[left], kind="stable")]
         for s in np.array_split(order, strata):
+            if rng is not None:
+                chosen.append(int(rng.choice(s)))
+                continue
             mid = np.median(x[s])
             chosen.append(int(min(s, key=lambda i: (abs(x[i] - mid), i))))
     return [trees[i] for i in sorted(chosen, key=lambda i: (trees[i]["row"], trees[i]["tree"]))]
