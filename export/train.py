@@ -360,8 +360,9 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
                     min_visible=s.min_visible, freeze_stages=s.freeze_stages,
                     bbch_scale=list(bbch_scale) if bbch_scale else None, ignore_from=s.ignore_from,
                     widen_fpn=s.widen_fpn)
-    if source is not None:  # where the run began, not this call's --init
+    if source is not None:  # where the run began, not this call's --init and --widen-fpn
         run_info["init"] = (ckpt.get("run") or {}).get("init")
+        run_info["widen_fpn"] = (ckpt.get("run") or {}).get("widen_fpn")
     run_settings_now = {k: _plain(getattr(s, k)) for k in RUN_FIELDS}
     where = dict(threads=threads, device=dev.type, amp=s.amp)
     c0, w0 = time.process_time(), time.time()
