@@ -9,7 +9,8 @@
   cells at stride 4 and under one at torchvision's MobileNet default (the last two stages, strides 16 and 32). P2..P5
   plus a max-pool level; anchors of 8..128 px, one size per level: ADD256's apples are 8-34 px boxes.
 - ``fpn_channels`` and ``head_width`` (the box head's two fully connected layers) set the RPN's and the box head's
-  cost, most of a frame's time on the finest level and the 300 proposals.
+  cost, most of a frame's time on the finest level and the 300 proposals. ``roi_context`` grows the region the box
+  head pools around each proposal (a small apple judged with its surroundings).
 - The transform keeps images at their native resolution (torchvision's resize to 800 px would be baked
   into the exported graph): the model sees frames as the camera gives them. It normalises with the statistics the
   backbone was trained with.
@@ -29,7 +30,7 @@ from torchvision.models.detection.faster_rcnn import FastRCNNPredictor, TwoMLPHe
 from torchvision.models.detection.roi_heads import RoIHeads
 from torchvision.models.detection.rpn import RegionProposalNetwork
 from torchvision.models.detection.transform import GeneralizedRCNNTransform
-from torchvision.ops import box_iou
+from torchvision.ops import MultiScaleRoIAlign, box_iou
 from torchvision.ops.feature_pyramid_network import LastLevelMaxPool
 
 IMAGENET_MEAN, IMAGENET_STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
@@ -104,6 +105,23 @@ class IgnoringRPN(RegionProposalNetwork):
         return labels, matched
 
 
+class ContextRoIAlign(MultiScaleRoIAlign):
+    """torchvision's RoI pooling over a box grown ``context`` times about its centre: a small apple is a few cells at
+    stride 4, and the leaves and branches around it are what tell it from a leaf-shaded blob (issue 70)."""
+
+    def __init__(self, context: float, **kw):
+        super().__init__(**kw)
+        self.context = float(context)
+
+    def forward(self, x, boxes, image_shapes):
+        half = (self.context - 1) / 2
+        grown = []
+        for b in boxes:
+            d = torch.cat([b[:, 2:] - b[:, :2]] * 2, dim=1) * half
+            grown.append(b + d * torch.tensor([-1.0, -1.0, 1.0, 1.0], dtype=b.dtype, device=b.device))
+        return super().forward(x, grown, image_shapes)
+
+
 class IgnoringRoIHeads(RoIHeads):
     """The box head, with the proposals on a target's ``ignore`` boxes left out of its losses."""
 
@@ -139,9 +157,10 @@ class AppleRCNN(FasterRCNN):
 
 def build_model(backbone: str = "resnet18", fpn_channels: int = 128, detections_per_img: int = 300,
                 score_thresh: float = 0.05, fast_train: bool = True, head_width: int = 1024,
-                imagenet: bool = False) -> FasterRCNN:
+                roi_context: float = 1.0, imagenet: bool = False) -> FasterRCNN:
     """A Faster R-CNN for apples (2 classes: background, apple). With ``imagenet``, the body starts from its checked
-    ImageNet weights (``export.pretrained``); otherwise randomly initialised (a checkpoint's weights go on top)."""
+    ImageNet weights (``export.pretrained``); otherwise randomly initialised (a checkpoint's weights go on top).
+    ``roi_context``: the box head pools a region this many times each box (``ContextRoIAlign``; 1: the box)."""
     if backbone not in BACKBONES:
         raise ValueError(f"unknown backbone {backbone!r}; choose from {sorted(BACKBONES)}")
     builder, body_of, layers, in_channels, mean, std = BACKBONES[backbone]
@@ -162,6 +181,9 @@ def build_model(backbone: str = "resnet18", fpn_channels: int = 128, detections_
     anchors = AnchorGenerator(ANCHOR_SIZES, (ASPECT_RATIOS,) * len(ANCHOR_SIZES))
     extra = dict(rpn_post_nms_top_n_train=500, box_batch_size_per_image=128) if fast_train else {}
     head = TwoMLPHead(fpn_channels * 7 * 7, head_width)
+    if roi_context != 1.0:
+        extra["box_roi_pool"] = ContextRoIAlign(roi_context, featmap_names=["0", "1", "2", "3"], output_size=7,
+                                                sampling_ratio=2)
     model = AppleRCNN(fpn, num_classes=None, rpn_anchor_generator=anchors, box_detections_per_img=detections_per_img,
                       box_score_thresh=score_thresh, box_head=head, box_predictor=FastRCNNPredictor(head_width, 2),
                       image_mean=list(mean), image_std=list(std), **extra)

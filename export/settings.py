@@ -70,6 +70,9 @@ class TrainSettings:
     #: With --init: widen its pyramid to this many channels first, the new ones silent until trained, so that the run
     #: starts from what the init computes (more room for small apples).
     widen_fpn: int | None = field(default=None, metadata={"type": int, "metavar": "CHANNELS"})
+    #: The box head pools a region this many times each proposal's box (1: the box itself), so that a small apple is
+    #: judged with the leaves around it; with --init, the init's weights carry over to the new pooling.
+    roi_context: float | None = field(default=None, metadata={"type": float, "metavar": "FACTOR"})
     #: Simulated apples at least this visible are boxes to find, the rest background (default: the definition's,
     #: pomar.countable.MIN_VISIBLE; another for a study). Flight folders only: a pack keeps the labels it was packed with.
     min_visible: float = MIN_VISIBLE

@@ -271,7 +271,9 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
         model, ckpt = load_checkpoint(s.init)
     elif s.widen_fpn is not None:
         raise TrainingError(f"--widen-fpn {s.widen_fpn}: it widens an --init model's pyramid; give --init")
-    elif s.freeze_stages and not is_pretrained(s.backbone):
+    if s.roi_context is not None and not 1 <= s.roi_context <= 4:
+        raise TrainingError(f"--roi-context {s.roi_context}: give a factor from 1 (the box itself) to 4")
+    if s.freeze_stages and not is_pretrained(s.backbone) and source is None and s.init is None:
         raise TrainingError(f"--freeze-stages {s.freeze_stages}: {s.backbone} starts from random weights, which "
                             f"freezing would keep random (pretrained: mobilenet_v2, efficientnet_lite0)")
     epochs, batch, lr, sim_crops, seed = s.epochs, s.batch, s.lr, s.sim_crops, s.seed
@@ -306,6 +308,8 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
     per_epoch = math.ceil(len(plan) / batch)
     total = epochs * per_epoch
     config = dict(backbone=s.backbone, fpn_channels=s.fpn_channels, head_width=s.head_width)
+    if s.roi_context is not None:
+        config["roi_context"] = s.roi_context
     if source is not None:
         config = ckpt["config"]
         it, history, best = ckpt["iteration"], ckpt["history"], ckpt["best_ap50"]
@@ -327,6 +331,12 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
                 raise TrainingError(f"--widen-fpn {s.widen_fpn}: {e}") from None
             config = model_config(model)
             log.info("its pyramid widened to %d channels, the new ones silent", s.widen_fpn)
+        if s.roi_context is not None and s.roi_context != config.get("roi_context", 1.0):
+            config = dict(config, roi_context=s.roi_context)
+            state = model.state_dict()
+            model = make(config)
+            model.load_state_dict(state)
+            log.info("its box head now pools %.2f times each box", s.roi_context)
         it, history, best, cpu_s, wall_s = 0, [], -1.0, 0.0, 0.0
     else:
         model = make(config, imagenet=is_pretrained(s.backbone))
@@ -359,7 +369,7 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
                     init=str(s.init) if s.init is not None else None, add256_scale=list(add256_scale),
                     min_visible=s.min_visible, freeze_stages=s.freeze_stages,
                     bbch_scale=list(bbch_scale) if bbch_scale else None, ignore_from=s.ignore_from,
-                    widen_fpn=s.widen_fpn)
+                    widen_fpn=s.widen_fpn, roi_context=config.get("roi_context", 1.0))
     if source is not None:  # where the run began, not this call's --init and --widen-fpn
         run_info["init"] = (ckpt.get("run") or {}).get("init")
         run_info["widen_fpn"] = (ckpt.get("run") or {}).get("widen_fpn")

@@ -93,6 +93,31 @@ def test_a_widened_pyramid_computes_what_the_narrow_one_did_and_can_learn():
         widen_pyramid(model, 16)
 
 
+def test_the_box_head_pools_the_box_grown_by_its_context_in_torch_and_in_onnx(tmp_path):
+    """``roi_context``: the box head reads a region that many times each box, about its centre (so the same
+    weights score other boxes), 1 is torchvision's pooling; the exported graph computes what torch does."""
+    from torchvision.ops import MultiScaleRoIAlign
+
+    from export.model import ContextRoIAlign, make, model_config
+    from export.onnx_export import export_onnx
+
+    feats = {k: torch.rand(1, 4, 64 // 2 ** i, 64 // 2 ** i) for i, k in enumerate("0123")}
+    box, grown = torch.tensor([[20.0, 24.0, 30.0, 32.0]]), torch.tensor([[17.5, 22.0, 32.5, 34.0]])
+    kw = dict(featmap_names=list("0123"), output_size=7, sampling_ratio=2)
+    plain = MultiScaleRoIAlign(**kw)
+    assert torch.allclose(ContextRoIAlign(1.5, **kw)(feats, [box], [(256, 256)]), plain(feats, [grown], [(256, 256)]))
+    assert not torch.allclose(plain(feats, [box], [(256, 256)]), plain(feats, [grown], [(256, 256)]))
+
+    model, frames = _tiny_model_with_bn_stats()
+    wide = make(dict(model_config(model), roi_context=1.5))
+    wide.load_state_dict(model.state_dict())
+    wide.eval()
+    img = torch.from_numpy(frames[0].image[100:400, 200:620].transpose(2, 0, 1).copy()).float() / 255
+    report = export_onnx(wide, tmp_path / "context.onnx", check=img, score_thresh=0.0)
+    assert report["torch_boxes"] > 0 and report["torch_boxes"] == report["onnx_boxes"]
+    assert report["max_box_diff_px"] <= 1e-3
+
+
 def test_tiny_model_onnx_matches_torch(tiny_onnx):
     model, path, report, img = tiny_onnx
     assert report["image_hw"] != [256, 320]  # not the trace size
@@ -267,11 +292,14 @@ def test_training_runs_with_mixed_precision_on_the_cpu_from_a_pack_and_continues
     assert all(torch.isfinite(v).all() for v in ckpt["model"].values() if v.is_floating_point())
     save_parts(ckpt, tmp_path / "kept", part_bytes=4_000_000)
     assert len(list((tmp_path / "kept").glob("part-*.bin"))) >= 2
-    r = train(tmp_path / "cycle2", "--init", str(tmp_path / "kept"), "--widen-fpn", "40")
+    r = train(tmp_path / "cycle2", "--init", str(tmp_path / "kept"), "--widen-fpn", "40", "--roi-context", "1.5")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "initialised from" in r.stderr and "trained 3 iterations" in r.stderr
-    assert "widened to 40 channels" in r.stderr
-    assert torch.load(tmp_path / "cycle2" / "last.pt", weights_only=False)["config"]["fpn_channels"] == 40
+    assert "widened to 40 channels" in r.stderr and "pools 1.50 times each box" in r.stderr
+    config = torch.load(tmp_path / "cycle2" / "last.pt", weights_only=False)["config"]
+    assert config["fpn_channels"] == 40 and config["roi_context"] == 1.5
+    r = train(tmp_path / "nocontext", "--roi-context", "0.5")
+    assert r.returncode == 2 and r.stderr.strip() == "error: --roi-context 0.5: give a factor from 1 (the box itself) to 4"
     r = train(tmp_path / "narrow", "--init", str(tmp_path / "kept"), "--widen-fpn", "16")
     last = r.stderr.strip().splitlines()[-1]
     assert r.returncode == 2 and last.startswith("error: --widen-fpn 16: ") and "32 channels" in last, r.stderr[-2000:]
