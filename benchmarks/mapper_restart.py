@@ -2,13 +2,15 @@
 mapping process killed (SIGKILL) at given times, against clean runs of the same stream.
 
     python benchmarks/mapper_restart.py [FLIGHT] --recorded JOURNAL [--at 4 8 15 0.8] [--runs 5] [--out DIR]
+                                        [--ground "--min-share-to-go-on 0.7"]
 
 Each run is ``ground replay FLIGHT --recorded JOURNAL --speed 1``; a time under 1 is a share of the flight's duration.
 The clock starts when the ground's journal appears (the stream begins). Printed per kill time and for the clean runs:
 each run's F1 and count, their median and spread, the restarts report.json gives and the keyframes mapped again; then
 each kill time's median F1 and count against the clean runs' median. Run it with nothing else on the machine: it
 plays in real time. Make the journal with a lock-step replay first (``ground replay FLIGHT --out DIR``:
-DIR/journal.bin).
+DIR/journal.bin). ``--ground``: more of ``ground replay``'s options for every run (a setting tried against the
+clean runs); ``--at`` with no times: clean runs only.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import signal
 import subprocess
 import sys
@@ -52,11 +55,12 @@ def mapper_pids(pid: int) -> list[int]:
     return found
 
 
-def run(flight: Path, journal: Path, out: Path, kill_at: float | None) -> dict:
+def run(flight: Path, journal: Path, out: Path, kill_at: float | None, extra: list[str] = ()) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     with open(out.with_suffix(".log"), "w") as log:
         p = subprocess.Popen([sys.executable, "-m", "ground", "replay", str(flight), "--recorded", str(journal),
-                              "--speed", "1", "--out", str(out)], stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
+                              "--speed", "1", "--out", str(out), *extra], stdout=log, stderr=subprocess.STDOUT,
+                             cwd=ROOT)
         t0, killed = None, None
         while p.poll() is None:
             time.sleep(0.1)
@@ -70,17 +74,19 @@ def run(flight: Path, journal: Path, out: Path, kill_at: float | None) -> dict:
     ev = rep.get("evaluation") or {}
     restarts = rep["registration"].get("mapper_restarts") or []
     return {"f1": ev.get("f1"), "count": ev.get("count"), "killed_at_s": killed, "exit": p.returncode,
-            "restarts": len(restarts), "mapped_again": sum(r.get("keyframes_remapped", 0) for r in restarts)}
+            "restarts": len(restarts), "mapped_again": sum(r.get("keyframes_remapped", 0) for r in restarts),
+            "keyframes": rep["registration"].get("keyframes_processed")}
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("flight", nargs="?", type=Path, default=ROOT / "replay_data" / "demo-flight")
     p.add_argument("--recorded", type=Path, required=True, help="the stream (a journal.bin) played at 1x")
-    p.add_argument("--at", type=float, nargs="+", default=[4.0, 8.0, 15.0, 0.8],
+    p.add_argument("--at", type=float, nargs="*", default=[4.0, 8.0, 15.0, 0.8],
                    help="kill times (s into the stream; under 1: a share of the flight)")
     p.add_argument("--runs", type=int, default=5, help="runs of each, and clean runs")
     p.add_argument("--out", type=Path, default=ROOT / "out" / "bench" / "mapper-restart")
+    p.add_argument("--ground", default="", help="more ground replay options for every run, one string")
     a = p.parse_args(argv)
     meta = FlightDir(a.flight).meta()
     duration = meta.frame_count / meta.fps
@@ -89,10 +95,11 @@ def main(argv=None) -> int:
                                            t * duration if t < 1 else t) for t in a.at]:
         res[label] = []
         for i in range(a.runs):
-            r = run(a.flight, a.recorded, a.out / f"{label.replace(' ', '-')}-{i}", at)
+            r = run(a.flight, a.recorded, a.out / f"{label.replace(' ', '-')}-{i}", at, shlex.split(a.ground))
             res[label].append(r)
             print(f"{label}: run {i + 1}: F1 {r['f1']:.3f}, {r['count']} apples, killed at {r['killed_at_s']} s, "
-                  f"{r['restarts']} restart(s), {r['mapped_again']} keyframes mapped again", flush=True)
+                  f"{r['restarts']} restart(s), {r['mapped_again']} keyframes mapped again, {r['keyframes']} keyframes mapped",
+                  flush=True)
     ref_f1 = float(np.median([r["f1"] for r in res["clean"]]))
     ref_n = float(np.median([r["count"] for r in res["clean"]]))
     print(f"\n{'run':<28} {'F1 median':>9} {'F1 range':>13} {'count median':>12} {'vs clean F1':>11} {'count %':>8}")
