@@ -70,6 +70,9 @@ def run(flight: Path, journal: Path, out: Path, kill_at: float | None, extra: li
                 for pid in mapper_pids(p.pid):
                     os.kill(pid, signal.SIGKILL)
                     killed = round(time.monotonic() - t0, 1)
+    if not (out / "report.json").is_file():  # the replay stopped before a map (a bad --ground option, ...)
+        last = (out.with_suffix(".log").read_text().strip().splitlines() or ["(no output)"])[-1]
+        raise SystemExit(f"error: {out.with_suffix('.log')}: the replay wrote no report.json: {last}")
     rep = json.loads((out / "report.json").read_text())
     ev = rep.get("evaluation") or {}
     restarts = rep["registration"].get("mapper_restarts") or []
