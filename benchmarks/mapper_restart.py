@@ -101,8 +101,8 @@ def main(argv=None) -> int:
             r = run(a.flight, a.recorded, a.out / f"{label.replace(' ', '-')}-{i}", at, shlex.split(a.ground))
             res[label].append(r)
             print(f"{label}: run {i + 1}: F1 {r['f1']:.3f}, {r['count']} apples, killed at {r['killed_at_s']} s, "
-                  f"{r['restarts']} restart(s), {r['mapped_again']} keyframes mapped again, {r['keyframes']} keyframes mapped",
-                  flush=True)
+                  f"{r['restarts']} restart(s), {r['mapped_again']} keyframes mapped again, "
+                  f"{r['keyframes']} keyframes mapped", flush=True)
     ref_f1 = float(np.median([r["f1"] for r in res["clean"]]))
     ref_n = float(np.median([r["count"] for r in res["clean"]]))
     print(f"\n{'run':<28} {'F1 median':>9} {'F1 range':>13} {'count median':>12} {'vs clean F1':>11} {'count %':>8}")
