@@ -81,6 +81,13 @@ def mapped(run: Path, flight: Path) -> tuple[list[dict], np.ndarray]:
     return trees, np.array([truth.get((t["row"], t["tree"]), (0, 0.0))[0] for t in trees], float)
 
 
+def one_set(flights: list[list[list[bool]]], n: int, rng) -> float:
+    """The rows held over one evaluation set of ``n`` flights (each flight's row hits per draw in ``flights``): every
+    flight once where n is their number, else n drawn from them; one draw of trees per flight."""
+    which = range(n) if n == len(flights) else rng.integers(len(flights), size=n)
+    return float(np.mean([x for j in which for x in flights[j][rng.integers(len(flights[j]))]]))
+
+
 def maps_main(a) -> int:
     """--maps: the intervals over draws of trees on mapped flights."""
     pairs = list(zip(a.maps[::2], a.maps[1::2]))
@@ -127,8 +134,7 @@ def maps_main(a) -> int:
     rng = np.random.default_rng(a.seed)
     for k, flights in per_flight.items():
         for n in (len(flights), 2 * len(flights), 4 * len(flights)):  # larger sets: these flights drawn again
-            sets = np.array([np.mean([x for j in (range(n) if n == len(flights) else rng.integers(len(flights), size=n))
-                                      for x in flights[j][rng.integers(len(flights[j]))]]) for _ in range(4000)])
+            sets = np.array([one_set(flights, n, rng) for _ in range(4000)])
             lo, med, hi = np.quantile(sets, [0.05, 0.5, 0.95])
             print(f"one rule draw per flight, k {k}, a set of {n} flights: rows held {med:.2f} (90 % of sets "
                   f"{lo:.2f}-{hi:.2f}); sets within 0.80-0.95: {np.mean((sets >= 0.8) & (sets <= 0.95)):.2f}, "
