@@ -7,7 +7,9 @@
   as ``nn.BatchNorm2d`` so that the ONNX graph folds them into the convolutions.
 - The pyramid takes all four stages, at strides 4, 8, 16 and 32: the drone's apples are 6-12 px across, two or three
   cells at stride 4 and under one at torchvision's MobileNet default (the last two stages, strides 16 and 32). P2..P5
-  plus a max-pool level; anchors of 8..128 px, one size per level: ADD256's apples are 8-34 px boxes.
+  plus a max-pool level; anchors of 8..128 px, one size per level: ADD256's apples are 8-34 px boxes. With
+  ``anchor_scales`` N, each level has N square anchors, 2^(1/N) apart, in place of one size at three aspect ratios
+  (apples are round; an apple between two sizes otherwise has no anchor it overlaps by the RPN's 0.7).
 - ``fpn_channels`` and ``head_width`` (the box head's two fully connected layers) set the RPN's and the box head's
   cost, most of a frame's time on the finest level and the 300 proposals. ``roi_context`` grows the region the box
   head pools around each proposal (a small apple judged with its surroundings).
@@ -71,6 +73,15 @@ BACKBONES = {
 }
 ANCHOR_SIZES = ((8,), (16,), (32,), (64,), (128,))
 ASPECT_RATIOS = (0.5, 1.0, 2.0)
+
+
+def anchor_generator(anchor_scales: int = 0) -> AnchorGenerator:
+    """One size per level at ``ASPECT_RATIOS`` (0), or ``anchor_scales`` square sizes per level, each 2^(1/N) times
+    the last, from the level's ``ANCHOR_SIZES`` size."""
+    if not anchor_scales:
+        return AnchorGenerator(ANCHOR_SIZES, (ASPECT_RATIOS,) * len(ANCHOR_SIZES))
+    sizes = tuple(tuple(s * 2 ** (i / anchor_scales) for i in range(anchor_scales)) for (s,) in ANCHOR_SIZES)
+    return AnchorGenerator(sizes, ((1.0,),) * len(sizes))
 
 
 def is_pretrained(backbone: str) -> bool:
@@ -157,10 +168,11 @@ class AppleRCNN(FasterRCNN):
 
 def build_model(backbone: str = "resnet18", fpn_channels: int = 128, detections_per_img: int = 300,
                 score_thresh: float = 0.05, fast_train: bool = True, head_width: int = 1024,
-                roi_context: float = 1.0, imagenet: bool = False) -> FasterRCNN:
+                roi_context: float = 1.0, anchor_scales: int = 0, imagenet: bool = False) -> FasterRCNN:
     """A Faster R-CNN for apples (2 classes: background, apple). With ``imagenet``, the body starts from its checked
     ImageNet weights (``export.pretrained``); otherwise randomly initialised (a checkpoint's weights go on top).
-    ``roi_context``: the box head pools a region this many times each box (``ContextRoIAlign``; 1: the box)."""
+    ``roi_context``: the box head pools a region this many times each box (``ContextRoIAlign``; 1: the box);
+    ``anchor_scales``: see ``anchor_generator``."""
     if backbone not in BACKBONES:
         raise ValueError(f"unknown backbone {backbone!r}; choose from {sorted(BACKBONES)}")
     builder, body_of, layers, in_channels, mean, std = BACKBONES[backbone]
@@ -178,7 +190,7 @@ def build_model(backbone: str = "resnet18", fpn_channels: int = 128, detections_
             if isinstance(m, nn.BatchNorm2d):
                 for p in m.parameters():
                     p.requires_grad_(False)
-    anchors = AnchorGenerator(ANCHOR_SIZES, (ASPECT_RATIOS,) * len(ANCHOR_SIZES))
+    anchors = anchor_generator(anchor_scales)
     extra = dict(rpn_post_nms_top_n_train=500, box_batch_size_per_image=128) if fast_train else {}
     head = TwoMLPHead(fpn_channels * 7 * 7, head_width)
     if roi_context != 1.0:
@@ -206,6 +218,39 @@ def make(config: dict, imagenet: bool = False) -> FasterRCNN:
     model = build_model(**config, imagenet=imagenet)
     model._pomar_config = dict(config)
     return model
+
+
+def rebuilt(model: FasterRCNN, config: dict) -> tuple[FasterRCNN, list[str]]:
+    """The network ``config`` describes with ``model``'s weights wherever their shapes agree, and the names of the
+    weights that start fresh (a new pooling or new anchors over the same layers: an ``--init`` run changing them)."""
+    new = make(config)
+    src, fresh = model.state_dict(), []
+    state = new.state_dict()
+    for k, w in state.items():
+        if k in src and src[k].shape == w.shape:
+            state[k] = src[k].clone()
+        else:
+            fresh.append(k)
+    new.load_state_dict(state)
+    return new, fresh
+
+
+def with_square_anchors(model: FasterRCNN, anchor_scales: int) -> FasterRCNN:
+    """``model`` (one anchor size per level at ``ASPECT_RATIOS``) with ``anchor_scales`` square anchors per level, each
+    new anchor's RPN outputs starting as the old square anchor's, so that the RPN proposes from the first iteration."""
+    config = model_config(model)
+    if config.get("anchor_scales", 0):
+        raise ValueError(f"its anchors are already {config['anchor_scales']} square sizes per level")
+    new, _ = rebuilt(model, dict(config, anchor_scales=anchor_scales))
+    square = ASPECT_RATIOS.index(1.0)
+    old, head = model.rpn.head, new.rpn.head
+    with torch.no_grad():
+        for a in range(anchor_scales):
+            head.cls_logits.weight[a] = old.cls_logits.weight[square]
+            head.cls_logits.bias[a] = old.cls_logits.bias[square]
+            head.bbox_pred.weight[4 * a:4 * a + 4] = old.bbox_pred.weight[4 * square:4 * square + 4]
+            head.bbox_pred.bias[4 * a:4 * a + 4] = old.bbox_pred.bias[4 * square:4 * square + 4]
+    return new
 
 
 def widen_pyramid(model: FasterRCNN, channels: int) -> FasterRCNN:

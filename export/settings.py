@@ -73,6 +73,10 @@ class TrainSettings:
     #: The box head pools a region this many times each proposal's box (1: the box itself), so that a small apple is
     #: judged with the leaves around it; with --init, the init's weights carry over to the new pooling.
     roi_context: float | None = field(default=None, metadata={"type": float, "metavar": "FACTOR"})
+    #: Anchors: this many square sizes per pyramid level, each 2^(1/N) times the last (unset: one size at three
+    #: aspect ratios), so that every apple size has an anchor it overlaps well; with --init, each starts as the
+    #: init's square anchor.
+    anchor_scales: int | None = field(default=None, metadata={"type": int, "metavar": "N"})
     #: Simulated apples at least this visible are boxes to find, the rest background (default: the definition's,
     #: pomar.countable.MIN_VISIBLE; another for a study). Flight folders only: a pack keeps the labels it was packed with.
     min_visible: float = MIN_VISIBLE

@@ -49,7 +49,8 @@ import torch
 
 from export.data import Augment, load_add256, load_applebbch76, load_sim_frames, validation_sets
 from export.metrics import evaluate_detections
-from export.model import freeze_stages, is_pretrained, load_checkpoint, make, model_config, widen_pyramid
+from export.model import (freeze_stages, is_pretrained, load_checkpoint, make, model_config, rebuilt, widen_pyramid,
+                          with_square_anchors)
 from export.parts import is_state, save_state, state_manifest
 from export.pretrained import weights_path
 from export.settings import TRAIN_FIELDS, TrainSettings
@@ -273,6 +274,8 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
         raise TrainingError(f"--widen-fpn {s.widen_fpn}: it widens an --init model's pyramid; give --init")
     if s.roi_context is not None and not 1 <= s.roi_context <= 4:
         raise TrainingError(f"--roi-context {s.roi_context}: give a factor from 1 (the box itself) to 4")
+    if s.anchor_scales is not None and not 1 <= s.anchor_scales <= 4:
+        raise TrainingError(f"--anchor-scales {s.anchor_scales}: give 1 to 4 square sizes per level")
     if s.freeze_stages and not is_pretrained(s.backbone) and source is None and s.init is None:
         raise TrainingError(f"--freeze-stages {s.freeze_stages}: {s.backbone} starts from random weights, which "
                             f"freezing would keep random (pretrained: mobilenet_v2, efficientnet_lite0)")
@@ -310,6 +313,8 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
     config = dict(backbone=s.backbone, fpn_channels=s.fpn_channels, head_width=s.head_width)
     if s.roi_context is not None:
         config["roi_context"] = s.roi_context
+    if s.anchor_scales:
+        config["anchor_scales"] = s.anchor_scales
     if source is not None:
         config = ckpt["config"]
         it, history, best = ckpt["iteration"], ckpt["history"], ckpt["best_ap50"]
@@ -333,10 +338,16 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
             log.info("its pyramid widened to %d channels, the new ones silent", s.widen_fpn)
         if s.roi_context is not None and s.roi_context != config.get("roi_context", 1.0):
             config = dict(config, roi_context=s.roi_context)
-            state = model.state_dict()
-            model = make(config)
-            model.load_state_dict(state)
+            model, _ = rebuilt(model, config)
             log.info("its box head now pools %.2f times each box", s.roi_context)
+        if s.anchor_scales and s.anchor_scales != config.get("anchor_scales", 0):
+            try:
+                model = with_square_anchors(model, s.anchor_scales)
+            except ValueError as e:
+                raise TrainingError(f"--anchor-scales {s.anchor_scales}: {e}") from None
+            config = model_config(model)
+            log.info("its anchors now %d square sizes per level, each starting as its square anchor",
+                     s.anchor_scales)
         it, history, best, cpu_s, wall_s = 0, [], -1.0, 0.0, 0.0
     else:
         model = make(config, imagenet=is_pretrained(s.backbone))
@@ -369,7 +380,8 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
                     init=str(s.init) if s.init is not None else None, add256_scale=list(add256_scale),
                     min_visible=s.min_visible, freeze_stages=s.freeze_stages,
                     bbch_scale=list(bbch_scale) if bbch_scale else None, ignore_from=s.ignore_from,
-                    widen_fpn=s.widen_fpn, roi_context=config.get("roi_context", 1.0))
+                    widen_fpn=s.widen_fpn, roi_context=config.get("roi_context", 1.0),
+                    anchor_scales=config.get("anchor_scales", 0))
     if source is not None:  # where the run began, not this call's --init and --widen-fpn
         run_info["init"] = (ckpt.get("run") or {}).get("init")
         run_info["widen_fpn"] = (ckpt.get("run") or {}).get("widen_fpn")

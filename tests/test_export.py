@@ -118,6 +118,41 @@ def test_the_box_head_pools_the_box_grown_by_its_context_in_torch_and_in_onnx(tm
     assert report["max_box_diff_px"] <= 1e-3
 
 
+def test_square_anchors_cover_each_level_in_steps_and_start_as_the_square_anchor(tmp_path):
+    """``anchor_scales``: N square anchors per level, 2^(1/N) apart, so that an apple between two levels' sizes still
+    has an anchor it overlaps by the RPN's 0.7; converted from a model, each starts as its square anchor (same
+    objectness), and the exported graph computes what torch does."""
+    from torchvision.ops import box_iou
+
+    from export.model import anchor_generator, model_config, with_square_anchors
+    from export.onnx_export import export_onnx
+
+    sizes = [[float(a[2] - a[0]) for a in cell] for cell in anchor_generator(3).cell_anchors]
+    assert sizes[0] == [8.0, 10.0, 12.0] and sizes[1] == [16.0, 20.0, 26.0]
+    assert all(a[2] - a[0] == a[3] - a[1] for cell in anchor_generator(3).cell_anchors for a in cell)
+
+    def best_iou(gen, side):  # the best centred anchor for a square apple of this side
+        box = torch.tensor([[-side / 2, -side / 2, side / 2, side / 2]])
+        return max(float(box_iou(box, cell).max()) for cell in gen.cell_anchors)
+    assert best_iou(anchor_generator(), 11.3) < 0.55 and best_iou(anchor_generator(3), 11.3) > 0.75
+
+    model, frames = _tiny_model_with_bn_stats()
+    square = with_square_anchors(model, 3)
+    assert model_config(square)["anchor_scales"] == 3
+    feats = list(model.backbone(torch.rand(1, 3, 64, 64)).values())
+    old, new = model.rpn.head(feats)[0][0], square.rpn.head(feats)[0][0]
+    assert all(torch.equal(new[0, a], old[0, 1]) for a in range(3))
+    with pytest.raises(ValueError, match="already 3 square sizes"):
+        with_square_anchors(square, 2)
+    with torch.no_grad():  # trained apart (as training does), so that no two anchors tie in the proposals' ranking
+        square.rpn.head.cls_logits.weight.add_(0.1 * torch.randn_like(square.rpn.head.cls_logits.weight))
+    square.eval()
+    img = torch.from_numpy(frames[0].image[100:400, 200:620].transpose(2, 0, 1).copy()).float() / 255
+    report = export_onnx(square, tmp_path / "square.onnx", check=img, score_thresh=0.0)
+    assert report["torch_boxes"] > 0 and report["torch_boxes"] == report["onnx_boxes"]
+    assert report["max_box_diff_px"] <= 1e-3
+
+
 def test_tiny_model_onnx_matches_torch(tiny_onnx):
     model, path, report, img = tiny_onnx
     assert report["image_hw"] != [256, 320]  # not the trace size
@@ -292,12 +327,16 @@ def test_training_runs_with_mixed_precision_on_the_cpu_from_a_pack_and_continues
     assert all(torch.isfinite(v).all() for v in ckpt["model"].values() if v.is_floating_point())
     save_parts(ckpt, tmp_path / "kept", part_bytes=4_000_000)
     assert len(list((tmp_path / "kept").glob("part-*.bin"))) >= 2
-    r = train(tmp_path / "cycle2", "--init", str(tmp_path / "kept"), "--widen-fpn", "40", "--roi-context", "1.5")
+    r = train(tmp_path / "cycle2", "--init", str(tmp_path / "kept"), "--widen-fpn", "40", "--roi-context", "1.5",
+              "--anchor-scales", "3")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "initialised from" in r.stderr and "trained 3 iterations" in r.stderr
     assert "widened to 40 channels" in r.stderr and "pools 1.50 times each box" in r.stderr
+    assert "anchors now 3 square sizes per level" in r.stderr
     config = torch.load(tmp_path / "cycle2" / "last.pt", weights_only=False)["config"]
-    assert config["fpn_channels"] == 40 and config["roi_context"] == 1.5
+    assert config["fpn_channels"] == 40 and config["roi_context"] == 1.5 and config["anchor_scales"] == 3
+    r = train(tmp_path / "manyanchors", "--anchor-scales", "5")
+    assert r.returncode == 2 and r.stderr.strip() == "error: --anchor-scales 5: give 1 to 4 square sizes per level"
     r = train(tmp_path / "nocontext", "--roi-context", "0.5")
     assert r.returncode == 2 and r.stderr.strip() == "error: --roi-context 0.5: give a factor from 1 (the box itself) to 4"
     r = train(tmp_path / "narrow", "--init", str(tmp_path / "kept"), "--widen-fpn", "16")
