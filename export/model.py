@@ -220,19 +220,16 @@ def make(config: dict, imagenet: bool = False) -> FasterRCNN:
     return model
 
 
-def rebuilt(model: FasterRCNN, config: dict) -> tuple[FasterRCNN, list[str]]:
-    """The network ``config`` describes with ``model``'s weights wherever their shapes agree, and the names of the
-    weights that start fresh (a new pooling or new anchors over the same layers: an ``--init`` run changing them)."""
+def rebuilt(model: FasterRCNN, config: dict) -> FasterRCNN:
+    """The network ``config`` describes with ``model``'s weights wherever their shapes agree (a new pooling or new
+    anchors over the same layers: an ``--init`` run changing them); the others keep their fresh initialisation."""
     new = make(config)
-    src, fresh = model.state_dict(), []
-    state = new.state_dict()
+    src, state = model.state_dict(), new.state_dict()
     for k, w in state.items():
         if k in src and src[k].shape == w.shape:
             state[k] = src[k].clone()
-        else:
-            fresh.append(k)
     new.load_state_dict(state)
-    return new, fresh
+    return new
 
 
 def with_square_anchors(model: FasterRCNN, anchor_scales: int) -> FasterRCNN:
@@ -241,7 +238,7 @@ def with_square_anchors(model: FasterRCNN, anchor_scales: int) -> FasterRCNN:
     config = model_config(model)
     if config.get("anchor_scales", 0):
         raise ValueError(f"its anchors are already {config['anchor_scales']} square sizes per level")
-    new, _ = rebuilt(model, dict(config, anchor_scales=anchor_scales))
+    new = rebuilt(model, dict(config, anchor_scales=anchor_scales))
     square = ASPECT_RATIOS.index(1.0)
     old, head = model.rpn.head, new.rpn.head
     with torch.no_grad():

@@ -338,7 +338,7 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
             log.info("its pyramid widened to %d channels, the new ones silent", s.widen_fpn)
         if s.roi_context is not None and s.roi_context != config.get("roi_context", 1.0):
             config = dict(config, roi_context=s.roi_context)
-            model, _ = rebuilt(model, config)
+            model = rebuilt(model, config)
             log.info("its box head now pools %.2f times each box", s.roi_context)
         if s.anchor_scales and s.anchor_scales != config.get("anchor_scales", 0):
             try:
