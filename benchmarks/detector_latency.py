@@ -62,7 +62,8 @@ def main(argv=None) -> int:
         return compare(args)
     sizes = [tuple(int(v) for v in s.split("x")) for s in args.size] if args.size else SIZES
     frame = read_frame(ROOT / "replay_data" / "demo-flight" / "video.mp4", 80)
-    det = OnnxDetector(args.model[0] if args.model else None, threads=args.threads)
+    det = OnnxDetector(args.model[0] if args.model else None, threads=args.threads,
+                       **({"tile_size": args.tile_size} if args.tile_size else {}))
     res = {"model": str(det.path), "providers": det.providers, "tile_size": det.tile_size, "sizes": {}}
     torch_model = None
     if args.checkpoint.is_file():

@@ -77,6 +77,9 @@ class TrainSettings:
     #: aspect ratios), so that every apple size has an anchor it overlaps well; with --init, each starts as the
     #: init's square anchor.
     anchor_scales: int | None = field(default=None, metadata={"type": int, "metavar": "N"})
+    #: The RPN trains an anchor as an apple from this IoU with one (torchvision's 0.7): a small apple overlaps the
+    #: anchors of a 4-px grid by less, and at 0.7 most keep only their one best anchor (the rule for every apple).
+    rpn_fg_iou: float = field(default=0.7, metadata={"type": float, "metavar": "IOU"})
     #: Simulated apples at least this visible are boxes to find, the rest background (default: the definition's,
     #: pomar.countable.MIN_VISIBLE; another for a study). Flight folders only: a pack keeps the labels it was packed with.
     min_visible: float = MIN_VISIBLE

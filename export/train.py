@@ -3,7 +3,7 @@
     python -m export train --out out/export/mv2 [--backbone mobilenet_v2] [--add256 DIR] [--applebbch76 DIR]
                            [--sim-flight DIR|PACK.npz ...] [--val-flight DIR|PACK.npz ...] [--epochs N] [--resume]
                            [--init CKPT]   # a second cycle from trained weights (a .pt or a folder of fp16 parts)
-                           [--threads N] [--freeze-stages K] [--keep FOLDER] [--stop-after N]
+                           [--threads N] [--freeze-stages K] [--rpn-fg-iou IOU] [--keep FOLDER] [--stop-after N]
                            [--device auto|cpu|cuda] [--amp] [--fit-minutes M]
 
 A new run of a pretrained backbone (``mobilenet_v2``, ``efficientnet_lite0``) starts from its ImageNet weights,
@@ -46,6 +46,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+from torchvision.models.detection._utils import Matcher
 
 from export.data import Augment, load_add256, load_applebbch76, load_sim_frames, validation_sets
 from export.metrics import evaluate_detections
@@ -180,10 +181,13 @@ def save_atomic(obj, path: Path):
 #: (the rest: the per-epoch test scoring and checkpoints).
 FIT_AFTER, FIT_SHARE = 60, 0.85
 
+#: The RPN's anchors below this IoU with every apple are background (torchvision's)
+RPN_BG_IOU = 0.3
+
 #: The settings that make a run what it is: a resumed run takes them from its checkpoint, and refuses an option that
 #: asks for another value (the others, such as the paths to the data, the threads or the device, may change).
 RUN_FIELDS = ("backbone", "fpn_channels", "head_width", "epochs", "batch", "lr", "sim_crops", "bbch_tiles", "seed",
-              "min_visible", "add256_scale", "freeze_stages", "bbch_scale", "ignore_from")
+              "min_visible", "add256_scale", "freeze_stages", "bbch_scale", "ignore_from", "rpn_fg_iou")
 
 
 def _plain(v):
@@ -276,6 +280,9 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
         raise TrainingError(f"--roi-context {s.roi_context}: give a factor from 1 (the box itself) to 4")
     if s.anchor_scales is not None and not 1 <= s.anchor_scales <= 4:
         raise TrainingError(f"--anchor-scales {s.anchor_scales}: give 1 to 4 square sizes per level")
+    if not RPN_BG_IOU < s.rpn_fg_iou <= 1:
+        raise TrainingError(f"--rpn-fg-iou {s.rpn_fg_iou}: give an IoU above the RPN's background one ({RPN_BG_IOU}) "
+                            f"and at most 1")
     if s.freeze_stages and not is_pretrained(s.backbone) and source is None and s.init is None:
         raise TrainingError(f"--freeze-stages {s.freeze_stages}: {s.backbone} starts from random weights, which "
                             f"freezing would keep random (pretrained: mobilenet_v2, efficientnet_lite0)")
@@ -354,6 +361,9 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
         if is_pretrained(s.backbone):
             log.info("%s: ImageNet weights, checked", s.backbone)
         it, history, best, cpu_s, wall_s = 0, [], -1.0, 0.0, 0.0
+    if s.rpn_fg_iou != model.rpn.proposal_matcher.high_threshold:  # training only: the network is the same
+        model.rpn.proposal_matcher = Matcher(s.rpn_fg_iou, RPN_BG_IOU, allow_low_quality_matches=True)
+        log.info("the RPN trains its anchors as apples from IoU %.2f", s.rpn_fg_iou)
     frozen = freeze_stages(model, s.freeze_stages)
     if frozen:
         log.info("the stem and the first %d pyramid stage(s) stay as they are: %d parameters", s.freeze_stages, frozen)
@@ -381,7 +391,7 @@ def train(settings: TrainSettings, log_every: int = 10) -> list[dict]:
                     min_visible=s.min_visible, freeze_stages=s.freeze_stages,
                     bbch_scale=list(bbch_scale) if bbch_scale else None, ignore_from=s.ignore_from,
                     widen_fpn=s.widen_fpn, roi_context=config.get("roi_context", 1.0),
-                    anchor_scales=config.get("anchor_scales", 0))
+                    anchor_scales=config.get("anchor_scales", 0), rpn_fg_iou=s.rpn_fg_iou)
     if source is not None:  # where the run began, not this call's --init and --widen-fpn
         run_info["init"] = (ckpt.get("run") or {}).get("init")
         run_info["widen_fpn"] = (ckpt.get("run") or {}).get("widen_fpn")

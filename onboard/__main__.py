@@ -13,6 +13,7 @@ import logging
 import sys
 from pathlib import Path
 
+from onboard.detector import TILE_SIZE
 from onboard.node import NodeSettings
 from onboard.numbering import default_state_dir
 from pomar import cli
@@ -182,7 +183,8 @@ def _detector_options(r):
     r.add_argument("--score-thresh", type=float, help="publish the detections scored at least this (default "
                    f"{PUBLISH_SCORE}, pomar.countable.PUBLISH_SCORE, or {PUBLISH_BELOW} under the model's operating "
                    "score where that is lower: weaker than the count's confirm score, they extend tracks)")
-    r.add_argument("--tile-size", type=int, default=1344, help="frames larger than this are tiled")
+    r.add_argument("--tile-size", type=int, default=TILE_SIZE, help="frames with a side larger than this (px, after "
+                   "--detector-scale) are cut into as few tiles as cover them")
     r.add_argument("--threads", type=int, help="onnxruntime intra-op threads")
     add_options(r, NodeSettings(), SCALE_FIELDS)
 

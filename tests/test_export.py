@@ -118,6 +118,46 @@ def test_the_box_head_pools_the_box_grown_by_its_context_in_torch_and_in_onnx(tm
     assert report["max_box_diff_px"] <= 1e-3
 
 
+def test_inference_decodes_only_the_kept_anchors_and_proposes_what_torchvision_does():
+    """The RPN in inference makes the anchors and boxes of each level's top-n only: the same proposals, bit for bit,
+    as torchvision's RPN, which decodes every anchor (on an image whose size no stride divides)."""
+    from torchvision.models.detection.rpn import RegionProposalNetwork
+
+    from export.model import with_square_anchors
+
+    model, frames = _tiny_model_with_bn_stats()
+    for m in (model, with_square_anchors(model, 3).eval()):
+        m.rpn._pre_nms_top_n["testing"] = 300  # fewer than a level's anchors: the selection matters
+        for y0, x0, h, w in ((0, 0, 300, 420), (50, 100, 333, 517)):
+            x = torch.from_numpy(frames[0].image[y0:y0 + h, x0:x0 + w].transpose(2, 0, 1).copy()).float() / 255
+            with torch.no_grad():
+                images, _ = m.transform([x])
+                feats = m.backbone(images.tensors)
+                ours, losses = m.rpn(images, feats)
+                theirs, _ = RegionProposalNetwork.forward(m.rpn, images, feats)
+            assert losses == {} and len(ours[0]) > 100 and torch.equal(ours[0], theirs[0])
+
+
+def test_a_lower_rpn_foreground_iou_gives_a_small_apple_more_than_its_one_best_anchor():
+    """At the RPN's 0.7 a 9-px apple off the stride-4 grid keeps only its one best anchor (the low-quality rule);
+    ``--rpn-fg-iou 0.5`` trains the anchors around it too."""
+    from torchvision.models.detection._utils import Matcher
+    from torchvision.ops import box_iou
+
+    from export.model import anchor_generator
+    from export.train import RPN_BG_IOU
+
+    cell = anchor_generator(3).cell_anchors[0]  # stride 4: 8, 10, 12 px
+    grid = torch.stack(torch.meshgrid(torch.arange(0, 64, 4.0), torch.arange(0, 64, 4.0), indexing="xy"), -1)
+    anchors = (grid.reshape(-1, 1, 2).repeat(1, 1, 2) + cell.reshape(1, -1, 4)).reshape(-1, 4)
+
+    def positives(side, fg):
+        apple = torch.tensor([[30.5 - side / 2, 30.5 - side / 2, 30.5 + side / 2, 30.5 + side / 2]])
+        return int((Matcher(fg, RPN_BG_IOU, allow_low_quality_matches=True)(box_iou(apple, anchors)) == 0).sum())
+    assert positives(9, 0.7) == 1 and positives(9, 0.5) >= 3
+    assert positives(11, 0.7) == 1 and positives(11, 0.5) >= 4
+
+
 def test_square_anchors_cover_each_level_in_steps_and_start_as_the_square_anchor(tmp_path):
     """``anchor_scales``: N square anchors per level, 2^(1/N) apart, so that an apple between two levels' sizes still
     has an anchor it overlaps by the RPN's 0.7; converted from a model, each starts as its square anchor (same
@@ -328,15 +368,19 @@ def test_training_runs_with_mixed_precision_on_the_cpu_from_a_pack_and_continues
     save_parts(ckpt, tmp_path / "kept", part_bytes=4_000_000)
     assert len(list((tmp_path / "kept").glob("part-*.bin"))) >= 2
     r = train(tmp_path / "cycle2", "--init", str(tmp_path / "kept"), "--widen-fpn", "40", "--roi-context", "1.5",
-              "--anchor-scales", "3")
+              "--anchor-scales", "3", "--rpn-fg-iou", "0.5")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "initialised from" in r.stderr and "trained 3 iterations" in r.stderr
     assert "widened to 40 channels" in r.stderr and "pools 1.50 times each box" in r.stderr
-    assert "anchors now 3 square sizes per level" in r.stderr
+    assert "anchors now 3 square sizes per level" in r.stderr and "anchors as apples from IoU 0.50" in r.stderr
+    assert torch.load(tmp_path / "cycle2" / "last.pt", weights_only=False)["settings"]["rpn_fg_iou"] == 0.5
     config = torch.load(tmp_path / "cycle2" / "last.pt", weights_only=False)["config"]
     assert config["fpn_channels"] == 40 and config["roi_context"] == 1.5 and config["anchor_scales"] == 3
     r = train(tmp_path / "manyanchors", "--anchor-scales", "5")
     assert r.returncode == 2 and r.stderr.strip() == "error: --anchor-scales 5: give 1 to 4 square sizes per level"
+    r = train(tmp_path / "lowfg", "--rpn-fg-iou", "0.3")
+    assert r.returncode == 2 and r.stderr.strip() == ("error: --rpn-fg-iou 0.3: give an IoU above the RPN's "
+                                                      "background one (0.3) and at most 1")
     r = train(tmp_path / "nocontext", "--roi-context", "0.5")
     assert r.returncode == 2 and r.stderr.strip() == "error: --roi-context 0.5: give a factor from 1 (the box itself) to 4"
     r = train(tmp_path / "narrow", "--init", str(tmp_path / "kept"), "--widen-fpn", "16")
