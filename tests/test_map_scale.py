@@ -83,3 +83,15 @@ def test_a_source_that_disagrees_is_left_out_and_said():
     # weights follow the inverse variances
     assert est.weights["heights"] > est.weights["positions"]
     assert combine([ScaleSource("positions", float("nan"), 0.01)]) is None
+
+
+def test_positions_of_unknown_accuracy_give_a_scale_of_unknown_accuracy_without_a_warning():
+    """Too few keyframes to measure the positions' scatter leave their accuracy infinite: the positions' scale is
+    then of unknown accuracy (weighs nothing), said without numpy's 'invalid value' warning in the ground's log."""
+    import warnings
+
+    g = np.column_stack([np.arange(6.0), np.zeros(6), np.full(6, 12.0)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        src = positions_source(1.0, g, np.arange(6) * 0.5, np.full(6, np.inf), stated=False)
+    assert np.isinf(src.sigma_rel)

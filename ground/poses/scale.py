@@ -97,6 +97,8 @@ def positions_sigma_rel(g: np.ndarray, t: np.ndarray, sigma_m: np.ndarray | floa
     if n < 3:
         return float("inf")
     sig = np.broadcast_to(np.asarray(sigma_m, float), (n,))
+    if not np.isfinite(sig).all():  # a position of unknown accuracy (too few keyframes to measure their scatter)
+        return float("inf")
     gc = g - g.mean(0)
     den = float((gc ** 2).sum())
     if not den > 0:
