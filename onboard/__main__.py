@@ -17,7 +17,7 @@ from onboard.detector import TILE_SIZE
 from onboard.node import NodeSettings
 from onboard.numbering import default_state_dir
 from pomar import cli
-from pomar.countable import PUBLISH_BELOW, PUBLISH_SCORE, publish_score
+from pomar.countable import PUBLISH_BELOW, PUBLISH_SCORE, count_scores
 from pomar.settings import add_options
 from pomar.telemetry import mount_arguments
 
@@ -129,8 +129,8 @@ def _detector(args, flight_dir=None):
 
         det = OnnxDetector(args.model, providers=args.providers, score_thresh=args.score_thresh,
                            tile_size=args.tile_size, threads=args.threads)
-        if args.score_thresh is None:  # the publish score follows the model's operating score (its JSON's)
-            det.score_thresh = publish_score(det.meta.get("score_thresh"))
+        if args.score_thresh is None:  # the publish score the model's JSON gives, or follows from its operating score
+            det.score_thresh = count_scores(det.meta)[1]
         return det
     from onboard.replay_detector import TruthReplayDetector
 
@@ -180,7 +180,8 @@ def _detector_options(r):
     r.add_argument("--model", help="ONNX model (default: $POMAR_DETECTOR, else the shipped onboard/models/apple-detector.onnx)")
     r.add_argument("--providers", nargs="+", help="onnxruntime execution providers, in order of preference "
                    "(default CPUExecutionProvider; e.g. CUDAExecutionProvider TensorrtExecutionProvider)")
-    r.add_argument("--score-thresh", type=float, help="publish the detections scored at least this (default "
+    r.add_argument("--score-thresh", type=float, help="publish the detections scored at least this (default: the "
+                   "model JSON's count.publish_score, chosen on tuning flights; for a model without one "
                    f"{PUBLISH_SCORE}, pomar.countable.PUBLISH_SCORE, or {PUBLISH_BELOW} under the model's operating "
                    "score where that is lower: weaker than the count's confirm score, they extend tracks)")
     r.add_argument("--tile-size", type=int, default=TILE_SIZE, help="frames with a side larger than this (px, after "

@@ -19,6 +19,7 @@ import numpy as np
 
 from pomar import wire
 from pomar.apple_scale import scale_summary
+from pomar.countable import count_scores
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +57,7 @@ def camera_message(flight_id: str, drone_id: str, camera: dict, image_width: int
                               score_thresh=getattr(detector, "score_thresh", None),
                               altitude_reference=altitude_reference,
                               box_response=getattr(detector, "box_response", None),
-                              operating_score=(getattr(detector, "meta", None) or {}).get("score_thresh"))
+                              operating_score=count_scores(getattr(detector, "meta", None) or {})[0])
 
 
 def encode_jpeg(img: np.ndarray, width: int, quality: int) -> bytes:

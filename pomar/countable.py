@@ -44,6 +44,19 @@ def publish_score(operating_score: float | None) -> float:
     return max(0.0, min(PUBLISH_SCORE, float(operating_score) - PUBLISH_BELOW))
 
 
+def count_scores(meta: dict) -> tuple[float | None, float]:
+    """(confirm, publish) for a detector of this metadata: the score a view needs to confirm an apple in the count
+    (the camera message's operating score) and the score the drone publishes detections from. A model's ``count``
+    gives both where they were chosen on tuning flights for it (issue 70: a model's single-photo threshold,
+    ``score_thresh``, is not where its maps count best); else the count confirms at ``score_thresh`` and publishes
+    from :func:`publish_score` of it."""
+    count = meta.get("count") or {}
+    confirm = count.get("confirm_score", meta.get("score_thresh"))
+    confirm = None if confirm is None else float(confirm)
+    publish = count.get("publish_score")
+    return confirm, float(publish) if publish is not None else publish_score(confirm)
+
+
 def visible(visible_fraction) -> np.ndarray:
     """Which detections of the truth (their ``visible_fraction``) show a countable apple in their frame."""
     return np.asarray(visible_fraction, float) >= MIN_VISIBLE

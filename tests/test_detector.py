@@ -75,11 +75,16 @@ REAL_MODEL = DEFAULT_MODEL
 
 
 def test_the_real_orchard_model_loads_with_what_it_was_chosen_on():
-    """The shipped model loads with its metadata: its threshold chosen by the count on tuning flights, its apple size
-    and box response measured on tuning flights, its run the committed training state's."""
+    """The shipped model loads with its metadata: its count's scores chosen on tuning flights (confirming no lower
+    than it publishes), its apple size and box response measured on tuning flights, its run the committed training
+    state's."""
+    from pomar.countable import count_scores
+
     det = OnnxDetector(REAL_MODEL)
     m = det.meta
-    assert "tuning flights" in m["score_thresh_chosen_on"] and 4 <= det.apple_radius_px <= 7
+    assert "tuning flights" in m["count"]["chosen_on"] and 4 <= det.apple_radius_px <= 7
+    confirm, publish = count_scores(m)
+    assert 0 < publish < confirm < 1
     assert "tuning flights" in m["apple_radius_px_chosen_on"] and "tune-" in m["box_response"]["measured"]
     assert m["training"]["backbone"] == "mobilenet_v2" and m["training"]["imagenet"] and m["training"]["bbch_tiles"] > 0
     assert m["metrics"]["applebbch76_held_out"]["ap50"] >= 0.75 and m["metrics"]["add256_test"]["ap50"] >= 0.759

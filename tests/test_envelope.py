@@ -73,26 +73,34 @@ def test_a_drone_that_publishes_fewer_detections_than_the_tracks_need_is_said_on
     # every entry point that starts an onboard node says the same default in its help
     for argv in (["onboard", "run", "--help"], ["onboard", "live", "--help"]):
         out = subprocess.run([sys.executable, "-m", *argv], capture_output=True, text=True, timeout=60).stdout
-        assert f"(default {PUBLISH_SCORE}, pomar.countable.PUBLISH_SCORE" in " ".join(out.split())
+        assert f"for a model without one {PUBLISH_SCORE}, pomar.countable.PUBLISH_SCORE" in " ".join(out.split())
 
 
 def test_the_publish_score_follows_the_models_operating_score(caplog):
-    """A model that stands by its detections from 0.75 (the shipped one) publishes from PUBLISH_BELOW under it, as
-    one at 0.9 publishes from 0.7: the band of weak views the tracks extend with. The onboard node takes it from the
-    model's JSON; a ground whose drone's model says 0.75 but publishes from 0.7 says it fell short."""
+    """A model that stands by its detections from 0.75 publishes from PUBLISH_BELOW under it, as one at 0.9 publishes
+    from 0.7: the band of weak views the tracks extend with. A model whose JSON gives its count's scores (chosen on
+    tuning flights: the shipped one) confirms and publishes at those. The onboard node takes them from the model's
+    JSON and says the confirm score in its camera message; a ground whose drone's model says 0.75 but publishes from
+    0.7 says it fell short."""
     from argparse import Namespace
 
     from onboard.__main__ import _detector
-    from pomar.countable import PUBLISH_BELOW, PUBLISH_SCORE, publish_score
+    from onboard.loop import camera_message
+    from pomar.countable import PUBLISH_BELOW, PUBLISH_SCORE, count_scores, publish_score
 
     assert publish_score(None) == PUBLISH_SCORE and publish_score(0.9) == PUBLISH_SCORE
     assert abs(publish_score(0.75) - (0.75 - PUBLISH_BELOW)) < 1e-9 and publish_score(0.1) == 0.0
+    assert count_scores({"score_thresh": 0.75}) == (0.75, publish_score(0.75)) and count_scores({}) == (None, 0.7)
+    assert count_scores({"score_thresh": 0.75, "count": {"confirm_score": 0.85, "publish_score": 0.55}}) == (0.85, 0.55)
     models = Path(__file__).resolve().parents[1] / "onboard" / "models"
     name = "apple-detector.onnx"
-    own = json.loads((models / name).with_suffix(".json").read_text())["score_thresh"]
+    meta = json.loads((models / name).with_suffix(".json").read_text())
     det = _detector(Namespace(detector="onnx", model=str(models / name), providers=None, score_thresh=None,
                               tile_size=1344, threads=1))
-    assert abs(det.score_thresh - publish_score(own)) < 1e-9, name
+    confirm, publish = count_scores(meta)
+    assert abs(det.score_thresh - publish) < 1e-9, name
+    msg = wire.decode(camera_message("f", "d", CAM, 1280, 10.0, 0.0, 960, False, det, "takeoff").encode())
+    assert msg.operating_score == confirm and msg.score_thresh == publish
     seen = ApplesSeen()
     seen.take(wire.decode(wire.CameraMessage("f", "d", CAM, 10.0, score_thresh=publish_score(0.75),
                                              operating_score=0.75).encode()))
