@@ -379,9 +379,9 @@ def main(argv=None) -> int:
     rp.add_argument("--detector", choices=["onnx", "truth-replay"], default="onnx")
     rp.add_argument("--model", help="ONNX model (default: the shipped one)")
     rp.add_argument("--detector-score-thresh", type=float,
-                    help="the onboard node publishes detections scored at least this (default: its own, "
-                         "pomar.countable.PUBLISH_SCORE, as on the drone): weaker ones than --confirm-score extend "
-                         "tracks, --confirm-score decides which apples count")
+                    help="the onboard node publishes detections scored at least this (default: its own, as on the "
+                         "drone: the model's count publish score, pomar.countable.count_scores): weaker ones than the "
+                         "confirm score extend tracks, the confirm score decides which apples count")
     rp.add_argument("--detector-scale", type=scale_argument, default="auto", help=SCALE_HELP)
     rp.add_argument("--keyframe-every", type=int,
                     help="every Nth processed frame also goes as a keyframe (default: the onboard node's, one "

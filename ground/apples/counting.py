@@ -21,13 +21,13 @@ from ground.apples.frames import AssociationFrames
 
 @dataclass
 class CountingSettings:
-    #: An apple is counted once at least confirm_views of its views scored confirm_score or more (the
-    #: shipped detector's operating threshold). Weaker detections still extend and place it: an
+    #: An apple is counted once at least confirm_views of its views scored confirm_score or more (where the drone
+    #: does not say its model's: the former default's threshold). Weaker detections still extend and place it: an
     #: onboard node that sends detections down to 0.7 gives longer tracks without counting apples that
     #: are only ever glimpsed (bundled flight, journal re-run: F1 0.832 -> 0.865, count +4.7 %).
     confirm_score: float = 0.9
-    #: Where the drone's camera message gives its model's operating score, confirm at that instead of confirm_score:
-    #: a view counts as the model's own detections do, whichever model flies (issue 70).
+    #: Where the drone's camera message gives its model's operating score (its count's confirm score,
+    #: pomar.countable.count_scores), confirm at that instead of confirm_score, whichever model flies (issue 70).
     confirm_at_model_score: bool = True
     #: ... at the full frame rate. When the ground gets only every s-th frame (a real-time onboard node
     #: that drops what it cannot detect in time), ceil(confirm_views / s) views, at least 2, are asked
