@@ -51,13 +51,15 @@ def camera_message(flight_id: str, drone_id: str, camera: dict, image_width: int
     smallest apple radius it finds reliably, 0 where its model does not say) and how its boxes answer an apple's
     size, the score it publishes from and the one its model operates at, and what the telemetry's altitudes are
     measured from (wire.ALTITUDE_REFERENCES)."""
+    meta = getattr(detector, "meta", None)
+    count = count_scores(meta) if meta else (None, None)  # a truth stand-in has no model to say them
     return wire.CameraMessage(flight_id, drone_id, camera, fps, start_unix,
                               sent_keyframe_width(keyframe_width, image_width), paced=paced,
                               min_apple_radius_px=getattr(detector, "min_apple_radius_px", None) or 0.0,
                               score_thresh=getattr(detector, "score_thresh", None),
                               altitude_reference=altitude_reference,
                               box_response=getattr(detector, "box_response", None),
-                              operating_score=count_scores(getattr(detector, "meta", None) or {})[0])
+                              operating_score=count[0], needed_score=count[1])
 
 
 def encode_jpeg(img: np.ndarray, width: int, quality: int) -> bytes:

@@ -416,6 +416,10 @@ class CameraMessage:
     #: The score the drone's model operates at (its metadata's ``score_thresh``, chosen on its validation sets): a
     #: detection at or above it is one the model stands by. None: not said (a truth stand-in, or a node before it).
     operating_score: float | None = None
+    #: The score the drone's model's count wants detections published from (its metadata's, pomar.countable.
+    #: count_scores), whatever the node was started with: the ground says when it was given fewer. None: not said
+    #: (then pomar.countable.publish_score of operating_score).
+    needed_score: float | None = None
 
     def encode(self) -> bytes:
         return msgpack.packb({"v": SCHEMA_VERSION, "type": "camera", "flight": self.flight_id, "drone": self.drone_id,
@@ -426,7 +430,8 @@ class CameraMessage:
                               **({} if self.score_thresh is None else {"pubs": float(self.score_thresh)}),
                               **({} if self.altitude_reference is None else {"altref": self.altitude_reference}),
                               **({} if self.box_response is None else {"boxr": [float(v) for v in self.box_response]}),
-                              **({} if self.operating_score is None else {"ops": float(self.operating_score)})},
+                              **({} if self.operating_score is None else {"ops": float(self.operating_score)}),
+                              **({} if self.needed_score is None else {"pubn": float(self.needed_score)})},
                              use_bin_type=True)
 
     @property
@@ -468,7 +473,8 @@ class CameraMessage:
                    _float("camera message: min apple radius", d.get("minr", 0.0), 0.0, 1000.0),
                    None if d.get("pubs") is None else _float("camera message: published score", d["pubs"], 0.0, 1.0),
                    ref, box_response_of(d.get("boxr")),
-                   None if d.get("ops") is None else _float("camera message: operating score", d["ops"], 0.0, 1.0))
+                   None if d.get("ops") is None else _float("camera message: operating score", d["ops"], 0.0, 1.0),
+                   None if d.get("pubn") is None else _float("camera message: score needed", d["pubn"], 0.0, 1.0))
 
 
 def box_response_of(x, name: str = "camera message: box response") -> tuple[float, float] | None:

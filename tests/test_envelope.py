@@ -100,7 +100,10 @@ def test_the_publish_score_follows_the_models_operating_score(caplog):
     confirm, publish = count_scores(meta)
     assert abs(det.score_thresh - publish) < 1e-9, name
     msg = wire.decode(camera_message("f", "d", CAM, 1280, 10.0, 0.0, 960, False, det, "takeoff").encode())
-    assert msg.operating_score == confirm and msg.score_thresh == publish
+    assert msg.operating_score == confirm and msg.score_thresh == msg.needed_score == publish
+    seen = ApplesSeen()  # a model whose count publishes further under its confirm score than the rule: not short
+    seen.take(msg)
+    assert seen.detections() == {"published_from": publish, "needed_from": publish, "short": False}
     seen = ApplesSeen()
     seen.take(wire.decode(wire.CameraMessage("f", "d", CAM, 10.0, score_thresh=publish_score(0.75),
                                              operating_score=0.75).encode()))

@@ -946,9 +946,9 @@ def test_one_lock_step_stream_gives_the_same_map_through_every_entry_point(repla
     assert report["registration"]["mapping"] == "inline"
     if detector == "onnx":  # the drone said what it sent (from under its model's own threshold), what the tracks need
         from onboard.detector import DEFAULT_MODEL
-        from pomar.countable import publish_score
+        from pomar.countable import count_scores
 
-        sent = publish_score(json.loads(DEFAULT_MODEL.with_suffix(".json").read_text())["score_thresh"])
+        sent = count_scores(json.loads(DEFAULT_MODEL.with_suffix(".json").read_text()))[1]
         assert report["detections"] == {"published_from": pytest.approx(sent), "needed_from": pytest.approx(sent),
                                         "short": False}
         assert json.loads((tmp_path / "replay" / "report.json").read_text())["detections"] == report["detections"]

@@ -43,12 +43,12 @@ class ApplesSeen:
             self.camera = Camera.from_dict(msg.camera, source="camera message")  # the wire checked it already
             self.fx = self.camera.fx
             self.min_px = float(msg.min_apple_radius_px or 0.0)
-            needed = publish_score(msg.operating_score)
+            needed = msg.needed_score if msg.needed_score is not None else publish_score(msg.operating_score)
             if msg.score_thresh is not None and (msg.score_thresh, needed) != (self.published_from, self.needed_from):
                 self.published_from, self.needed_from = float(msg.score_thresh), needed
                 if self.short():
                     log.warning("the drone publishes detections scored %.2f and more: the tracks need them from %.2f "
-                                "(pomar.countable.publish_score), so apples seen weakly in some views may go uncounted "
+                                "(pomar.countable.count_scores), so apples seen weakly in some views may go uncounted "
                                 "(start the onboard node without --score-thresh)", self.published_from, needed)
         elif isinstance(msg, wire.FrameMessage) and np.isfinite(self.fx):
             self.scales[int(msg.frame)] = float(msg.scale)
