@@ -413,8 +413,9 @@ class CameraMessage:
     #: How the detector's boxes answer an apple's size: box half-size = slope x radius + intercept (px, as the
     #: detector sees them), from its model's metadata; None: not said (boxes taken as the apples' size, as the truth's).
     box_response: tuple[float, float] | None = None
-    #: The score the drone's model operates at (its metadata's ``score_thresh``, chosen on its validation sets): a
-    #: detection at or above it is one the model stands by. None: not said (a truth stand-in, or a node before it).
+    #: The score the drone's model operates at in the count (pomar.countable.count_scores: its metadata's count
+    #: confirm score, else its ``score_thresh``): a view at or above it confirms an apple. None: not said (a truth
+    #: stand-in, or a node before it).
     operating_score: float | None = None
     #: The score the drone's model's count wants detections published from (its metadata's, pomar.countable.
     #: count_scores), whatever the node was started with: the ground says when it was given fewer. None: not said
